@@ -1,0 +1,200 @@
+"""Physical primitives (oriented boxes with densities) and their geometry in JAX."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+NUM_SLOTS = 5  # primitives are padded to K = 5 by convention
+QUAT_TOL = 1e-3  # allowed | |q| - 1 | for a "unit" quaternion
+
+
+@struct.dataclass
+class Primitives:
+  """A set of oriented boxes in the object frame; batches add leading axes.
+
+  Attributes:
+    half_size: (..., K, 3) half extents in metres, in [0, 0.5].
+    pos: (..., K, 3) box centres in the object frame, in [-0.5, 0.5].
+    quat: (..., K, 4) orientations (w, x, y, z), unit norm.
+    density: (..., K) kg/m^3.
+    valid: (..., K) bool; padded slots are False and take no part in anything.
+  """
+
+  half_size: jax.Array
+  pos: jax.Array
+  quat: jax.Array
+  density: jax.Array
+  valid: jax.Array
+
+  @property
+  def batch_shape(self) -> tuple[int, ...]:
+    return tuple(np.shape(self.density)[:-1])
+
+  @property
+  def num_slots(self) -> int:
+    return int(np.shape(self.density)[-1])
+
+  def validate(self) -> "Primitives":
+    """Checks shapes and values on concrete arrays; raises ValueError naming the field.
+
+    Returns:
+      self, so that `prims = prims.validate()` reads naturally.
+    """
+    validate(self)
+    return self
+
+
+def _fail(field: str, problem: str):
+  raise ValueError(f"Primitives.{field}: {problem}")
+
+
+def validate(prims: Primitives) -> None:
+  """Raises ValueError (naming the field) unless `prims` is a well-formed batch of boxes."""
+  try:
+    arrays = {k: np.asarray(getattr(prims, k)) for k in
+              ("half_size", "pos", "quat", "density", "valid")}
+  except jax.errors.TracerArrayConversionError as e:
+    raise ValueError("Primitives.validate() needs concrete arrays; call it outside jit") from e
+  density = arrays["density"]
+  if density.ndim < 1:
+    _fail("density", f"expected shape (..., K), got {density.shape}")
+  lead = density.shape
+  expected = {"half_size": lead + (3,), "pos": lead + (3,), "quat": lead + (4,),
+              "density": lead, "valid": lead}
+  for name, shape in expected.items():
+    if arrays[name].shape != shape:
+      _fail(name, f"expected shape {shape} (batch + (K,) from density), got {arrays[name].shape}")
+  for name in ("half_size", "pos", "quat", "density"):
+    a = arrays[name]
+    if not np.issubdtype(a.dtype, np.floating):
+      _fail(name, f"expected a floating dtype, got {a.dtype}")
+    if not np.all(np.isfinite(a)):
+      _fail(name, "contains NaN or inf")
+  if arrays["valid"].dtype != np.bool_:
+    _fail("valid", f"expected dtype bool, got {arrays['valid'].dtype}")
+  valid = arrays["valid"]
+  if np.any(arrays["half_size"] < 0):
+    _fail("half_size", "negative half size")
+  if np.any(valid[..., None] & (arrays["half_size"] <= 0)):
+    _fail("half_size", "a valid box has a zero half size")
+  norm = np.linalg.norm(arrays["quat"], axis=-1)
+  if np.any(np.abs(norm - 1) > QUAT_TOL):
+    _fail("quat", f"not unit norm (|q| ranges {norm.min():.4g}..{norm.max():.4g})")
+  if np.any(valid & (density <= 0)):
+    _fail("density", "a valid box has a non-positive density")
+  if np.any(~valid.any(axis=-1)):
+    _fail("valid", "an object has no valid box")
+
+
+def make(half_size, pos, quat=None, density=1000.0, num_slots: int = NUM_SLOTS) -> Primitives:
+  """Builds padded Primitives from n <= num_slots boxes (numpy/list inputs, one object).
+
+  Args:
+    half_size: (n, 3).
+    pos: (n, 3).
+    quat: (n, 4) or None for identity.
+    density: scalar or (n,).
+    num_slots: K, the padded count.
+  """
+  half_size = np.asarray(half_size, np.float32).reshape(-1, 3)
+  n = half_size.shape[0]
+  if n > num_slots:
+    raise ValueError(f"{n} boxes do not fit in {num_slots} slots")
+  pos = np.asarray(pos, np.float32).reshape(n, 3)
+  quat = (np.tile([1.0, 0, 0, 0], (n, 1)) if quat is None else np.asarray(quat)).astype(np.float32)
+  density = np.broadcast_to(np.asarray(density, np.float32), (n,))
+  pad = num_slots - n
+  return Primitives(
+      half_size=np.concatenate([half_size, np.zeros((pad, 3), np.float32)]),
+      pos=np.concatenate([pos, np.zeros((pad, 3), np.float32)]),
+      quat=np.concatenate([quat.reshape(n, 4), np.tile(np.float32([1, 0, 0, 0]), (pad, 1))]),
+      density=np.concatenate([density, np.zeros(pad, np.float32)]),
+      valid=np.arange(num_slots) < n,
+  )
+
+
+# --- quaternion helpers (w, x, y, z) -----------------------------------------------------
+
+
+def quat_to_mat(q: jax.Array) -> jax.Array:
+  """(..., 4) unit quaternions -> (..., 3, 3) rotation matrices (columns = body axes)."""
+  w, x, y, z = jnp.moveaxis(q, -1, 0)
+  return jnp.stack([
+      jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+      jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+      jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+  ], -2)
+
+
+def mat_to_quat(r: jax.Array) -> jax.Array:
+  """(3, 3) rotation matrix -> (4,) unit quaternion with w >= 0 (Shepperd's method)."""
+  tr = jnp.trace(r)
+  cands = jnp.stack([
+      jnp.array([1 + tr, r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]),
+      jnp.array([r[2, 1] - r[1, 2], 1 + 2 * r[0, 0] - tr, r[0, 1] + r[1, 0], r[0, 2] + r[2, 0]]),
+      jnp.array([r[0, 2] - r[2, 0], r[0, 1] + r[1, 0], 1 + 2 * r[1, 1] - tr, r[1, 2] + r[2, 1]]),
+      jnp.array([r[1, 0] - r[0, 1], r[0, 2] + r[2, 0], r[1, 2] + r[2, 1], 1 + 2 * r[2, 2] - tr]),
+  ])
+  pick = jnp.argmax(jnp.array([tr, r[0, 0], r[1, 1], r[2, 2]]))
+  q = cands[pick]
+  q = q / jnp.linalg.norm(q)
+  return q * jnp.where(q[0] < 0, -1.0, 1.0)
+
+
+def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
+  """Hamilton product a ⊗ b of (..., 4) quaternions."""
+  aw, ax, ay, az = jnp.moveaxis(a, -1, 0)
+  bw, bx, by, bz = jnp.moveaxis(b, -1, 0)
+  return jnp.stack([
+      aw * bw - ax * bx - ay * by - az * bz,
+      aw * bx + ax * bw + ay * bz - az * by,
+      aw * by - ax * bz + ay * bw + az * bx,
+      aw * bz + ax * by - ay * bx + az * bw,
+  ], -1)
+
+
+# --- box geometry ---------------------------------------------------------------------------
+
+_CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
+                         np.float32)
+
+
+def corners(prims: Primitives) -> jax.Array:
+  """(..., K, 8, 3) box corners in the object frame."""
+  local = _CORNER_SIGNS * prims.half_size[..., None, :]
+  rot = quat_to_mat(prims.quat)
+  return jnp.einsum("...ij,...cj->...ci", rot, local) + prims.pos[..., None, :]
+
+
+def lowest_point(prims: Primitives) -> jax.Array:
+  """(...,) lowest z over the corners of valid boxes, in the object frame."""
+  z = corners(prims)[..., 2].min(axis=-1)
+  return jnp.where(prims.valid, z, jnp.inf).min(axis=-1)
+
+
+def ray_box_hits(origin: jax.Array, direction: jax.Array, prims: Primitives) -> jax.Array:
+  """Distance along a ray to each box (slab method); inf where the ray misses.
+
+  Args:
+    origin: (3,) ray origin in the object frame.
+    direction: (3,) unit direction.
+    prims: one object, (K, ...) fields.
+
+  Returns:
+    (K,) the ray parameter t >= 0 of the first hit per box (0 if the origin is inside),
+    inf for misses and invalid boxes.
+  """
+  rot = quat_to_mat(prims.quat)  # (K, 3, 3)
+  o = jnp.einsum("kji,kj->ki", rot, origin - prims.pos)  # R^T (o - p)
+  d = jnp.einsum("kji,j->ki", rot, direction)
+  tiny = 1e-12
+  safe_d = jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
+  t1 = (-prims.half_size - o) / safe_d
+  t2 = (prims.half_size - o) / safe_d
+  t_near = jnp.minimum(t1, t2).max(axis=-1)
+  t_far = jnp.maximum(t1, t2).min(axis=-1)
+  hit = (t_far >= jnp.maximum(t_near, 0.0)) & prims.valid
+  return jnp.where(hit, jnp.maximum(t_near, 0.0), jnp.inf)
