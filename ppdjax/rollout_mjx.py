@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from ppdjax import scene
+from ppdjax import mjx_step, scene
 from ppdjax.physics import Pushes, push_wrenches
 from ppdjax.mass import mass_properties
 from ppdjax.primitives import Primitives
@@ -33,6 +33,9 @@ class MjxSettings:
     push_iterations, push_ls_iterations: solver settings while a push acts (and for
       `push_steps_extra` steps after it): a 1e5 N push changes the contact state in one
       step, which a few Newton iterations do not resolve; the loop stops at convergence.
+    fixed_iterations: after the push, step with `ppdjax.mjx_step` (the same Newton
+      iterations without MJX's while_loop and its host sync per iteration) instead of
+      `mjx.step`.
   """
 
   iterations: int = 4
@@ -42,6 +45,7 @@ class MjxSettings:
   push_steps_extra: int = 0
   push_iterations: int = 100
   push_ls_iterations: int = 50
+  fixed_iterations: bool = True
 
 
 DEFAULT_SETTINGS = MjxSettings()
@@ -89,15 +93,17 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
   def one_push(wrench):
     xfrc = jnp.zeros((mx.nbody, 6), jnp.float32).at[scene.OBJECT_BODY].set(wrench)
 
-    def stepper(m):
+    def stepper(m, step_fn):
       def step(d, t):
         d = d.replace(xfrc_applied=jnp.where(t < duration, xfrc, 0.0))
-        d = mjx.step(m, d)
+        d = step_fn(m, d)
         return d, d.qpos[:7]
       return step
 
-    d, traj_push = jax.lax.scan(stepper(m_push), d0, jnp.arange(n_push))
-    _, traj = jax.lax.scan(stepper(m_fast), d, jnp.arange(n_push, steps),
+    fast_step = (functools.partial(mjx_step.step, iterations=settings.iterations)
+                 if settings.fixed_iterations else mjx.step)
+    d, traj_push = jax.lax.scan(stepper(m_push, mjx.step), d0, jnp.arange(n_push))
+    _, traj = jax.lax.scan(stepper(m_fast, fast_step), d, jnp.arange(n_push, steps),
                            unroll=settings.unroll)
     return jnp.concatenate([traj_push, traj], 0)
 

@@ -1,0 +1,134 @@
+"""Benchmark: steps/s of physics.simulate, MJX (accelerator) against MuJoCo C (all CPU cores).
+
+Both engines run in this one process on the same random towers under the paper's four
+pushes (rollouts = towers x 4). Each MJX variant is timed after compilation and checked
+against the C trajectories of the same rollouts (the agreement columns, in mm of the
+object-frame origin). Prints a markdown table and writes JSON.
+
+  python experiments/bench_physics.py --sizes 2048,65536 --out bench.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import time
+
+import jax
+import numpy as np
+
+from ppdjax import physics, towers
+from ppdjax.rollout_mjx import MjxSettings
+
+def _v(iterations, ls, contacts=-1, fixed=True, unroll=1):
+  return MjxSettings(iterations=iterations, ls_iterations=ls, max_contact_points=contacts,
+                     fixed_iterations=fixed, unroll=unroll)
+
+
+# Each variant converges the push step (Newton 100 / ls 50) and differs after it.
+VARIANTS = {
+    "defaults (Newton 100 / ls 50)": _v(100, 50, fixed=False),
+    "i4 ls8 while": _v(4, 8, fixed=False),
+    "i4 ls8 contacts8 while": _v(4, 8, 8, fixed=False),
+    "i3 ls6 contacts8 while": _v(3, 6, 8, fixed=False),
+    "i4 ls8 contacts8 fixed": _v(4, 8, 8),
+    "i3 ls6 contacts8 fixed": _v(3, 6, 8),
+    "i4 ls4 contacts8 fixed": _v(4, 4, 8),
+    "i3 ls4 contacts8 fixed": _v(3, 4, 8),
+    "i2 ls4 contacts8 fixed": _v(2, 4, 8),
+    "i3 ls4 contacts8 fixed unroll2": _v(3, 4, 8, unroll=2),
+    "i3 ls4 contacts4 fixed": _v(3, 4, 4),
+}
+
+
+def agreement(traj, ref) -> dict:
+  """Gap statistics (mm) between two (N, P, T, 7) trajectory sets, per rollout."""
+  gap = np.linalg.norm(np.asarray(traj)[..., :3] - np.asarray(ref)[..., :3], axis=-1) * 1e3
+  gap = gap.reshape(-1, gap.shape[-1])
+  early = gap[:, :30].max(-1)  # before landing events: the first 0.1 s
+  return {"early_p90_mm": float(np.percentile(early, 90)),
+          "early_max_mm": float(early.max()),
+          "median_mm": float(np.median(gap)),
+          "final_p50_mm": float(np.percentile(gap[:, -1], 50)),
+          "final_p90_mm": float(np.percentile(gap[:, -1], 90)),
+          "final_max_mm": float(gap[:, -1].max())}
+
+
+def timed(fn, repeats):
+  times = []
+  for _ in range(repeats):
+    t = time.perf_counter()
+    out = fn()
+    jax.block_until_ready(out)
+    times.append(time.perf_counter() - t)
+  return out, float(np.median(times))
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--sizes", default="2048,65536", help="rollout counts (multiples of 4)")
+  parser.add_argument("--variants", default=",".join(VARIANTS), help="MJX variants to run")
+  parser.add_argument("--steps", type=int, default=256)
+  parser.add_argument("--seed", type=int, default=0)
+  parser.add_argument("--repeats", type=int, default=3)
+  parser.add_argument("--out", default="", help="JSON file for the results")
+  args = parser.parse_args()
+  pushes = physics.default_pushes()
+  rows = []
+  meta = {"device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
+          "cpu_count": os.cpu_count(), "jax": jax.__version__, "python": platform.python_version(),
+          "xla_flags": os.environ.get("XLA_FLAGS", ""), "steps": args.steps}
+
+  def save():
+    if args.out:
+      with open(args.out, "w") as f:
+        json.dump({"meta": meta, "rows": rows}, f, indent=1)
+
+  for size in (int(s) for s in args.sizes.split(",")):
+    prims = towers.sample_towers(args.seed, size // pushes.num)
+    rollouts = size // pushes.num * pushes.num
+    physics.simulate(prims, pushes, steps=2, backend="mujoco")  # compiles the preprocessing
+    ref, t_c = timed(lambda: physics.simulate(prims, pushes, steps=args.steps,
+                                              backend="mujoco"), max(1, args.repeats - 1))
+    c_rate = rollouts * args.steps / t_c
+    rows.append({"rollouts": rollouts, "engine": f"MuJoCo C, mujoco.batch, {os.cpu_count()} threads",
+                 "seconds": t_c, "steps_per_s": c_rate, "ratio": 1.0})
+    print(f"[{rollouts}] C: {t_c:.2f} s, {c_rate / 1e6:.2f} M steps/s", flush=True)
+    save()
+    for name in args.variants.split(","):
+      settings = VARIANTS[name]
+      run = lambda s=settings: physics.simulate(prims, pushes, steps=args.steps, settings=s)
+      t0 = time.perf_counter()
+      jax.block_until_ready(run())
+      compile_s = time.perf_counter() - t0
+      out, t = timed(run, args.repeats)
+      rate = rollouts * args.steps / t
+      row = {"rollouts": rollouts, "engine": f"MJX {name}", "settings": dataclasses.asdict(settings),
+             "seconds": t, "compile_s": compile_s, "steps_per_s": rate, "ratio": rate / c_rate,
+             **agreement(out, ref)}
+      rows.append(row)
+      print(f"[{rollouts}] {name}: {t:.3f} s, {rate / 1e6:.2f} M steps/s, {rate / c_rate:.2f}x C,"
+            f" early p90 {row['early_p90_mm']:.3f} mm, median {row['median_mm']:.3f} mm"
+            f" (compile {compile_s:.0f} s)", flush=True)
+      save()
+  print(f"\n{meta}\n")
+  print(table(rows))
+
+
+def table(rows) -> str:
+  lines = ["| rollouts | engine | s | M steps/s | × C | first 0.1 s p90 (mm) | median (mm) "
+           "| final p50 / p90 / max (mm) |", "|---|---|---|---|---|---|---|---|"]
+  for r in rows:
+    agree = ("reference | reference | reference" if "early_p90_mm" not in r else
+             f"{r['early_p90_mm']:.3f} | {r['median_mm']:.3f} | {r['final_p50_mm']:.2f} / "
+             f"{r['final_p90_mm']:.1f} / {r['final_max_mm']:.1f}")
+    lines.append(f"| {r['rollouts']} | {r['engine']} | {r['seconds']:.3f} | "
+                 f"{r['steps_per_s'] / 1e6:.2f} | {r['ratio']:.2f} | {agree} |")
+  return "\n".join(lines)
+
+
+if __name__ == "__main__":
+  main()
