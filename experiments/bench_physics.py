@@ -23,12 +23,14 @@ import numpy as np
 from ppdjax import physics, towers
 from ppdjax.rollout_mjx import MjxSettings
 
-def _v(iterations, ls, contacts=-1, fixed=True, unroll=1):
+def _v(iterations, ls, contacts=-1, fixed=True, unroll=1, push=(100, 50)):
   return MjxSettings(iterations=iterations, ls_iterations=ls, max_contact_points=contacts,
-                     fixed_iterations=fixed, unroll=unroll)
+                     fixed_iterations=fixed, unroll=unroll, push_iterations=push[0],
+                     push_ls_iterations=push[1])
 
 
-# Each variant converges the push step (Newton 100 / ls 50) and differs after it.
+# Every variant solves the push step to convergence and differs after it; the last one is
+# the package default (ppdjax.rollout_mjx.MjxSettings()).
 VARIANTS = {
     "defaults (Newton 100 / ls 50)": _v(100, 50, fixed=False),
     "i4 ls8 while": _v(4, 8, fixed=False),
@@ -41,6 +43,11 @@ VARIANTS = {
     "i2 ls4 contacts8 fixed": _v(2, 4, 8),
     "i3 ls4 contacts8 fixed unroll2": _v(3, 4, 8, unroll=2),
     "i3 ls4 contacts4 fixed": _v(3, 4, 4),
+    "i4 ls2 contacts8 fixed": _v(4, 2, 8),
+    "i3 ls2 contacts8 fixed": _v(3, 2, 8),
+    "i3 ls1 contacts8 fixed push8/4": _v(3, 1, 8, push=(8, 4)),
+    "i4 ls2 contacts8 fixed push8/4": _v(4, 2, 8, push=(8, 4)),
+    "default: i3 ls2 contacts8 fixed push8/4": MjxSettings(),
 }
 
 

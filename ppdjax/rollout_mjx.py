@@ -38,13 +38,13 @@ class MjxSettings:
       `mjx.step`.
   """
 
-  iterations: int = 4
-  ls_iterations: int = 8
+  iterations: int = 3
+  ls_iterations: int = 2
   unroll: int = 1
-  max_contact_points: int = -1
+  max_contact_points: int = 8
   push_steps_extra: int = 0
-  push_iterations: int = 100
-  push_ls_iterations: int = 50
+  push_iterations: int = 8
+  push_ls_iterations: int = 4
   fixed_iterations: bool = True
 
 
@@ -100,9 +100,12 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
         return d, d.qpos[:7]
       return step
 
-    fast_step = (functools.partial(mjx_step.step, iterations=settings.iterations)
-                 if settings.fixed_iterations else mjx.step)
-    d, traj_push = jax.lax.scan(stepper(m_push, mjx.step), d0, jnp.arange(n_push))
+    if settings.fixed_iterations:
+      push_step = functools.partial(mjx_step.step, iterations=settings.push_iterations)
+      fast_step = functools.partial(mjx_step.step, iterations=settings.iterations)
+    else:
+      push_step = fast_step = mjx.step
+    d, traj_push = jax.lax.scan(stepper(m_push, push_step), d0, jnp.arange(n_push))
     _, traj = jax.lax.scan(stepper(m_fast, fast_step), d, jnp.arange(n_push, steps),
                            unroll=settings.unroll)
     return jnp.concatenate([traj_push, traj], 0)

@@ -37,7 +37,7 @@ def scene_xml(boxes: list[dict] | None = None, num_slots: int = NUM_SLOTS) -> st
       f'quat="{_v(b["quat"])}" density="{b["density"]!r}"/>' for i, b in enumerate(boxes))
   return f"""<mujoco model="ppdjax_scene">
   <option timestep="{TIMESTEP!r}" integrator="Euler" cone="pyramidal" solver="Newton">
-    <flag midphase="disable"/>
+    <flag midphase="disable" eulerdamp="disable"/>
   </option>
   <worldbody>
     <geom name="ground" type="plane" size="0 0 1"/>
