@@ -33,9 +33,9 @@ class MjxSettings:
     push_iterations, push_ls_iterations: solver settings while a push acts (and for
       `push_steps_extra` steps after it): a 1e5 N push changes the contact state in one
       step, which a few Newton iterations do not resolve; the loop stops at convergence.
-    fixed_iterations: after the push, step with `ppdjax.mjx_step` (the same Newton
-      iterations without MJX's while_loop and its host sync per iteration) instead of
-      `mjx.step`.
+    fixed_iterations: step with `ppdjax.mjx_step` (the same Newton iterations without
+      MJX's while_loop and its host sync per iteration) instead of `mjx.step`; the push
+      step too when `push_iterations <= MAX_UNROLLED_ITERATIONS`.
   """
 
   iterations: int = 3
@@ -49,6 +49,9 @@ class MjxSettings:
 
 
 DEFAULT_SETTINGS = MjxSettings()
+# Above this many push iterations the push step keeps MJX's while_loop (unrolling 100
+# iterations would take minutes to compile).
+MAX_UNROLLED_ITERATIONS = 16
 
 
 @functools.lru_cache(maxsize=8)
@@ -61,7 +64,8 @@ def template(settings: MjxSettings = DEFAULT_SETTINGS, num_slots: int = 5, push:
   model = mujoco.MjModel.from_xml_string(xml)
   model.opt.iterations = settings.push_iterations if push else settings.iterations
   model.opt.ls_iterations = settings.push_ls_iterations if push else settings.ls_iterations
-  return mjx.put_model(model)
+  with jax.ensure_compile_time_eval():  # concrete arrays, even when first called under jit
+    return mjx.put_model(model)
 
 
 def with_object(mx, prims: Primitives):
@@ -100,11 +104,11 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
         return d, d.qpos[:7]
       return step
 
+    push_step = fast_step = mjx.step
     if settings.fixed_iterations:
-      push_step = functools.partial(mjx_step.step, iterations=settings.push_iterations)
       fast_step = functools.partial(mjx_step.step, iterations=settings.iterations)
-    else:
-      push_step = fast_step = mjx.step
+      if settings.push_iterations <= MAX_UNROLLED_ITERATIONS:
+        push_step = functools.partial(mjx_step.step, iterations=settings.push_iterations)
     d, traj_push = jax.lax.scan(stepper(m_push, push_step), d0, jnp.arange(n_push))
     _, traj = jax.lax.scan(stepper(m_fast, fast_step), d, jnp.arange(n_push, steps),
                            unroll=settings.unroll)
