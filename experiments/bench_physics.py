@@ -23,32 +23,29 @@ import numpy as np
 from ppdjax import physics, towers
 from ppdjax.rollout_mjx import MjxSettings
 
-def _v(iterations, ls, contacts=-1, fixed=True, unroll=1, push=(100, 50)):
+def _v(iterations, ls, contacts=-1, fixed=True, push=(100, 50), chol=False, unroll=1):
   return MjxSettings(iterations=iterations, ls_iterations=ls, max_contact_points=contacts,
-                     fixed_iterations=fixed, unroll=unroll, push_iterations=push[0],
-                     push_ls_iterations=push[1])
+                     fixed_iterations=fixed, push_iterations=push[0], push_ls_iterations=push[1],
+                     unrolled_cholesky=chol, unroll=unroll)
 
 
-# Every variant solves the push step to convergence and differs after it; the last one is
-# the package default (ppdjax.rollout_mjx.MjxSettings()).
+# A ladder: each row adds one change to the row above; the last is the package default
+# (ppdjax.rollout_mjx.MjxSettings()). From the second row on, the push step is solved to
+# convergence and the settings apply to the steps after it.
 VARIANTS = {
-    "defaults (Newton 100 / ls 50)": _v(100, 50, fixed=False),
-    "i4 ls8 while": _v(4, 8, fixed=False),
-    "i4 ls8 contacts8 while": _v(4, 8, 8, fixed=False),
-    "i3 ls6 contacts8 while": _v(3, 6, 8, fixed=False),
-    "i4 ls8 contacts8 fixed": _v(4, 8, 8),
-    "i3 ls6 contacts8 fixed": _v(3, 6, 8),
-    "i4 ls4 contacts8 fixed": _v(4, 4, 8),
-    "i3 ls4 contacts8 fixed": _v(3, 4, 8),
-    "i2 ls4 contacts8 fixed": _v(2, 4, 8),
-    "i3 ls4 contacts8 fixed unroll2": _v(3, 4, 8, unroll=2),
-    "i3 ls4 contacts4 fixed": _v(3, 4, 4),
-    "i4 ls2 contacts8 fixed": _v(4, 2, 8),
-    "i3 ls2 contacts8 fixed": _v(3, 2, 8),
-    "i3 ls1 contacts8 fixed push8/4": _v(3, 1, 8, push=(8, 4)),
-    "i4 ls2 contacts8 fixed push8/4": _v(4, 2, 8, push=(8, 4)),
-    "default: i3 ls2 contacts8 fixed push8/4": MjxSettings(),
+    "MJX as shipped (Newton 100 / ls 50)": _v(100, 50, fixed=False),
+    "Newton 4 / ls 8, push step converged": _v(4, 8, fixed=False),
+    "+ 8 deepest contacts": _v(4, 8, 8, fixed=False),
+    "+ fixed iterations, no while_loop": _v(4, 8, 8),
+    "+ push step fixed 8 / ls 4": _v(4, 8, 8, push=(8, 4)),
+    "+ line search 2": _v(4, 2, 8, push=(8, 4)),
+    "+ unrolled Cholesky": _v(4, 2, 8, push=(8, 4), chol=True),
+    "+ Newton 3 (default)": MjxSettings(),
+    # explored, not in the ladder
+    "Newton 2 / ls 4, 8 contacts, fixed": _v(2, 4, 8, push=(8, 4), chol=True),
+    "scan unroll 2": _v(3, 2, 8, push=(8, 4), chol=True, unroll=2),
 }
+assert VARIANTS["+ Newton 3 (default)"] == _v(3, 2, 8, push=(8, 4), chol=True)
 
 
 def agreement(traj, ref) -> dict:
@@ -77,7 +74,8 @@ def timed(fn, repeats):
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--sizes", default="2048,65536", help="rollout counts (multiples of 4)")
-  parser.add_argument("--variants", default=",".join(VARIANTS), help="MJX variants to run")
+  parser.add_argument("--variants", default=",".join(list(VARIANTS)[:8]),
+                      help="comma-separated MJX variants (default: the ladder)")
   parser.add_argument("--steps", type=int, default=256)
   parser.add_argument("--seed", type=int, default=0)
   parser.add_argument("--repeats", type=int, default=3)

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from mujoco.mjx._src import forward, math, solver
-from mujoco.mjx._src.types import DisableBit, IntegratorType, SolverType
+from mujoco.mjx._src import forward, math, solver, support
+from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SolverType
 
 
 def _not_done(m, d, ctx) -> jax.Array:
@@ -26,15 +26,49 @@ def _not_done(m, d, ctx) -> jax.Array:
   return (improvement >= m.opt.tolerance) & (gradient >= m.opt.tolerance)
 
 
-def _iteration(m, d, ctx):
+def _cholesky_solve(a: jax.Array, b: jax.Array) -> jax.Array:
+  """Solves a x = b for a small SPD matrix by an unrolled Cholesky factorisation.
+
+  Plain arithmetic that XLA fuses into a few kernels, where `cho_factor`/`cho_solve` call
+  a batched linear-algebra library per Newton iteration (measured in docs/physics.md).
+  """
+  n = a.shape[-1]
+  low = [[None] * n for _ in range(n)]
+  for j in range(n):
+    diag = a[j, j] - sum(low[j][k] * low[j][k] for k in range(j))
+    low[j][j] = jnp.sqrt(jnp.maximum(diag, 1e-30))
+    for i in range(j + 1, n):
+      low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
+  y = [None] * n
+  for i in range(n):
+    y[i] = (b[i] - sum(low[i][k] * y[k] for k in range(i))) / low[i][i]
+  x = [None] * n
+  for i in reversed(range(n)):
+    x[i] = (y[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))) / low[i][i]
+  return jnp.stack(x)
+
+
+def _update_gradient(m, d, ctx):
+  """MJX's Newton gradient update (pyramidal cones) with the unrolled Cholesky solve."""
+  grad = ctx.Ma - d.qfrc_smooth - ctx.qfrc_constraint
+  efc_j = d._impl.efc_J  # pylint: disable=protected-access
+  h = (efc_j.T * d._impl.efc_D * ctx.active) @ efc_j  # pylint: disable=protected-access
+  h = support.full_m(m, d) + h
+  return ctx.replace(grad=grad, Mgrad=_cholesky_solve((h + h.T) * 0.5, grad))
+
+
+def _iteration(m, d, ctx, unrolled_cholesky: bool):
   """One Newton iteration: MJX's loop body for solver="Newton"."""
   ctx = solver._linesearch(m, d, ctx)  # pylint: disable=protected-access
   ctx = solver._update_constraint(m, d, ctx)  # pylint: disable=protected-access
-  ctx = solver._update_gradient(m, d, ctx)  # pylint: disable=protected-access
+  if unrolled_cholesky:
+    ctx = _update_gradient(m, d, ctx)
+  else:
+    ctx = solver._update_gradient(m, d, ctx)  # pylint: disable=protected-access
   return ctx.replace(search=-ctx.Mgrad, solver_niter=ctx.solver_niter + 1)
 
 
-def solve(m, d, iterations: int):
+def solve(m, d, iterations: int, unrolled_cholesky: bool = True):
   """Constraint forces by `iterations` Newton steps (frozen once converged)."""
   qacc = d.qacc_smooth
   if not m.opt.disableflags & DisableBit.WARMSTART:
@@ -45,7 +79,7 @@ def solve(m, d, iterations: int):
   ctx = solver.Context.create(m, d)
   for _ in range(iterations):
     go = _not_done(m, d, ctx)
-    new = _iteration(m, d, ctx)
+    new = _iteration(m, d, ctx, unrolled_cholesky)
     ctx = jax.tree.map(lambda a, b: jnp.where(go, a, b), new, ctx)
   return d.tree_replace({
       "qfrc_constraint": ctx.qfrc_constraint,
@@ -54,10 +88,12 @@ def solve(m, d, iterations: int):
   })
 
 
-def step(m, d, iterations: int):
+def step(m, d, iterations: int, unrolled_cholesky: bool = True):
   """One Euler step of a JAX-backend MJX model with `iterations` Newton iterations."""
-  if m.opt.solver != SolverType.NEWTON or m.opt.integrator != IntegratorType.EULER:
-    raise ValueError("ppdjax's fixed-iteration step supports the Newton solver and Euler only")
+  if (m.opt.solver != SolverType.NEWTON or m.opt.integrator != IntegratorType.EULER
+      or m.opt.cone != ConeType.PYRAMIDAL):
+    raise ValueError("ppdjax's fixed-iteration step supports Newton, Euler and pyramidal "
+                     "cones only")
   d = forward.fwd_position(m, d)
   d = forward.fwd_velocity(m, d)
   d = forward.fwd_actuation(m, d)
@@ -65,5 +101,5 @@ def step(m, d, iterations: int):
   if d._impl.efc_J.size == 0:  # pylint: disable=protected-access
     d = d.replace(qacc=d.qacc_smooth)
   else:
-    d = solve(m, d, iterations)
+    d = solve(m, d, iterations, unrolled_cholesky)
   return forward.euler(m, d)

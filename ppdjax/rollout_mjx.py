@@ -36,6 +36,8 @@ class MjxSettings:
     fixed_iterations: step with `ppdjax.mjx_step` (the same Newton iterations without
       MJX's while_loop and its host sync per iteration) instead of `mjx.step`; the push
       step too when `push_iterations <= MAX_UNROLLED_ITERATIONS`.
+    unrolled_cholesky: with `fixed_iterations`, solve each Newton system by an unrolled
+      6x6 Cholesky instead of `jax.scipy.linalg.cho_factor`/`cho_solve`.
   """
 
   iterations: int = 3
@@ -46,6 +48,7 @@ class MjxSettings:
   push_iterations: int = 8
   push_ls_iterations: int = 4
   fixed_iterations: bool = True
+  unrolled_cholesky: bool = True
 
 
 DEFAULT_SETTINGS = MjxSettings()
@@ -106,9 +109,11 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
 
     push_step = fast_step = mjx.step
     if settings.fixed_iterations:
-      fast_step = functools.partial(mjx_step.step, iterations=settings.iterations)
+      fast_step = functools.partial(mjx_step.step, iterations=settings.iterations,
+                                    unrolled_cholesky=settings.unrolled_cholesky)
       if settings.push_iterations <= MAX_UNROLLED_ITERATIONS:
-        push_step = functools.partial(mjx_step.step, iterations=settings.push_iterations)
+        push_step = functools.partial(mjx_step.step, iterations=settings.push_iterations,
+                                      unrolled_cholesky=settings.unrolled_cholesky)
     d, traj_push = jax.lax.scan(stepper(m_push, push_step), d0, jnp.arange(n_push))
     _, traj = jax.lax.scan(stepper(m_fast, fast_step), d, jnp.arange(n_push, steps),
                            unroll=settings.unroll)

@@ -1,0 +1,29 @@
+# Quick start: `make demo` (the tiny job) and `make test` (the test suite).
+# Both create .venv and install the package with its test extras on first use.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+OUT ?= out/demo
+
+.PHONY: demo test test-all bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test]"
+	touch $@
+
+demo: $(VENV)/.installed
+	$(PY) -m ppdjax.demo --config=ppdjax/configs/tiny.py --out=$(OUT)
+
+test: $(VENV)/.installed
+	$(PY) -m pytest -q
+
+test-all: $(VENV)/.installed
+	$(PY) -m pytest -q -m ""
+
+bench: $(VENV)/.installed
+	$(PY) experiments/bench_physics.py
+
+clean:
+	rm -rf $(VENV) out .jax_cache

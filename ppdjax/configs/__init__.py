@@ -1,0 +1,1 @@
+"""Named presets: `tiny` (CPU, minutes) and `paper` (GPU)."""

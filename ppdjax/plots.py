@@ -1,0 +1,72 @@
+"""Figures: a tower and its push trajectories."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ppdjax import scene  # noqa: E402
+from ppdjax.primitives import corners  # noqa: E402
+
+_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
+
+
+def plot_trajectories(prims, pushes, traj, ref=None, path="trajectories.png",
+                      labels=("mjx", "mujoco")):
+  """Side view of the tower with its pushes, height over time, and top-down paths.
+
+  Args:
+    prims: one object (K slots).
+    pushes: Pushes.
+    traj: (P, T, 7) trajectories to show (solid).
+    ref: optional (P, T, 7) reference trajectories (dashed).
+    path: PNG file.
+    labels: names of the two engines.
+  """
+  import jax
+  import jax.numpy as jnp
+  from ppdjax import physics
+
+  p = jax.tree.map(jnp.asarray, prims)
+  rest = np.asarray(scene.rest_position(p))
+  box_corners = np.asarray(corners(p)) + rest
+  valid = np.asarray(p.valid)
+  density = np.asarray(p.density)
+  points = np.asarray(physics.push_points(p, pushes)) + rest
+  sources = np.asarray(pushes.sources) + rest
+  t = np.arange(1, traj.shape[1] + 1) * scene.TIMESTEP
+
+  fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+  ax = axes[0]
+  cmap = plt.get_cmap("viridis")
+  for k in np.flatnonzero(valid):
+    c = box_corners[k][:, [0, 2]]  # side view: x-z
+    lo, hi = c.min(0), c.max(0)
+    ax.add_patch(plt.Rectangle(lo, *(hi - lo), alpha=0.6,
+                               color=cmap(min(density[k] / 10000.0, 1.0)), ec="k"))
+    ax.text(*(lo + hi) / 2, f"{density[k]:.0f}", ha="center", va="center", fontsize=8)
+  for i in range(len(points)):
+    ax.annotate("", xy=points[i, [0, 2]], xytext=sources[i, [0, 2]],
+                arrowprops=dict(arrowstyle="->", color=_COLORS[i % 6], lw=1.5))
+  ax.axhline(0, color="gray", lw=1)
+  ax.set(xlim=(-1.3, 1.3), ylim=(-0.6, 1.7), aspect="equal", xlabel="x (m)", ylabel="z (m)",
+         title="tower at rest (x-z), density kg/m³, pushes")
+
+  for i in range(traj.shape[0]):
+    col = _COLORS[i % 6]
+    axes[1].plot(t, traj[i, :, 2], color=col, label=f"push {i}")
+    axes[2].plot(traj[i, :, 0], traj[i, :, 1], color=col, label=f"push {i}")
+    if ref is not None:
+      axes[1].plot(t, ref[i, :, 2], color=col, ls="--", lw=1)
+      axes[2].plot(ref[i, :, 0], ref[i, :, 1], color=col, ls="--", lw=1)
+  suffix = f" ({labels[0]} solid, {labels[1]} dashed)" if ref is not None else ""
+  axes[1].set(xlabel="time (s)", ylabel="object-frame origin z (m)", title="height" + suffix)
+  axes[2].set(xlabel="x (m)", ylabel="y (m)", aspect="equal", title="top-down path" + suffix)
+  axes[2].plot([0], [0], "k+")
+  axes[1].legend(fontsize=8)
+  fig.tight_layout()
+  fig.savefig(path, dpi=110)
+  plt.close(fig)

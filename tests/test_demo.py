@@ -1,0 +1,18 @@
+"""The README's demo on the tiny preset."""
+
+import json
+import os
+
+from ppdjax import demo
+from ppdjax.configs import tiny
+
+
+def test_demo_writes_plot_and_summary(tmp_path):
+  summary = demo.run_demo(tiny.get_config(), str(tmp_path))
+  for name in ("trajectories.png", "summary.md", "summary.json"):
+    assert os.path.getsize(tmp_path / name) > 100
+  with open(tmp_path / "summary.json") as f:
+    assert json.load(f)["mass_kg"] == summary["mass_kg"] > 0
+  assert len(summary["speed_after_push_m_s"]) == 4
+  assert all(0.05 < v < 10 for v in summary["speed_after_push_m_s"])
+  assert max(summary["gap_to_reference_mm"]["first_0.1s_max"]) < 2.0
