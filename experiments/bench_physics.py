@@ -34,15 +34,15 @@ def _v(iterations, ls, contacts=-1, fixed=True, push=(100, 50), chol=False, unro
 # convergence and the settings apply to the steps after it.
 VARIANTS = {
     "MJX as shipped (Newton 100 / ls 50)": _v(100, 50, fixed=False),
-    "Newton 4 / ls 8, push step converged": _v(4, 8, fixed=False),
+    "Newton 4 / ls 8 (push step converged)": _v(4, 8, fixed=False),
     "+ 8 deepest contacts": _v(4, 8, 8, fixed=False),
-    "+ fixed iterations, no while_loop": _v(4, 8, 8),
+    "+ fixed iterations (no while_loop)": _v(4, 8, 8),
     "+ push step fixed 8 / ls 4": _v(4, 8, 8, push=(8, 4)),
     "+ line search 2": _v(4, 2, 8, push=(8, 4)),
     "+ unrolled Cholesky": _v(4, 2, 8, push=(8, 4), chol=True),
     "+ Newton 3 (default)": MjxSettings(),
     # explored, not in the ladder
-    "Newton 2 / ls 4, 8 contacts, fixed": _v(2, 4, 8, push=(8, 4), chol=True),
+    "Newton 2 / ls 4 (explored)": _v(2, 4, 8, push=(8, 4), chol=True),
     "scan unroll 2": _v(3, 2, 8, push=(8, 4), chol=True, unroll=2),
 }
 assert VARIANTS["+ Newton 3 (default)"] == _v(3, 2, 8, push=(8, 4), chol=True)
