@@ -71,17 +71,15 @@ def template(settings: MjxSettings = DEFAULT_SETTINGS, num_slots: int = 5, push:
     return mjx.put_model(model)
 
 
-def with_object(mx, prims: Primitives):
-  """The template model with one object's geometry and mass properties written in."""
-  fields = scene.object_fields(prims)
-  k = prims.density.shape[-1]
+def with_object(mx, fields: dict[str, jax.Array]):
+  """The template model with one object's fields (`scene.object_fields`) written in."""
+  k = fields["geom_size"].shape[0]
   geoms = slice(scene.FIRST_BOX_GEOM, scene.FIRST_BOX_GEOM + k)
   updates = {}
   for name, value in fields.items():
     old = getattr(mx, name)
-    if name in scene.GEOM_FIELDS:
-      value = old.at[geoms].set(value.astype(old.dtype))
-    updates[name] = value.astype(old.dtype)
+    value = value.astype(old.dtype)
+    updates[name] = old.at[geoms].set(value) if name in scene.GEOM_FIELDS else value
   return mx.replace(**updates)
 
 
@@ -90,7 +88,8 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
   """(P, steps, 7) trajectories of one object (K slots) under P pushes; traceable."""
   k = prims.density.shape[-1]
   mx = template(settings, k)
-  m_fast, m_push = with_object(mx, prims), with_object(template(settings, k, push=True), prims)
+  fields = scene.object_fields(prims)
+  m_fast, m_push = with_object(mx, fields), with_object(template(settings, k, push=True), fields)
   wrenches = push_wrenches(prims, pushes, mass_properties(prims))
   qpos0 = jnp.concatenate([scene.rest_position(prims), jnp.array([1.0, 0.0, 0.0, 0.0])])
   d0 = mjx.make_data(mx).replace(qpos=qpos0.astype(jnp.float32))
