@@ -1,6 +1,12 @@
 """ppdjax: Physical Primitive Decomposition in JAX, with MuJoCo MJX physics."""
 
-from ppdjax.primitives import Primitives
+import os
+
+# MuJoCo picks its OpenGL platform when it is first imported: headless EGL unless the
+# user chose otherwise (ppdjax.render needs it; physics does not).
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from ppdjax.primitives import Primitives  # noqa: E402
 
 __all__ = ["Primitives"]
 __version__ = "0.1.0"

@@ -34,3 +34,88 @@ def density_to_slot(density):
   """Nearest 0-based slot of a density in kg/m^3, clipped to the slot range."""
   return np.clip(np.rint(np.asarray(density) / SLOT_DENSITY) - 1, 0,
                  NUM_DENSITY_SLOTS - 1).astype(np.int32)
+
+
+# --- procedural textures -------------------------------------------------------------------
+# One family per material, randomised per block from a seed. A texture depends on the
+# material and the seed only, never on the density: an image reveals the material and
+# nothing about where the density lies within the material's range.
+
+TEXTURE_SIZE = 64
+
+
+def _value_noise(rng: np.random.Generator, size: int, cells: int) -> np.ndarray:
+  """Smooth noise in [0, 1]: a random `cells` x `cells` grid, bilinearly upsampled."""
+  grid = rng.random((cells + 1, cells + 1))
+  t = np.linspace(0, cells, size, endpoint=False)
+  i = t.astype(int)
+  f = t - i
+  f = f * f * (3 - 2 * f)
+  rows = grid[i] * (1 - f)[:, None] + grid[i + 1] * f[:, None]
+  return rows[:, i] * (1 - f)[None] + rows[:, i + 1] * f[None]
+
+
+def _fractal(rng, size, octaves=(4, 8, 16)) -> np.ndarray:
+  n = sum(_value_noise(rng, size, c) / (k + 1) for k, c in enumerate(octaves))
+  return (n - n.min()) / (np.ptp(n) + 1e-9)
+
+
+def _wood(rng, size):
+  y, x = np.mgrid[0:size, 0:size] / size
+  warp = _fractal(rng, size, (2, 4)) * rng.uniform(1.0, 2.5)
+  rings = 0.5 + 0.5 * np.sin(2 * np.pi * (rng.uniform(4, 9) * (y + 0.15 * x) + warp))
+  base = np.array([0.55, 0.36, 0.18]) * rng.uniform(0.85, 1.15)
+  dark = base * 0.55
+  return base * (1 - rings[..., None] ** 3) + dark * rings[..., None] ** 3
+
+
+def _brick(rng, size):
+  rows = int(rng.integers(4, 7))
+  h = size / rows
+  y, x = np.mgrid[0:size, 0:size].astype(float)
+  row = (y // h).astype(int)
+  w = 2 * h * rng.uniform(0.9, 1.3)
+  xs = x + (row % 2) * w / 2
+  col = (xs // w).astype(int)
+  mortar = ((y % h) < 1.5) | ((xs % w) < 1.5)
+  jitter = rng.uniform(0.8, 1.15, (rows + 1, int(size / w) + 3))[row, col]
+  base = np.array([0.62, 0.22, 0.14]) * rng.uniform(0.85, 1.1)
+  img = base * jitter[..., None] * (0.85 + 0.15 * _fractal(rng, size)[..., None])
+  return np.where(mortar[..., None], np.array([0.72, 0.70, 0.66]), img)
+
+
+def _stone(rng, size):
+  n = _fractal(rng, size, (3, 6, 12, 24))
+  speck = rng.random((size, size)) < 0.04
+  grey = 0.35 + 0.35 * n
+  img = np.stack([grey, grey * 0.98, grey * 0.93], -1) * rng.uniform(0.85, 1.15)
+  return np.where(speck[..., None], img * 0.6, img)
+
+
+def _ceramic(rng, size):
+  tint = np.array([0.93, 0.91, 0.86]) + rng.uniform(-0.06, 0.04, 3)
+  glaze = 0.94 + 0.06 * _fractal(rng, size, (2, 3))
+  crackle = _fractal(rng, size, (10, 20))
+  lines = np.abs(crackle - 0.5) < 0.015
+  img = tint * glaze[..., None]
+  return np.where(lines[..., None], img * 0.8, img)
+
+
+def _metal(rng, size):
+  streaks = rng.random(size)[:, None] * 0.6 + _value_noise(rng, size, 16) * 0.4
+  shine = 0.45 + 0.3 * streaks + 0.15 * np.linspace(0, 1, size)[None, :]
+  tint = np.array([0.78, 0.80, 0.84]) * rng.uniform(0.85, 1.1)
+  return shine[..., None] * tint
+
+
+_FAMILIES = {"wood": _wood, "brick": _brick, "stone": _stone, "ceramic": _ceramic,
+             "metal": _metal}
+
+
+def texture(material: str, seed: int, size: int = TEXTURE_SIZE) -> np.ndarray:
+  """(size, size, 3) uint8 procedural texture of `material`, randomised by `seed`."""
+  if material not in _FAMILIES:
+    raise ValueError(f"unknown material {material!r}; expected one of {MATERIAL_NAMES}")
+  rng = np.random.default_rng([MATERIAL_NAMES.index(material), int(seed)])
+  img = _FAMILIES[material](rng, size)
+  return (np.clip(img, 0, 1) * 255).astype(np.uint8)

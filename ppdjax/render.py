@@ -1,0 +1,139 @@
+"""RGB and depth images of an object at rest, with MuJoCo's renderer (headless: MUJOCO_GL=egl).
+
+One render model holds K textured box slots; per object the boxes' geometry, rest pose and
+texture pixels are written into it and the textures re-uploaded, so a single GL context
+renders a whole dataset. Camera and light are fixed: the camera looks at the object's
+middle from the front-right (+x, -y) and above.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ppdjax import materials, scene  # noqa: E402
+from ppdjax.primitives import NUM_SLOTS, Primitives  # noqa: E402
+
+CAMERA_POS = np.array([1.55, -1.9, 1.35])
+CAMERA_TARGET = np.array([0.0, 0.0, 0.45])
+HIDDEN_GROUP = 3  # geom group not drawn by default: padded slots go there
+
+
+def _camera_xyaxes() -> str:
+  forward = CAMERA_TARGET - CAMERA_POS
+  forward /= np.linalg.norm(forward)
+  right = np.cross(forward, [0.0, 0.0, 1.0])
+  right /= np.linalg.norm(right)
+  up = np.cross(right, forward)
+  return " ".join(f"{v:.6f}" for v in np.concatenate([right, up]))
+
+
+def render_xml(num_slots: int = NUM_SLOTS, texture_size: int = materials.TEXTURE_SIZE) -> str:
+  # generic placeholder poses: MuJoCo skips the transform of a geom it compiled as sitting
+  # at the body frame (geom_sameframe), which would ignore the poses written per object
+  boxes = "\n".join(
+      f'      <geom name="box{k}" type="box" size="0.1 0.1 0.1" material="mat{k}" '
+      f'pos="{0.01 * (k + 1)} 0.02 0.03" quat="0.9 0.1 0.2 0.3"/>' for k in range(num_slots))
+  assets = "\n".join(
+      f'    <texture name="tex{k}" type="2d" builtin="flat" width="{texture_size}" '
+      f'height="{texture_size}" rgb1="1 1 1"/>\n'
+      f'    <material name="mat{k}" texture="tex{k}" texuniform="true" texrepeat="4 4" '
+      f'specular="0.3" shininess="0.3"/>' for k in range(num_slots))
+  pos = " ".join(f"{v}" for v in CAMERA_POS)
+  return f"""<mujoco model="ppdjax_render">
+  <visual><global offwidth="1024" offheight="1024"/><quality shadowsize="2048"/></visual>
+  <asset>
+    <texture name="floor" type="2d" builtin="checker" width="256" height="256"
+             rgb1="0.82 0.82 0.80" rgb2="0.68 0.68 0.66"/>
+    <material name="floor" texture="floor" texrepeat="8 8"/>
+    <texture type="skybox" builtin="gradient" rgb1="0.75 0.82 0.9" rgb2="0.95 0.95 0.95"
+             width="64" height="64"/>
+{assets}
+  </asset>
+  <worldbody>
+    <light pos="2 -1 4" dir="-0.4 0.2 -1" directional="true" diffuse="0.8 0.8 0.8"/>
+    <camera name="view" pos="{pos}" xyaxes="{_camera_xyaxes()}" fovy="40"/>
+    <geom name="ground" type="plane" size="5 5 0.1" material="floor"/>
+    <body name="object" pos="0 0 0.5">
+{boxes}
+    </body>
+  </worldbody>
+</mujoco>"""
+
+
+class ObjectRenderer:
+  """Renders objects (K slots) with per-block material textures; reuse it for many objects.
+
+  Args:
+    height, width: image size in pixels.
+    num_slots: K.
+  """
+
+  def __init__(self, height: int = 224, width: int = 224, num_slots: int = NUM_SLOTS):
+    if not (16 <= height <= 1024 and 16 <= width <= 1024):
+      raise ValueError(f"image size must be within 16..1024 pixels, got {height}x{width}")
+    self.model = mujoco.MjModel.from_xml_string(render_xml(num_slots))
+    self.data = mujoco.MjData(self.model)
+    try:
+      self._renderer = mujoco.Renderer(self.model, height, width)
+    except Exception as e:  # no usable OpenGL: say how to get one
+      raise RuntimeError(
+          "MuJoCo could not open a headless OpenGL context (MUJOCO_GL="
+          f"{os.environ.get('MUJOCO_GL')}). Set MUJOCO_GL=egl before mujoco is first "
+          "imported, and install EGL (Debian: libegl1 libgl1-mesa-dri), or use "
+          "MUJOCO_GL=osmesa with libosmesa6.") from e
+    self._first_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "box0")
+    self._tex_ids = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXTURE, f"tex{k}")
+                     for k in range(num_slots)]
+    self.num_slots = num_slots
+
+  def close(self):
+    self._renderer.close()
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
+
+  def render(self, prims: Primitives, material_ids, texture_seeds) -> tuple[np.ndarray,
+                                                                            np.ndarray]:
+    """RGB (H, W, 3) uint8 and depth (H, W) float32 metres of one object at rest.
+
+    Args:
+      prims: one object (K slots).
+      material_ids: (K,) material index per slot (ignored for invalid slots).
+      texture_seeds: (K,) texture seed per slot.
+    """
+    m, k = self.model, self.num_slots
+    p = jax.tree.map(np.asarray, prims)
+    valid = p.valid.astype(bool)
+    g = slice(self._first_geom, self._first_geom + k)
+    m.geom_size[g] = np.where(valid[:, None], p.half_size, 0.01)
+    m.geom_pos[g] = p.pos
+    m.geom_quat[g] = p.quat / np.linalg.norm(p.quat, axis=-1, keepdims=True)
+    m.geom_rbound[g] = np.linalg.norm(m.geom_size[g], axis=-1)
+    m.geom_group[g] = np.where(valid, 0, HIDDEN_GROUP)
+    m.body_pos[1] = np.asarray(scene.rest_position(jax.tree.map(jnp.asarray, prims)))
+    self._renderer._gl_context.make_current()  # pylint: disable=protected-access
+    for slot in np.flatnonzero(valid):
+      tex = self._tex_ids[slot]
+      size = m.tex_width[tex] * m.tex_height[tex] * m.tex_nchannel[tex]
+      img = materials.texture(materials.MATERIAL_NAMES[int(material_ids[slot])],
+                              int(texture_seeds[slot]), int(m.tex_width[tex]))
+      m.tex_data[m.tex_adr[tex]:m.tex_adr[tex] + size] = img.reshape(-1)
+      mujoco.mjr_uploadTexture(m, self._renderer._mjr_context, tex)  # pylint: disable=protected-access
+    mujoco.mj_forward(m, self.data)
+    self._renderer.update_scene(self.data, camera="view")
+    rgb = self._renderer.render().copy()
+    self._renderer.enable_depth_rendering()
+    self._renderer.update_scene(self.data, camera="view")
+    depth = self._renderer.render().astype(np.float32)
+    self._renderer.disable_depth_rendering()
+    return rgb, depth
