@@ -1,0 +1,187 @@
+"""Dataset storage: `.npy` shards with a manifest, random access, and a streaming loader.
+
+Layout of a dataset directory:
+
+  config.json            the generating config (a directory never mixes two configs)
+  shard-00000/           one folder per shard: one .npy file per field, (n, ...) arrays
+    voxels.npy image.npy depth.npy trajectories.npy half_size.npy pos.npy quat.npy
+    density.npy valid.npy materials.npy tower_id.npy split.npy
+    DONE                 written last: the files' SHA-256, so a resumed run can trust them
+  manifest.json          format version, config, seed, counts, engine, per-shard checksums
+
+Why `.npy`: numpy memory-maps them, so a sample is read without loading its shard, the
+bytes are a pure function of the arrays (byte-identical reruns), and nothing beyond numpy
+is needed to read a dataset.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from typing import Iterator
+
+import numpy as np
+
+from ppdjax.primitives import Primitives
+
+FORMAT_VERSION = 1
+FIELDS = ("voxels", "image", "depth", "trajectories", "half_size", "pos", "quat", "density",
+          "valid", "materials", "tower_id", "split")
+SPLITS = {"train": 0, "val": 1, "test": 2}
+_PRIM_FIELDS = ("half_size", "pos", "quat", "density", "valid")
+
+
+class DatasetError(ValueError):
+  """A dataset directory is missing, incomplete or corrupt (the message names the file)."""
+
+
+def sha256(path: str) -> str:
+  h = hashlib.sha256()
+  with open(path, "rb") as f:
+    for block in iter(lambda: f.read(1 << 20), b""):
+      h.update(block)
+  return h.hexdigest()
+
+
+def split_of(tower_id: np.ndarray, fractions=(0.8, 0.1, 0.1)) -> np.ndarray:
+  """Split per tower (0 train, 1 val, 2 test) from a hash of its id: never spans splits."""
+  u = (np.asarray(tower_id, np.uint64) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(11)
+  u = u.astype(np.float64) / float(1 << 53)
+  return np.searchsorted(np.cumsum(fractions)[:-1], u, side="right").astype(np.uint8)
+
+
+def write_shard(directory: str, arrays: dict[str, np.ndarray]) -> dict[str, str]:
+  """Writes one shard atomically (temp folder, then rename); returns file checksums."""
+  missing = set(FIELDS) - set(arrays)
+  if missing:
+    raise ValueError(f"shard arrays lack fields {sorted(missing)}")
+  tmp = directory + ".tmp"
+  os.makedirs(tmp, exist_ok=True)
+  sums = {}
+  try:
+    for name in FIELDS:
+      path = os.path.join(tmp, f"{name}.npy")
+      np.save(path, np.ascontiguousarray(arrays[name]))
+      sums[f"{name}.npy"] = sha256(path)
+    with open(os.path.join(tmp, "DONE"), "w") as f:
+      json.dump(sums, f, indent=1, sort_keys=True)
+  except OSError as e:
+    raise OSError(e.errno, f"could not write shard {tmp} ({e.strerror}); is the disk full?")
+  os.replace(tmp, directory)
+  return sums
+
+
+def shard_complete(directory: str) -> dict[str, str] | None:
+  """The shard's checksums if it is complete and its files match them, else None."""
+  done = os.path.join(directory, "DONE")
+  if not os.path.exists(done):
+    return None
+  with open(done) as f:
+    sums = json.load(f)
+  for name, digest in sums.items():
+    path = os.path.join(directory, name)
+    if not os.path.exists(path) or sha256(path) != digest:
+      return None
+  return sums
+
+
+class Dataset:
+  """Random access to samples of a generated dataset (memory-mapped, nothing loaded).
+
+  `len(ds)` samples; `ds[i]` is a dict with the keys of DESIGN.md: "voxels" (32,32,32)
+  uint8, "image" (H,W,3) uint8, "depth" (H,W) float32, "trajectories" (P,256,7) float32,
+  "primitives" Primitives (K = 5, valid mask), "materials" (5,) int (-1 padding),
+  "tower_id" int.
+  """
+
+  def __init__(self, path: str, split: str | None = None, verify: bool = False):
+    manifest_path = os.path.join(path, "manifest.json")
+    if not os.path.isdir(path):
+      raise DatasetError(f"no dataset directory at {path}")
+    if not os.path.exists(manifest_path):
+      raise DatasetError(f"{manifest_path} is missing: generation did not finish "
+                         "(run `python -m ppdjax.generate` again to resume it)")
+    try:
+      with open(manifest_path) as f:
+        self.manifest = json.load(f)
+    except json.JSONDecodeError as e:
+      raise DatasetError(f"{manifest_path} is corrupt: {e}") from e
+    if self.manifest.get("format_version") != FORMAT_VERSION:
+      raise DatasetError(f"{manifest_path}: format version "
+                         f"{self.manifest.get('format_version')} != {FORMAT_VERSION}")
+    if split is not None and split not in SPLITS:
+      raise ValueError(f"split must be one of {tuple(SPLITS)} or None, got {split!r}")
+    self.path = path
+    self._shards, index = [], []
+    for s, shard in enumerate(self.manifest["shards"]):
+      directory = os.path.join(path, shard["name"])
+      arrays = {}
+      for name in FIELDS:
+        file = os.path.join(directory, f"{name}.npy")
+        if not os.path.exists(file):
+          raise DatasetError(f"missing shard file {file}")
+        if verify and sha256(file) != shard["files"][f"{name}.npy"]:
+          raise DatasetError(f"corrupt shard file {file}: checksum mismatch")
+        try:
+          arrays[name] = np.load(file, mmap_mode="r")
+        except (ValueError, OSError) as e:
+          raise DatasetError(f"corrupt shard file {file}: {e}") from e
+        if len(arrays[name]) != shard["samples"]:
+          raise DatasetError(f"corrupt shard file {file}: {len(arrays[name])} rows, "
+                             f"manifest says {shard['samples']}")
+      self._shards.append(arrays)
+      rows = np.arange(shard["samples"])
+      if split is not None:
+        rows = rows[np.asarray(arrays["split"]) == SPLITS[split]]
+      index.append(np.stack([np.full(len(rows), s), rows], 1))
+    self._index = np.concatenate(index) if index else np.zeros((0, 2), np.int64)
+    if split is not None and len(self._index) == 0:
+      raise DatasetError(f"{path} has no samples in split {split!r}")
+
+  def __len__(self) -> int:
+    return len(self._index)
+
+  def __getitem__(self, i: int) -> dict:
+    if not -len(self) <= i < len(self):
+      raise IndexError(f"sample {i} out of range for {len(self)} samples")
+    s, row = self._index[i]
+    a = self._shards[s]
+    return {
+        "voxels": np.asarray(a["voxels"][row]), "image": np.asarray(a["image"][row]),
+        "depth": np.asarray(a["depth"][row]),
+        "trajectories": np.asarray(a["trajectories"][row]),
+        "primitives": Primitives(*[np.asarray(a[f][row]) for f in _PRIM_FIELDS]),
+        "materials": np.asarray(a["materials"][row]), "tower_id": int(a["tower_id"][row]),
+    }
+
+
+def open_dataset(path: str, split: str | None = None, verify: bool = False) -> Dataset:
+  """Opens a generated dataset; `split` in {"train", "val", "test"} or None for all."""
+  return Dataset(path, split, verify)
+
+
+def batches(dataset: Dataset, batch_size: int, *, seed: int, epoch: int = 0,
+            start: int = 0, drop_remainder: bool = True) -> Iterator[dict]:
+  """Shuffled batches of one epoch, deterministic in (seed, epoch), read lazily.
+
+  Args:
+    dataset: a Dataset.
+    batch_size: samples per batch.
+    seed, epoch: the permutation is `default_rng([seed, epoch]).permutation(len)`.
+    start: first batch to yield (resume mid-epoch).
+    drop_remainder: skip a last, smaller batch.
+
+  Yields:
+    dicts of stacked arrays (Primitives fields stacked too).
+  """
+  if batch_size < 1:
+    raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+  order = np.random.default_rng([seed, epoch]).permutation(len(dataset))
+  stop = len(order) - (len(order) % batch_size if drop_remainder else 0)
+  for b in range(start * batch_size, stop, batch_size):
+    samples = [dataset[int(i)] for i in order[b:b + batch_size]]
+    out = {k: np.stack([s[k] for s in samples]) for k in samples[0] if k != "primitives"}
+    out["primitives"] = Primitives(*[np.stack([getattr(s["primitives"], f) for s in samples])
+                                     for f in _PRIM_FIELDS])
+    yield out

@@ -1,0 +1,148 @@
+"""Dataset generation, storage and loading on a small config."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+import ppdjax  # noqa: F401
+from ppdjax import data, generate
+from ppdjax.configs import tiny
+
+
+def small_config(**overrides):
+  config = tiny.get_config()
+  config.data.num_towers = 4
+  config.data.towers_per_shard = 2
+  config.data.image_size = 32
+  config.data.steps = 16
+  for k, v in overrides.items():
+    config.data[k] = v
+  return config
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory):
+  out = str(tmp_path_factory.mktemp("ds") / "a")
+  generate.generate(small_config(), out, progress=False)
+  return out
+
+
+def _files(path):
+  out = {}
+  for root, _, names in os.walk(path):
+    for n in names:
+      if n.endswith(".npy") or n in ("manifest.json", "DONE", "config.json"):
+        with open(os.path.join(root, n), "rb") as f:
+          out[os.path.relpath(os.path.join(root, n), path)] = f.read()
+  return out
+
+
+def test_samples_have_the_design_keys_and_shapes(dataset_dir):
+  ds = data.open_dataset(dataset_dir)
+  assert len(ds) == 4 * 8
+  s = ds[3]
+  assert s["voxels"].shape == (32, 32, 32) and s["voxels"].dtype == np.uint8
+  assert s["image"].shape == (32, 32, 3) and s["image"].dtype == np.uint8
+  assert s["depth"].shape == (32, 32) and s["depth"].dtype == np.float32
+  assert s["trajectories"].shape == (4, 16, 7) and s["trajectories"].dtype == np.float32
+  assert s["primitives"].density.shape == (5,) and s["materials"].shape == (5,)
+  s["primitives"].validate()
+  assert isinstance(s["tower_id"], int)
+  manifest = json.load(open(os.path.join(dataset_dir, "manifest.json")))
+  assert manifest["engine"]["backend"] == "mjx" and manifest["samples"] == 32
+  for name in ("card.md", "contact_sheet.png", "density_histogram.png"):
+    assert os.path.getsize(os.path.join(dataset_dir, name)) > 100
+
+
+def test_splits_are_disjoint_by_tower(dataset_dir):
+  towers = {}
+  for split in data.SPLITS:
+    try:
+      ds = data.open_dataset(dataset_dir, split)
+    except data.DatasetError:
+      continue  # 4 towers may leave a split empty
+    towers[split] = {ds[i]["tower_id"] for i in range(len(ds))}
+  ids = [t for v in towers.values() for t in v]
+  assert len(ids) == len(set(ids)) == 4
+  split = data.split_of(np.arange(10000))
+  assert abs((split == 0).mean() - 0.8) < 0.02 and abs((split == 2).mean() - 0.1) < 0.02
+
+
+def test_resume_is_byte_identical(dataset_dir, tmp_path, monkeypatch):
+  out = str(tmp_path / "b")
+  real = data.write_shard
+  calls = []
+
+  def interrupted(*args):
+    if len(calls) == 1:
+      raise KeyboardInterrupt  # killed while working on the second shard
+    calls.append(1)
+    return real(*args)
+
+  monkeypatch.setattr(data, "write_shard", interrupted)
+  with pytest.raises(KeyboardInterrupt):
+    generate.generate(small_config(), out, progress=False)
+  assert not os.path.exists(os.path.join(out, "manifest.json"))
+  monkeypatch.setattr(data, "write_shard", real)
+  generate.generate(small_config(), out, progress=False)
+  assert _files(out) == _files(dataset_dir)
+
+
+def test_refuses_another_config_and_bad_values(dataset_dir):
+  with pytest.raises(ValueError, match="another config"):
+    generate.generate(small_config(image_size=48),
+                      dataset_dir, progress=False)
+  with pytest.raises(ValueError, match="config.data.image_size"):
+    generate.check_config(small_config(image_size=4).data)
+  with pytest.raises(ValueError, match="config.data.backend"):
+    generate.check_config(small_config(backend="bullet").data)
+
+
+def test_disk_full_is_reported_before_starting(tmp_path, monkeypatch):
+  import shutil
+  monkeypatch.setattr(shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(1, 1, 10))
+  with pytest.raises(OSError, match="not enough disk space"):
+    generate.generate(small_config(), str(tmp_path / "full"), progress=False)
+
+
+def test_missing_or_corrupt_files_are_named(dataset_dir, tmp_path):
+  import shutil
+  copy = str(tmp_path / "c")
+  shutil.copytree(dataset_dir, copy)
+  victim = os.path.join(copy, "shard-00001", "trajectories.npy")
+  with open(victim, "r+b") as f:
+    f.seek(200)
+    f.write(b"\x00\x01\x02")
+  with pytest.raises(data.DatasetError, match="shard-00001/trajectories.npy"):
+    data.open_dataset(copy, verify=True)
+  with open(victim, "r+b") as f:
+    f.truncate(100)
+  with pytest.raises(data.DatasetError, match="shard-00001/trajectories.npy"):
+    data.open_dataset(copy)
+  os.remove(victim)
+  with pytest.raises(data.DatasetError, match="missing shard file .*trajectories.npy"):
+    data.open_dataset(copy)
+  os.remove(os.path.join(copy, "manifest.json"))
+  with pytest.raises(data.DatasetError, match="manifest.json is missing"):
+    data.open_dataset(copy)
+  with pytest.raises(data.DatasetError, match="no dataset directory"):
+    data.open_dataset(str(tmp_path / "nowhere"))
+
+
+def test_loader_is_deterministic_and_streams(dataset_dir):
+  ds = data.open_dataset(dataset_dir)
+  a = list(data.batches(ds, 8, seed=3))
+  b = list(data.batches(ds, 8, seed=3))
+  c = list(data.batches(ds, 8, seed=3, epoch=1))
+  assert len(a) == 4 and a[0]["image"].shape == (8, 32, 32, 3)
+  assert a[0]["primitives"].density.shape == (8, 5)
+  assert all(np.array_equal(x["tower_id"], y["tower_id"]) for x, y in zip(a, b))
+  assert not all(np.array_equal(x["tower_id"], y["tower_id"]) for x, y in zip(a, c))
+  resumed = list(data.batches(ds, 8, seed=3, start=2))
+  assert np.array_equal(resumed[0]["tower_id"], a[2]["tower_id"])
+  seen = np.concatenate([x["tower_id"] for x in a])
+  assert len(seen) == len(ds)
+  with pytest.raises(ValueError, match="batch_size"):
+    next(data.batches(ds, 0, seed=0))
