@@ -24,6 +24,7 @@ def check_config(cfg) -> None:
   """Raises ValueError naming the first bad value of the `data` section."""
   rules = [("num_towers", cfg.num_towers >= 1), ("towers_per_shard", cfg.towers_per_shard >= 1),
            ("configs_per_tower", cfg.configs_per_tower >= 1),
+           ("render_workers", 0 <= cfg.render_workers <= 256),
            ("image_size", 16 <= cfg.image_size <= 1024), ("steps", cfg.steps >= 1),
            ("rotate", 0 <= cfg.rotate <= np.pi), ("size_noise", 0 <= cfg.size_noise < 1),
            ("backend", cfg.backend in ("mjx", "mujoco")),
@@ -41,34 +42,28 @@ def bytes_per_sample(cfg) -> int:
 def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray]:
   """All arrays of one shard (towers × configurations)."""
   import jax  # pylint: disable=import-outside-toplevel
-  from ppdjax import data, physics, towers, voxels  # pylint: disable=import-outside-toplevel
+  from ppdjax import data, materials, physics, towers, voxels  # pylint: disable=import-outside-toplevel
 
   rng = np.random.default_rng([seed, shard])
   first = shard * cfg.towers_per_shard
   count = min(cfg.towers_per_shard, cfg.num_towers - first)
-  prims, ids, vox = [], [], []
+  prims, ids = [], []
   for _ in range(count):
     p, m = towers.sample_configurations(rng, cfg.configs_per_tower, rotate=cfg.rotate,
                                         size_noise=cfg.size_noise)
     prims.append(p)
     ids.append(m)
-    vox.append(voxels.voxelize(jax.tree.map(lambda x: x[0], p)))
+  vox = voxels.voxelize(towers.stack([jax.tree.map(lambda x: x[0], p) for p in prims]))
   prims = towers.stack([jax.tree.map(lambda x, c=c: x[c], p) for p in prims
                         for c in range(cfg.configs_per_tower)])
   ids = np.concatenate(ids)
-  n = len(ids)
-  tex_seeds = rng.integers(0, 2 ** 31, (n, ids.shape[1]))
-  images, depths = [], []
-  for i in range(n):
-    rgb, depth = renderer.render(jax.tree.map(lambda x, i=i: x[i], prims),
-                                 np.maximum(ids[i], 0), tex_seeds[i])
-    images.append(rgb)
-    depths.append(depth)
+  tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, ids.shape)
+  images, depths = renderer.render(prims, np.maximum(ids, 0), tex_seeds)
   traj = np.asarray(physics.simulate(prims, steps=cfg.steps, backend=cfg.backend),
                     np.float32)
   tower_id = np.repeat(np.arange(first, first + count), cfg.configs_per_tower).astype(np.int64)
-  return {"voxels": np.repeat(np.stack(vox), cfg.configs_per_tower, 0),
-          "image": np.stack(images), "depth": np.stack(depths), "trajectories": traj,
+  return {"voxels": np.repeat(vox, cfg.configs_per_tower, 0),
+          "image": images, "depth": depths, "trajectories": traj,
           **{f: np.asarray(getattr(prims, f)) for f in ("half_size", "pos", "quat", "density",
                                                          "valid")},
           "materials": ids, "tower_id": tower_id,
@@ -110,7 +105,7 @@ def generate(config, out: str, progress: bool = True) -> dict:
                                       cfg.num_towers - s * cfg.towers_per_shard) for s in todo))
   t0 = time.perf_counter()
   if todo:
-    with render.ObjectRenderer(cfg.image_size, cfg.image_size) as renderer:
+    with render.BatchRenderer(cfg.image_size, cfg.image_size, cfg.render_workers) as renderer:
       for s in todo:
         arrays = generate_shard(cfg, config.seed, s, renderer)
         sums[s] = data.write_shard(os.path.join(out, names[s]), arrays)

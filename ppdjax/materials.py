@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 NUM_DENSITY_SLOTS = 100
@@ -42,6 +44,7 @@ def density_to_slot(density):
 # nothing about where the density lies within the material's range.
 
 TEXTURE_SIZE = 64
+TEXTURE_VARIANTS = 256  # the dataset draws texture seeds from this many per material
 
 
 def _value_noise(rng: np.random.Generator, size: int, cells: int) -> np.ndarray:
@@ -112,8 +115,10 @@ _FAMILIES = {"wood": _wood, "brick": _brick, "stone": _stone, "ceramic": _cerami
              "metal": _metal}
 
 
+@functools.lru_cache(maxsize=len(MATERIALS) * TEXTURE_VARIANTS)
 def texture(material: str, seed: int, size: int = TEXTURE_SIZE) -> np.ndarray:
-  """(size, size, 3) uint8 procedural texture of `material`, randomised by `seed`."""
+  """(size, size, 3) uint8 procedural texture of `material`, randomised by `seed` (cached;
+  do not modify the returned array)."""
   if material not in _FAMILIES:
     raise ValueError(f"unknown material {material!r}; expected one of {MATERIAL_NAMES}")
   rng = np.random.default_rng([MATERIAL_NAMES.index(material), int(seed)])

@@ -132,8 +132,67 @@ class ObjectRenderer:
     mujoco.mj_forward(m, self.data)
     self._renderer.update_scene(self.data, camera="view")
     rgb = self._renderer.render().copy()
+    # A second pass for depth: MuJoCo's depth-only pass (no skybox: the sky reads as the
+    # far plane) rather than the colour pass's depth buffer, whose values differ.
     self._renderer.enable_depth_rendering()
     self._renderer.update_scene(self.data, camera="view")
     depth = self._renderer.render().astype(np.float32)
     self._renderer.disable_depth_rendering()
     return rgb, depth
+
+
+_WORKER = {}
+
+
+def _worker_init(height, width, num_slots):
+  _WORKER["renderer"] = ObjectRenderer(height, width, num_slots)
+
+
+def _worker_render(args):
+  prims, material_ids, seeds = args
+  r = _WORKER["renderer"]
+  out = [r.render(jax.tree.map(lambda x, i=i: x[i], prims), material_ids[i], seeds[i])
+         for i in range(len(material_ids))]
+  return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
+
+
+class BatchRenderer:
+  """Renders batches of objects, in `workers` processes (each with its own GL context).
+
+  workers=0 renders in this process. Results do not depend on the number of workers.
+  """
+
+  def __init__(self, height: int = 224, width: int = 224, workers: int = 0,
+               num_slots: int = NUM_SLOTS):
+    self.workers = workers
+    if workers > 0:
+      import multiprocessing  # pylint: disable=import-outside-toplevel
+      ctx = multiprocessing.get_context("spawn")  # JAX and GL contexts do not survive fork
+      self._pool = ctx.Pool(workers, _worker_init, (height, width, num_slots))
+    else:
+      _worker_init(height, width, num_slots)
+      self._pool = None
+
+  def render(self, prims: Primitives, material_ids, seeds):
+    """(N, H, W, 3) uint8 and (N, H, W) float32 for a batch of N objects."""
+    p = jax.tree.map(np.asarray, prims)
+    n = len(material_ids)
+    if self._pool is None:
+      return _worker_render((p, material_ids, seeds))
+    chunks = np.array_split(np.arange(n), min(n, self.workers * 4))
+    parts = self._pool.map(_worker_render, [
+        (jax.tree.map(lambda x, c=c: x[c], p), material_ids[c], seeds[c]) for c in chunks])
+    return np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts])
+
+  def close(self):
+    if self._pool is not None:
+      self._pool.close()
+      self._pool.join()
+    elif "renderer" in _WORKER:
+      _WORKER.pop("renderer").close()
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()

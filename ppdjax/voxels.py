@@ -47,8 +47,14 @@ def _occupancy(prims: Primitives, resolution: int) -> jax.Array:
   return filled.reshape(resolution, resolution, resolution)
 
 
+_batched = jax.jit(jax.vmap(_occupancy, in_axes=(0, None)), static_argnums=1)
+
+
 def voxelize(prims: Primitives, resolution: int = RESOLUTION) -> np.ndarray:
-  """(R, R, R) uint8 occupancy, indexed [x, y, z], of one object (K slots)."""
+  """(B..., R, R, R) uint8 occupancy, indexed [x, y, z], of objects (K slots each)."""
   p = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32) if jnp.asarray(x).dtype != bool
                    else jnp.asarray(x), prims)
-  return np.asarray(_occupancy(p, resolution)).astype(np.uint8)
+  batch = p.density.shape[:-1]
+  flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), p)
+  out = _batched(flat, resolution)
+  return np.asarray(out).astype(np.uint8).reshape(batch + (resolution,) * 3)

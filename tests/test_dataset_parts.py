@@ -116,3 +116,15 @@ def test_render_rgb_and_depth():
     assert not np.array_equal(rgb0, rgb1)  # new textures were uploaded
   with pytest.raises(ValueError, match="image size"):
     render.ObjectRenderer(8, 8)
+
+
+def test_batch_renderer_workers_give_identical_images():
+  from ppdjax import render
+  prims, ids = towers.sample_configurations(np.random.default_rng(4), 3)
+  seeds = np.arange(15).reshape(3, 5)
+  with render.BatchRenderer(32, 32, workers=0) as r:
+    rgb0, depth0 = r.render(prims, np.maximum(ids, 0), seeds)
+  with render.BatchRenderer(32, 32, workers=2) as r:
+    rgb2, depth2 = r.render(prims, np.maximum(ids, 0), seeds)
+  assert rgb0.shape == (3, 32, 32, 3)
+  assert np.array_equal(rgb0, rgb2) and np.array_equal(depth0, depth2)

@@ -11,4 +11,5 @@ def get_config():
   config.data.num_towers = 10_000
   config.data.towers_per_shard = 250
   config.data.image_size = 224
+  config.data.render_workers = 12
   return config

@@ -24,4 +24,5 @@ def get_config() -> ml_collections.ConfigDict:
   config.data.size_noise = 0.0
   config.data.backend = "mjx"  # the engine inference uses; "mujoco" makes a marked C variant
   config.data.split_fractions = (0.8, 0.1, 0.1)
+  config.data.render_workers = 0  # processes rendering in parallel (0: this process)
   return config
