@@ -168,7 +168,17 @@ class BatchRenderer:
     if workers > 0:
       import multiprocessing  # pylint: disable=import-outside-toplevel
       ctx = multiprocessing.get_context("spawn")  # JAX and GL contexts do not survive fork
-      self._pool = ctx.Pool(workers, _worker_init, (height, width, num_slots))
+      # workers use JAX only for a little geometry: keep them off the accelerator, whose
+      # memory the parent's JAX holds
+      saved = os.environ.get("JAX_PLATFORMS")
+      os.environ["JAX_PLATFORMS"] = "cpu"
+      try:
+        self._pool = ctx.Pool(workers, _worker_init, (height, width, num_slots))
+      finally:
+        if saved is None:
+          os.environ.pop("JAX_PLATFORMS")
+        else:
+          os.environ["JAX_PLATFORMS"] = saved
     else:
       _worker_init(height, width, num_slots)
       self._pool = None
