@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= out/demo
 
-.PHONY: demo test test-all bench clean
+.PHONY: demo test test-all data bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,6 +21,9 @@ test: $(VENV)/.installed
 
 test-all: $(VENV)/.installed
 	$(PY) -m pytest -q -m ""
+
+data: $(VENV)/.installed
+	$(PY) -m ppdjax.generate --config=ppdjax/configs/tiny.py --out=out/blocks_tiny
 
 bench: $(VENV)/.installed
 	$(PY) experiments/bench_physics.py

@@ -14,8 +14,10 @@ import time
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-_CONFIG = config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
-_OUT = flags.DEFINE_string("out", "out/demo", "Output directory.")
+
+def _define_flags():  # at run time only, so other entry points can be imported beside this
+  config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
+  flags.DEFINE_string("out", "out/demo", "Output directory.")
 
 
 def run_demo(config, out_dir: str) -> dict:
@@ -99,10 +101,12 @@ def _markdown(s: dict) -> str:
 def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
-  summary = run_demo(_CONFIG.value, _OUT.value)
-  print(f"done: {_OUT.value}/trajectories.png, summary.md, summary.json "
+  out = flags.FLAGS.out
+  summary = run_demo(flags.FLAGS.config, out)
+  print(f"done: {out}/trajectories.png, summary.md, summary.json "
         f"(speeds after push {summary['speed_after_push_m_s']} m/s)")
 
 
 if __name__ == "__main__":
+  _define_flags()
   app.run(main)

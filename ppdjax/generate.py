@@ -16,8 +16,10 @@ import numpy as np
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-_CONFIG = config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
-_OUT = flags.DEFINE_string("out", None, "Dataset directory.", required=True)
+
+def _define_flags():  # at run time only, so other entry points can be imported beside this
+  config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
+  flags.DEFINE_string("out", None, "Dataset directory.", required=True)
 
 
 def check_config(cfg) -> None:
@@ -140,8 +142,9 @@ def main(argv):
   import jax  # pylint: disable=import-outside-toplevel
   jax.config.update("jax_compilation_cache_dir",
                     os.path.expanduser("~/.cache/ppdjax/jax_cache"))
-  generate(_CONFIG.value, _OUT.value)
+  generate(flags.FLAGS.config, flags.FLAGS.out)
 
 
 if __name__ == "__main__":
+  _define_flags()
   app.run(main)

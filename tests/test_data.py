@@ -146,3 +146,13 @@ def test_loader_is_deterministic_and_streams(dataset_dir):
   assert len(seen) == len(ds)
   with pytest.raises(ValueError, match="batch_size"):
     next(data.batches(ds, 0, seed=0))
+
+
+def test_tiny_preset_generates(tmp_path):
+  """The tiny preset itself, as the README runs it: 16 towers x 8 configurations."""
+  manifest = generate.generate(tiny.get_config(), str(tmp_path / "tiny"), progress=False)
+  assert manifest["samples"] == 128 and manifest["towers"] == 16
+  assert sum(manifest["splits"].values()) == 128
+  ds = data.open_dataset(str(tmp_path / "tiny"), verify=True)
+  assert ds[127]["image"].shape == (64, 64, 3)
+  assert ds[127]["trajectories"].shape == (4, 256, 7)
