@@ -46,9 +46,9 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
     names = [materials.MATERIAL_NAMES[m] for m in s["materials"] if m >= 0]
     axes[row, 0].imshow(s["image"])
     axes[row, 0].set_title(f"#{i} tower {s['tower_id']}: " + ", ".join(names), fontsize=7)
-    axes[row, 1].imshow(s["voxels"].max(1).T, origin="lower", cmap="Greys")
+    axes[row, 1].imshow(s["voxels"].max(1).T, origin="lower", cmap="Greys", vmin=0, vmax=1)
     axes[row, 1].set_title("voxels, front (x-z)", fontsize=7)
-    axes[row, 2].imshow(s["voxels"].max(2).T, origin="lower", cmap="Greys")
+    axes[row, 2].imshow(s["voxels"].max(2).T, origin="lower", cmap="Greys", vmin=0, vmax=1)
     axes[row, 2].set_title("voxels, top (x-y)", fontsize=7)
     for a in axes[row]:
       a.set_xticks([])
