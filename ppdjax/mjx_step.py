@@ -79,7 +79,11 @@ def solve(m, d, iterations: int, unrolled_cholesky: bool = True):
   ctx = solver.Context.create(m, d)
   for _ in range(iterations):
     go = _not_done(m, d, ctx)
-    new = _iteration(m, d, ctx, unrolled_cholesky)
+    # A converged element has a zero search direction; iterating it anyway (the result is
+    # discarded) would put 0/0 into reverse-mode derivatives, so it searches along a
+    # harmless unit direction instead.
+    probe = ctx.replace(search=jnp.where(go, ctx.search, jnp.ones_like(ctx.search)))
+    new = _iteration(m, d, probe, unrolled_cholesky)
     ctx = jax.tree.map(lambda a, b: jnp.where(go, a, b), new, ctx)
   return d.tree_replace({
       "qfrc_constraint": ctx.qfrc_constraint,
