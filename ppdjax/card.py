@@ -18,11 +18,9 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
   from ppdjax import data, scene  # pylint: disable=import-outside-toplevel
 
   ds = data.open_dataset(path)
-  shards = [np.load(os.path.join(path, s["name"], "valid.npy"), mmap_mode="r")
-            for s in ds.manifest["shards"]]
   load = lambda f: np.concatenate([np.load(os.path.join(path, s["name"], f"{f}.npy"),
                                            mmap_mode="r") for s in ds.manifest["shards"]])
-  valid, mats, density = np.concatenate(shards), load("materials"), load("density")
+  valid, mats, density = load("valid"), load("materials"), load("density")
   traj = load("trajectories")
   blocks = valid.sum(1)
   slots = materials.density_to_slot(density[valid])
