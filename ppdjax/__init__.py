@@ -8,5 +8,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from ppdjax.primitives import Primitives  # noqa: E402
 
-__all__ = ["Primitives"]
+
+def load(workdir: str, which: str = "best"):
+  """(model, config) of a training workdir; see `ppdjax.checkpoints.load`."""
+  from ppdjax import checkpoints
+  return checkpoints.load(workdir, which)
+
+
+__all__ = ["Primitives", "load"]
 __version__ = "0.1.0"

@@ -156,13 +156,44 @@ class Dataset:
     }
 
 
+  def take(self, indices, keys=None) -> dict:
+    """A batch of samples as stacked arrays (Primitives fields stacked too).
+
+    Args:
+      indices: sample indices.
+      keys: the sample keys to read (default all); others are never touched on disk.
+    """
+    indices = np.asarray(indices, np.int64)
+    if indices.size and not (-len(self) <= indices.min() and indices.max() < len(self)):
+      raise IndexError(f"sample indices out of range for {len(self)} samples")
+    keys = tuple(keys or ("voxels", "image", "depth", "trajectories", "primitives",
+                          "materials", "tower_id"))
+    names = [f for k in keys for f in (_PRIM_FIELDS if k == "primitives" else (k,))]
+    where = self._index[indices]
+    out = {n: None for n in names}
+    for s in np.unique(where[:, 0]):
+      pick = np.nonzero(where[:, 0] == s)[0]
+      rows = where[pick, 1]
+      order = np.argsort(rows)  # ascending rows: sequential reads of the memory map
+      for n in names:
+        part = np.asarray(self._shards[s][n][rows[order]])
+        if out[n] is None:
+          out[n] = np.empty((len(indices),) + part.shape[1:], part.dtype)
+        out[n][pick[order]] = part
+    batch = {k: out[k] for k in keys if k != "primitives"}
+    if "primitives" in keys:
+      batch["primitives"] = Primitives(*[out[f] for f in _PRIM_FIELDS])
+    return batch
+
+
 def open_dataset(path: str, split: str | None = None, verify: bool = False) -> Dataset:
   """Opens a generated dataset; `split` in {"train", "val", "test"} or None for all."""
   return Dataset(path, split, verify)
 
 
 def batches(dataset: Dataset, batch_size: int, *, seed: int, epoch: int = 0,
-            start: int = 0, drop_remainder: bool = True) -> Iterator[dict]:
+            start: int = 0, drop_remainder: bool = True,
+            part: tuple[int, int] = (0, 1), keys=None) -> Iterator[dict]:
   """Shuffled batches of one epoch, deterministic in (seed, epoch), read lazily.
 
   Args:
@@ -171,17 +202,21 @@ def batches(dataset: Dataset, batch_size: int, *, seed: int, epoch: int = 0,
     seed, epoch: the permutation is `default_rng([seed, epoch]).permutation(len)`.
     start: first batch to yield (resume mid-epoch).
     drop_remainder: skip a last, smaller batch.
+    part: (i, n): read only the i-th of n equal slices of each batch (process i of n in a
+      multi-host run); batch_size must divide by n.
+    keys: sample keys to read (default all).
 
   Yields:
     dicts of stacked arrays (Primitives fields stacked too).
   """
   if batch_size < 1:
     raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+  index, count = part
+  if batch_size % count or not 0 <= index < count:
+    raise ValueError(f"part={part} must split batch_size={batch_size} into equal slices")
   order = np.random.default_rng([seed, epoch]).permutation(len(dataset))
   stop = len(order) - (len(order) % batch_size if drop_remainder else 0)
   for b in range(start * batch_size, stop, batch_size):
-    samples = [dataset[int(i)] for i in order[b:b + batch_size]]
-    out = {k: np.stack([s[k] for s in samples]) for k in samples[0] if k != "primitives"}
-    out["primitives"] = Primitives(*[np.stack([getattr(s["primitives"], f) for s in samples])
-                                     for f in _PRIM_FIELDS])
-    yield out
+    rows = order[b:b + batch_size]
+    rows = np.array_split(rows, count)[index] if count > 1 else rows
+    yield dataset.take(rows, keys)

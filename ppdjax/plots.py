@@ -1,4 +1,4 @@
-"""Figures: a tower and its push trajectories."""
+"""Figures: a tower and its push trajectories; learning curves."""
 
 from __future__ import annotations
 
@@ -70,3 +70,34 @@ def plot_trajectories(prims, pushes, traj, ref=None, path="trajectories.png",
   fig.tight_layout()
   fig.savefig(path, dpi=110)
   plt.close(fig)
+
+
+def plot_learning_curve(metrics_path: str, path: str = "learning_curve.png") -> str:
+  """Training and validation losses and validation metrics over steps, from metrics.jsonl."""
+  import json
+  with open(metrics_path) as f:
+    rows = [json.loads(line) for line in f if line.strip()]
+  train = [r for r in rows if r.get("split", "train") == "train"]
+  val = [r for r in rows if r.get("split") == "val"]
+  fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+  for key, style in (("loss", "-"), ("geometry_loss", "--"), ("density_loss", ":")):
+    axes[0].plot([r["step"] for r in train], [r[key] for r in train], style, label=f"train {key}")
+  axes[0].plot([r["step"] for r in val], [r["loss"] for r in val], "o-", label="val loss")
+  axes[0].set_yscale("log")
+  axes[0].set_title("losses (phase 1: geometry only)")
+  phase2 = [r["step"] for r in train if r.get("phase") == 2]
+  for ax in axes:
+    if phase2:
+      ax.axvline(phase2[0], color="grey", lw=0.8)
+    ax.set_xlabel("step")
+  for key in ("density_top1", "density_top5", "density_top10", "shape_f1"):
+    axes[1].plot([r["step"] for r in val], [r[key] for r in val], "o-", label=key)
+  axes[1].set_title("validation (%)")
+  axes[2].plot([r["step"] for r in val], [r["density_rmse"] for r in val], "o-", color="k")
+  axes[2].set_title("validation density RMSE (slots)")
+  for ax in axes[:2]:
+    ax.legend(fontsize=7)
+  fig.tight_layout()
+  fig.savefig(path, dpi=110)
+  plt.close(fig)
+  return path

@@ -198,3 +198,104 @@ def ray_box_hits(origin: jax.Array, direction: jax.Array, prims: Primitives) -> 
   t_far = jnp.maximum(t1, t2).min(axis=-1)
   hit = (t_far >= jnp.maximum(t_near, 0.0)) & prims.valid
   return jnp.where(hit, jnp.maximum(t_near, 0.0), jnp.inf)
+
+
+# --- one label per box ---------------------------------------------------------------------
+
+
+def _box_symmetries() -> np.ndarray:
+  """(48, 4) the quaternions of the cube's 24 rotations, each with both signs."""
+  qs = []
+  for i in range(4):
+    for s in (1, -1):
+      q = np.zeros(4)
+      q[i] = s
+      qs.append(q)
+  for signs in np.ndindex(2, 2, 2, 2):
+    qs.append(0.5 * (1 - 2 * np.array(signs)))
+  for i in range(4):
+    for j in range(i + 1, 4):
+      for si in (1, -1):
+        for sj in (1, -1):
+          q = np.zeros(4)
+          q[i], q[j] = si / np.sqrt(2), sj / np.sqrt(2)
+          qs.append(q)
+  return np.array(qs, np.float32)
+
+
+BOX_SYMMETRIES = _box_symmetries()
+
+
+def canonical_boxes(prims: Primitives) -> Primitives:
+  """One label per box: the rotation nearest the identity, with w >= 0.
+
+  A box (s, q) is the same solid as (|G|ᵀ s, q ⊗ g) for each of the cube's 24 rotations
+  g (matrix G), and as (s, −q). Of these 48 labels this picks the one whose quaternion
+  has the largest w, i.e. the smallest rotation angle (ties, a measure-zero set such as
+  exact 45° turns, go to the first in a fixed order); w >= 0 follows. An axis-aligned
+  box therefore keeps q = (1, 0, 0, 0) and its half sizes along x, y, z.
+  """
+  g = jnp.asarray(BOX_SYMMETRIES)  # (48, 4)
+  cand = quat_mul(prims.quat[..., None, :], g)  # (..., K, 48, 4)
+  best = jnp.argmax(cand[..., 0], axis=-1)  # (..., K)
+  quat = jnp.take_along_axis(cand, best[..., None, None], axis=-2)[..., 0, :]
+  perm = jnp.abs(quat_to_mat(g))[best]  # (..., K, 3, 3) |G|
+  half_size = jnp.einsum("...ji,...j->...i", perm, prims.half_size)
+  return prims.replace(half_size=half_size, quat=quat)
+
+
+# --- overlap of oriented boxes -------------------------------------------------------------
+
+
+def box_volume(prims: Primitives) -> jax.Array:
+  """(..., K) volumes in m^3."""
+  return 8.0 * jnp.prod(prims.half_size, axis=-1)
+
+
+def _inside(points: jax.Array, half_size, pos, quat) -> jax.Array:
+  """Whether (N, 3) points lie in one box; (N,) bool."""
+  local = (points - pos) @ quat_to_mat(quat)  # R^T (p - c)
+  return jnp.all(jnp.abs(local) <= half_size, axis=-1)
+
+
+def _box_corners(half_size, pos, quat) -> jax.Array:
+  """(8, 3) corners of one box."""
+  return (_CORNER_SIGNS * half_size) @ quat_to_mat(quat).T + pos
+
+
+def pair_iou(a: Primitives, b: Primitives, grid: int = 32) -> jax.Array:
+  """IoU of two single boxes (fields without the K axis): exact volumes, grid intersection.
+
+  The intersection volume is counted on a grid × grid × grid lattice of cell centres over
+  the overlap of the two boxes' axis-aligned bounds; the union is |A| + |B| − |A ∩ B|.
+  Axis-aligned boxes come out exact up to the lattice (error < 3/grid of the overlap); for
+  rotated boxes the error is below 0.01 at grid = 32 (tested against Monte Carlo).
+  """
+  ca = _box_corners(a.half_size, a.pos, a.quat)
+  cb = _box_corners(b.half_size, b.pos, b.quat)
+  lo = jnp.maximum(ca.min(0), cb.min(0))
+  hi = jnp.minimum(ca.max(0), cb.max(0))
+  extent = jnp.maximum(hi - lo, 0.0)
+  u = (jnp.arange(grid, dtype=jnp.float32) + 0.5) / grid
+  cells = jnp.stack(jnp.meshgrid(u, u, u, indexing="ij"), -1).reshape(-1, 3)
+  points = lo + cells * extent
+  both = (_inside(points, a.half_size, a.pos, a.quat)
+          & _inside(points, b.half_size, b.pos, b.quat)).mean()
+  inter = both * jnp.prod(extent)
+  vol_a = 8.0 * jnp.prod(a.half_size)
+  vol_b = 8.0 * jnp.prod(b.half_size)
+  return inter / jnp.maximum(vol_a + vol_b - inter, 1e-12)
+
+
+def box_iou(a: Primitives, b: Primitives, grid: int = 32) -> jax.Array:
+  """(..., K, L) IoU of every box in `a` (..., K) with every box in `b` (..., L).
+
+  Invalid boxes give 0. See `pair_iou` for the estimate and its error.
+  """
+  def one(a1, b1):
+    return pair_iou(a1, b1, grid)
+  rows = jax.vmap(jax.vmap(one, (None, 0)), (0, None))
+  batch = a.batch_shape
+  flat = lambda p: jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), p)
+  iou = jax.vmap(rows)(flat(a), flat(b)).reshape(batch + (a.num_slots, b.num_slots))
+  return jnp.where(a.valid[..., :, None] & b.valid[..., None, :], iou, 0.0)

@@ -21,3 +21,13 @@ def index(tree, i):
 @pytest.fixture(scope="session")
 def rng():
   return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory):
+  """The tiny preset's dataset, generated once per session (as `make demo` makes it)."""
+  from ppdjax import generate
+  from ppdjax.configs import tiny
+  out = str(tmp_path_factory.mktemp("tiny") / "blocks")
+  generate.generate(tiny.get_config(), out, progress=False)
+  return out

@@ -146,13 +146,23 @@ def test_loader_is_deterministic_and_streams(dataset_dir):
   assert len(seen) == len(ds)
   with pytest.raises(ValueError, match="batch_size"):
     next(data.batches(ds, 0, seed=0))
+  # a batch equals its samples read one by one; a slice per process, and chosen keys only
+  rows = np.random.default_rng([3, 0]).permutation(len(ds))[:8]
+  for i, r in enumerate(rows):
+    s = ds[int(r)]
+    assert np.array_equal(a[0]["image"][i], s["image"])
+    assert np.array_equal(a[0]["primitives"].quat[i], s["primitives"].quat)
+  half = next(data.batches(ds, 8, seed=3, part=(1, 2), keys=("trajectories",)))
+  assert set(half) == {"trajectories"}
+  assert np.array_equal(half["trajectories"], a[0]["trajectories"][4:])
 
 
-def test_tiny_preset_generates(tmp_path):
+def test_tiny_preset_generates(tiny_dataset):
   """The tiny preset itself, as the README runs it: 16 towers x 8 configurations."""
-  manifest = generate.generate(tiny.get_config(), str(tmp_path / "tiny"), progress=False)
+  with open(os.path.join(tiny_dataset, "manifest.json")) as f:
+    manifest = json.load(f)
   assert manifest["samples"] == 128 and manifest["towers"] == 16
   assert sum(manifest["splits"].values()) == 128
-  ds = data.open_dataset(str(tmp_path / "tiny"), verify=True)
+  ds = data.open_dataset(tiny_dataset, verify=True)
   assert ds[127]["image"].shape == (64, 64, 3)
   assert ds[127]["trajectories"].shape == (4, 256, 7)

@@ -12,4 +12,16 @@ def get_config():
   config.data.towers_per_shard = 250
   config.data.image_size = 224
   config.data.render_workers = 12
+  # The appendix's network: ResNet-18 at full width on 224x224 images.
+  config.model.resnet_width = 64
+  # Adam as in the appendix (beta 0.9, 0.999) at 8x its batch of 8; the rate grows with
+  # the square root of the batch (1e-3 x sqrt(64 / 8)); see docs/training.md.
+  config.train.batch_size = 64
+  config.train.learning_rate = 2.8e-3
+  config.train.geometry_steps = 2_000
+  config.train.joint_steps = 10_000
+  config.train.log_every = 100
+  config.train.eval_every = 2_000
+  config.train.eval_batches = 0  # the whole validation split
+  config.train.prefetch = 4
   return config

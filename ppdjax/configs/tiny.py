@@ -25,4 +25,30 @@ def get_config() -> ml_collections.ConfigDict:
   config.data.backend = "mjx"  # the engine inference uses; "mujoco" makes a marked C variant
   config.data.split_fractions = (0.8, 0.1, 0.1)
   config.data.render_workers = 0  # processes rendering in parallel (0: this process)
+  # The PPD network (paper appendix; ppdjax.model).
+  config.model = ml_collections.ConfigDict()
+  config.model.feature = 64  # f_V, f_I, f_T and f
+  config.model.hidden = 64  # LSTM hidden size (trajectory encoder and generator)
+  config.model.generator_layers = 3
+  config.model.dropout = 0.5
+  config.model.resnet_width = 16  # 64 is ResNet-18 proper (paper preset); 16 for CPUs
+  config.model.image_weights = ""  # optional .npz of converted torchvision ResNet-18 weights
+  config.model.num_pushes = 4
+  config.model.max_primitives = 5
+  config.model.use_voxels = True  # ablation switches: a disabled encoder's feature is 0
+  config.model.use_image = True
+  config.model.use_trajectory = True
+  # Training (python -m ppdjax.train).
+  config.train = ml_collections.ConfigDict()
+  config.train.seed = 0
+  config.train.batch_size = 16  # global, split over all devices
+  config.train.learning_rate = 1e-3  # Adam, beta = (0.9, 0.999), as in the appendix
+  config.train.geometry_steps = 60  # phase 1: geometry only (w = 0)
+  config.train.joint_steps = 140  # phase 2: geometry + w x density
+  config.train.density_weight = 0.5  # w of Eq. 4-5 (docs/training.md says why 0.5)
+  config.train.log_every = 10
+  config.train.eval_every = 100  # validation and checkpoint
+  config.train.eval_batches = 4  # validation batches per evaluation (0: the whole split)
+  config.train.keep_checkpoints = 3
+  config.train.prefetch = 2  # batches read ahead in a background thread
   return config

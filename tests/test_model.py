@@ -1,0 +1,216 @@
+"""The PPD network, its targets and losses, box labels and metrics (no training here)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from ppdjax import losses, metrics, model, primitives
+from ppdjax.configs import tiny
+from ppdjax.primitives import Primitives
+from ppdjax.resnet import ResNet18, load_torchvision_weights
+
+
+def _obs(rng, b=3, t=24, hw=32):
+  return {"voxels": jnp.asarray(rng.random((b, 32, 32, 32)) > 0.6, jnp.uint8),
+          "image": jnp.asarray(rng.integers(0, 255, (b, hw, hw, 3)), jnp.uint8),
+          "trajectories": jnp.asarray(rng.normal(size=(b, 4, t, 7)), jnp.float32)}
+
+
+@pytest.fixture(scope="module")
+def net():
+  return model.PPD(tiny.get_config().model, rngs=nnx.Rngs(0))
+
+
+def _random_boxes(rng, b=4, k=5):
+  q = rng.normal(size=(b, k, 4))
+  return Primitives(jnp.asarray(rng.uniform(0.05, 0.4, (b, k, 3)), jnp.float32),
+                    jnp.asarray(rng.uniform(-0.4, 0.4, (b, k, 3)), jnp.float32),
+                    jnp.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True), jnp.float32),
+                    jnp.asarray(rng.integers(1, 101, (b, k)) * 100.0, jnp.float32),
+                    jnp.asarray(np.arange(k) < rng.integers(1, k + 1, (b, 1))))
+
+
+def test_heads_stay_in_range(net, rng):
+  obs = _obs(rng)
+  prev = jnp.asarray(rng.normal(size=(3, 6, model.PRIM_DIM)) * 5, jnp.float32)
+  for pred in (net(obs, prev, train=True, rngs=nnx.Rngs(dropout=0)), net.decode(obs)[1]):
+    assert pred.density_logits.shape == (3, 6, 102)
+    assert np.all((pred.half_size >= 0) & (pred.half_size <= 0.5))
+    assert np.all(np.abs(pred.pos) <= 0.5)
+    np.testing.assert_allclose(np.linalg.norm(pred.quat, axis=-1), 1.0, atol=1e-5)
+
+
+def test_decoding_stops_at_the_end_token(rng):
+  """Bias the density head towards END: one box (the first step always yields one);
+  towards a slot: all five boxes; the slot is the box's density."""
+  net = model.PPD(tiny.get_config().model, rngs=nnx.Rngs(1))
+  obs = _obs(rng)
+  net.density_head.bias.value = jnp.zeros(102).at[model.END].set(100.0).at[41].set(50.0)
+  prims, _ = net.decode(obs)
+  assert prims.valid.tolist() == [[True, False, False, False, False]] * 3
+  assert np.all(prims.density[:, 0] == 4200.0)
+  net.density_head.bias.value = jnp.zeros(102).at[7].set(100.0)
+  prims, _ = net.decode(obs)
+  assert np.all(prims.valid) and np.all(prims.density == 800.0)
+
+
+def test_ablation_switches_zero_a_feature(rng):
+  obs = _obs(rng)
+  for switch in ("use_voxels", "use_image", "use_trajectory"):
+    cfg = tiny.get_config().model
+    cfg[switch] = False
+    net = model.PPD(cfg, rngs=nnx.Rngs(0))
+    f = net.encode(obs)
+    assert f.shape == (3, cfg.feature)
+    changed = dict(obs)
+    key = {"use_voxels": "voxels", "use_image": "image", "use_trajectory": "trajectories"}[switch]
+    changed[key] = jnp.zeros_like(obs[key])
+    np.testing.assert_array_equal(net.encode(changed), f)  # the ablated input is unused
+
+
+def test_grouped_lstm_runs_independent_lstms(rng):
+  lstm = model.GroupedLSTM(3, 5, 8, rngs=nnx.Rngs(0))
+  x = jnp.asarray(rng.normal(size=(2, 3, 7, 5)), jnp.float32)
+  h = lstm(x)
+  for g in range(3):
+    c = hg = jnp.zeros((2, 8))
+    for t in range(7):
+      z = x[:, g, t] @ lstm.wx.value[g] + hg @ lstm.wh.value[g] + lstm.b.value[g]
+      c, hg = model._lstm_update(z, c)
+    np.testing.assert_allclose(h[:, g], hg, atol=1e-5)
+
+
+def test_trajectory_features_are_relative_and_compressed():
+  traj = jnp.zeros((1, 1, 3, 7)).at[..., 3].set(1.0)
+  traj = traj.at[0, 0, :, 0].set(jnp.array([2.0, 2.0 + 1 / 300, 2.0 + 2 / 300]))  # 1 m/s in x
+  f = model.trajectory_features(traj)
+  np.testing.assert_allclose(f[0, 0, :, 0], [0, 1 / 300, 2 / 300], atol=1e-6)
+  np.testing.assert_allclose(f[0, 0, 1:, 7], np.log1p(1.0 / model.SPEED_SCALE), rtol=1e-3)
+
+
+def test_conv_matches_xla_convolution(rng):
+  conv = model.Conv3x3x3(2, 3, rngs=nnx.Rngs(0))
+  x = jnp.asarray(rng.normal(size=(2, 8, 8, 8, 2)), jnp.float32)
+  ref = jax.lax.conv_general_dilated(x, conv.kernel.value, (1, 1, 1), "SAME",
+                                     dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
+  np.testing.assert_allclose(conv(x), ref + conv.bias.value, atol=1e-5)
+
+
+def test_canonical_label_is_one_per_box(rng):
+  """(s, q), (|G|ᵀ s, q ⊗ g) for the cube's rotations g, and (s, −q) get one label, the
+  same solid (corners), and an axis-aligned box keeps its label."""
+  boxes = _random_boxes(rng, 8)
+  canon = primitives.canonical_boxes(boxes)
+  for gi in rng.integers(0, 48, 6):
+    g = jnp.asarray(primitives.BOX_SYMMETRIES[gi])
+    perm = jnp.abs(primitives.quat_to_mat(g))
+    other = boxes.replace(half_size=boxes.half_size @ perm,
+                          quat=primitives.quat_mul(boxes.quat, g) * (-1) ** gi)
+    again = primitives.canonical_boxes(other)
+    np.testing.assert_allclose(again.quat, canon.quat, atol=1e-5)
+    np.testing.assert_allclose(again.half_size, canon.half_size, atol=1e-5)
+  assert np.all(canon.quat[..., 0] >= 0)
+  key = lambda c: np.sort(np.round(np.asarray(c), 4).reshape(-1, 3), axis=0)
+  np.testing.assert_allclose(key(primitives.corners(canon)), key(primitives.corners(boxes)),
+                             atol=2e-4)
+  aligned = boxes.replace(quat=jnp.zeros_like(boxes.quat).at[..., 0].set(1.0))
+  same = primitives.canonical_boxes(aligned)
+  np.testing.assert_array_equal(same.quat, aligned.quat)
+  np.testing.assert_array_equal(same.half_size, aligned.half_size)
+
+
+def test_targets_order_bottom_to_top_and_end(rng):
+  boxes = _random_boxes(rng, 6)
+  tgt = losses.targets(boxes)
+  n = np.asarray(boxes.valid.sum(-1))
+  for b in range(6):
+    z = np.asarray(tgt["pos"][b, :n[b], 2])
+    assert np.all(np.diff(z) >= 0)
+    assert tgt["token"][b, n[b]] == model.END
+    assert tgt["density_mask"][b].sum() == n[b] + 1
+    assert tgt["geometry_mask"][b].sum() == n[b]
+    assert np.all(tgt["token"][b, :n[b]] < 100)
+    assert np.argmax(tgt["prev"][b, 0, :102]) == model.START
+    np.testing.assert_array_equal(tgt["prev"][b, 1:n[b] + 1, 102:105], tgt["half_size"][b, :n[b]])
+
+
+def test_loss_is_zero_for_the_truth_and_masks_padding(rng):
+  boxes = _random_boxes(rng, 4)
+  tgt = losses.targets(boxes)
+  logits = jax.nn.one_hot(tgt["token"], 102) * 1e4
+  pred = model.Prediction(logits, tgt["half_size"], tgt["pos"], tgt["quat"])
+  loss, aux = losses.loss_fn(pred, tgt, 1.0)
+  assert float(loss) < 1e-6
+  noisy = pred.replace(half_size=jnp.where(tgt["geometry_mask"][..., None], pred.half_size,
+                                           99.0))  # padding steps are ignored
+  assert float(losses.loss_fn(noisy, tgt, 1.0)[0]) < 1e-6
+  worse = pred.replace(pos=pred.pos + 0.1)
+  n = float(boxes.valid.sum(-1).mean())
+  np.testing.assert_allclose(losses.loss_fn(worse, tgt, 0.0)[1]["geometry_loss"], 0.3 * n,
+                             rtol=1e-4)
+
+
+def test_box_iou_against_exact_and_monte_carlo(rng):
+  a = Primitives(jnp.array([0.2, 0.1, 0.3]), jnp.zeros(3), jnp.array([1.0, 0, 0, 0]), 1.0, True)
+  b = Primitives(jnp.array([0.1, 0.1, 0.3]), jnp.array([0.15, 0.05, 0.1]),
+                 jnp.array([1.0, 0, 0, 0]), 1.0, True)
+  inter = 0.15 * 0.15 * 0.5
+  exact = inter / (0.4 * 0.2 * 0.6 + 0.2 * 0.2 * 0.6 - inter)
+  np.testing.assert_allclose(primitives.pair_iou(a, b), exact, atol=1e-3)
+  np.testing.assert_allclose(primitives.pair_iou(a, a), 1.0, atol=1e-6)
+  for _ in range(3):  # rotated boxes against 10^6 random points
+    boxes = _random_boxes(rng, 1, 2)
+    x, y = jax.tree.map(lambda v: v[0, 0], boxes), jax.tree.map(lambda v: v[0, 1], boxes)
+    y = y.replace(pos=x.pos + 0.3 * (y.pos - x.pos))
+    pts = jnp.asarray(rng.uniform(-1, 1, (1_000_000, 3)), jnp.float32)
+    ia, ib = primitives._inside(pts, x.half_size, x.pos, x.quat), primitives._inside(
+        pts, y.half_size, y.pos, y.quat)
+    mc = float((ia & ib).sum() / (ia | ib).sum())
+    assert abs(float(primitives.pair_iou(x, y)) - mc) < 0.01
+
+
+def test_shape_f1_and_density_metrics(rng):
+  true = _random_boxes(rng, 1)
+  true = true.replace(valid=jnp.array([[True, True, True, False, False]]),
+                      pos=jnp.array([[[0, 0, -0.4], [0, 0, 0], [0, 0, 0.4]] + [[0, 0, 0]] * 2],
+                                    jnp.float32),
+                      half_size=jnp.full((1, 5, 3), 0.15), quat=jnp.zeros((1, 5, 4)).at[..., 0].set(1))
+  pred = true.replace(pos=true.pos.at[0, 1, 0].add(0.2))  # one box moved off its match
+  c = metrics.shape_counts(pred, true)
+  assert int(c["matched"][0]) == 2
+  assert metrics.f1_from_counts(**c) == pytest.approx(100 * 4 / 6)
+  logits = jnp.zeros((1, 5, 100)).at[0, 0, 10].set(3).at[0, 1, 20].set(3).at[0, 1, 22].set(2)
+  d = metrics.density_counts(logits, jnp.array([[10, 22, 50, 0, 0]]), true.valid)
+  assert d["top1"][0] == 1 and d["top5"][0] == 2 and d["count"][0] == 3
+  assert d["sq_err"][0] == 0 + 4 + 50 ** 2  # arg-max of an all-zero row is slot 0
+
+
+def test_torchvision_weights_load_by_name(tmp_path, rng):
+  """A state dict with torchvision's names and OIHW layouts (made here: no download)."""
+  net = ResNet18(64, 64, rngs=nnx.Rngs(0))
+  sd = {}
+  for path, v in nnx.to_flat_state(nnx.state(net)):
+    names = [str(p) for p in path]
+    if names[0] == "fc":
+      continue
+    leaf = {"kernel": "weight", "scale": "weight", "bias": "bias", "mean": "running_mean",
+            "var": "running_var"}[names[-1]]
+    shape = v.value.shape
+    if names[-1] == "kernel":
+      shape = (shape[3], shape[2], shape[0], shape[1])
+    sd[".".join(names[:-1] + [leaf])] = rng.normal(size=shape).astype(np.float32)
+  sd["fc.weight"] = np.zeros((1000, 512), np.float32)
+  np.savez(tmp_path / "r18.npz", **sd)
+  load_torchvision_weights(net, str(tmp_path / "r18.npz"))
+  np.testing.assert_array_equal(net.conv1.kernel.value,
+                                np.transpose(sd["conv1.weight"], (2, 3, 1, 0)))
+  np.testing.assert_array_equal(net.layer2[0].downsample[1].var.value,
+                                sd["layer2.0.downsample.1.running_var"])
+  del sd["layer4.1.bn2.bias"]
+  np.savez(tmp_path / "bad.npz", **sd)
+  with pytest.raises(ValueError, match="99 of the 100"):
+    load_torchvision_weights(net, str(tmp_path / "bad.npz"))
+  with pytest.raises(ValueError, match="cannot read"):
+    load_torchvision_weights(net, str(tmp_path / "missing.npz"))

@@ -1,0 +1,163 @@
+"""Training: the tiny preset, overfitting, exact resume, 8 fake devices, loading, errors."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from ppdjax import checkpoints, data, load, metrics, train, trainer
+from ppdjax.configs import tiny
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def short_config(geometry_steps=3, joint_steps=3):
+  config = tiny.get_config()
+  config.train.update(geometry_steps=geometry_steps, joint_steps=joint_steps, log_every=1,
+                      eval_every=1000, eval_batches=1)
+  return config
+
+
+def _rows(workdir, split="train"):
+  with open(os.path.join(workdir, "metrics.jsonl")) as f:
+    rows = [json.loads(line) for line in f]
+  return [r for r in rows if r.get("split", "train") == split]
+
+
+def _params(workdir):
+  model, _ = load(workdir, "latest")
+  return jax.tree.leaves(nnx.state(model))
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_dataset, tmp_path_factory):
+  """The tiny preset exactly as the README's demo trains it."""
+  workdir = str(tmp_path_factory.mktemp("tiny_run"))
+  final = train.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir, progress=False)
+  return workdir, final
+
+
+@pytest.fixture(scope="module")
+def straight_run(tiny_dataset, tmp_path_factory):
+  workdir = str(tmp_path_factory.mktemp("straight"))
+  train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+  return workdir
+
+
+def test_tiny_preset_trains_with_a_falling_loss(tiny_run):
+  workdir, final = tiny_run
+  rows = _rows(workdir)
+  config = tiny.get_config().train
+  assert rows[-1]["step"] == config.geometry_steps + config.joint_steps
+  first = [r["geometry_loss"] for r in rows[:2]]
+  last = [r["geometry_loss"] for r in rows[-2:]]
+  assert np.mean(last) < 0.7 * np.mean(first)
+  phase2 = [r["density_loss"] for r in rows if r["phase"] == 2]
+  assert np.mean(phase2[-2:]) < np.mean(phase2[:2])
+  val = _rows(workdir, "val")
+  assert val and set(val[-1]) >= {"step", "loss", "density_top1", "density_rmse", "shape_f1"}
+  assert final == {k: v for k, v in val[-1].items() if k not in ("step", "split")}
+  for name in ("config.json", "learning_curve.png", "checkpoints", "best", "tensorboard"):
+    assert os.path.exists(os.path.join(workdir, name)), name
+  assert any(f.startswith("events.out.tfevents")
+             for f in os.listdir(os.path.join(workdir, "tensorboard")))
+
+
+def test_load_returns_the_trained_model(tiny_run, tiny_dataset):
+  workdir, _ = tiny_run
+  model, config = load(workdir)
+  assert config.train.batch_size == tiny.get_config().train.batch_size
+  sample = data.open_dataset(tiny_dataset, "test")[0]
+  obs = {k: jnp.asarray(sample[k])[None] for k in trainer.OBS_KEYS}
+  prims, raw = jax.jit(lambda o: model.decode(o))(obs)
+  assert prims.density.shape == (1, 5) and bool(prims.valid[0, 0])
+  with pytest.raises(checkpoints.CheckpointError, match="config.json is missing"):
+    load(os.path.dirname(workdir))
+
+
+def test_overfits_sixteen_samples(tiny_dataset):
+  """Geometry loss near zero and density top-1 above 90% on the 16 samples it saw."""
+  config = tiny.get_config()
+  config.model.dropout = 0.0
+  config.train.learning_rate = 3e-3
+  ds = data.open_dataset(tiny_dataset, "train")
+  batch = jax.tree.map(jnp.asarray, trainer.model_inputs(next(data.batches(ds, 16, seed=0))))
+  graphdef, state = nnx.split(trainer.build(config))
+  step = jax.jit(lambda s, b, i: trainer.train_step(graphdef, s, b, i, 0.5, 0))
+  evaluate = jax.jit(lambda s, b: trainer.eval_step(graphdef, s, b, 0.5))
+  first, _ = evaluate(state, batch)
+  for i in range(300):
+    state, _ = step(state, batch, i)
+  aux, counts = evaluate(state, batch)
+  summary = metrics.summarize(counts)
+  boxes = int(batch["primitives"].valid.sum())
+  # L_G sums 10 coordinates per box over a sample's boxes: per coordinate < 1 cm
+  assert float(aux["geometry_loss"]) / (10 * boxes / 16) < 0.01, aux
+  assert float(aux["geometry_loss"]) < 0.15 * float(first["geometry_loss"])
+  assert summary["top1"] > 90, summary
+
+
+def test_resume_is_bitwise_equal(straight_run, tiny_dataset, tmp_path, monkeypatch):
+  """Interrupted at step 4 (Ctrl-C: it saves), run again: identical losses and weights."""
+  workdir = str(tmp_path / "resumed")
+  real = trainer.Trainer.train_step
+
+  def interrupt_at_4(self, batch, step, w):
+    if step == 4:
+      raise KeyboardInterrupt
+    return real(self, batch, step, w)
+
+  monkeypatch.setattr(trainer.Trainer, "train_step", interrupt_at_4)
+  with pytest.raises(KeyboardInterrupt):
+    train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+  assert [r["step"] for r in _rows(workdir)] == [1, 2, 3, 4]
+  monkeypatch.setattr(trainer.Trainer, "train_step", real)
+  train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+  key = lambda rows: [(r["step"], r["loss"], r["geometry_loss"], r["density_loss"])
+                      for r in rows]
+  assert key(_rows(workdir)) == key(_rows(straight_run))
+  for a, b in zip(_params(workdir), _params(straight_run), strict=True):
+    np.testing.assert_array_equal(a, b)
+
+
+def test_eight_fake_devices_match_one(straight_run, tiny_dataset, tmp_path):
+  workdir = str(tmp_path / "eight")
+  code = ("import jax; from ppdjax import train; from tests.test_train import short_config; "
+          "assert jax.device_count() == 8; "
+          f"train.train_and_evaluate(short_config(), {tiny_dataset!r}, {workdir!r}, "
+          "progress=False)")
+  env = dict(os.environ, JAX_PLATFORMS="cpu",
+             XLA_FLAGS="--xla_force_host_platform_device_count=8",
+             JAX_COMPILATION_CACHE_DIR=os.path.join(ROOT, ".jax_cache"))
+  done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env,
+                        capture_output=True, text=True, timeout=900)
+  assert done.returncode == 0, done.stderr[-3000:]
+  one, eight = _rows(straight_run), _rows(workdir)
+  assert [r["step"] for r in eight] == [r["step"] for r in one]
+  for a, b in zip(one, eight):
+    np.testing.assert_allclose(b["loss"], a["loss"], rtol=1e-4)
+
+
+def test_bad_configs_and_inputs_are_named(tiny_dataset, straight_run, tmp_path, monkeypatch):
+  for section, key, value, match in [("train", "batch_size", 0, "batch_size"),
+                                     ("model", "dropout", 1.0, "dropout"),
+                                     ("train", "joint_steps", -1, "joint_steps")]:
+    config = short_config()
+    config[section][key] = value
+    with pytest.raises(ValueError, match=match):
+      train.check_config(config)
+  config = short_config()
+  config.model.hidden = 32
+  with pytest.raises(ValueError, match="model.hidden"):
+    train.train_and_evaluate(config, tiny_dataset, straight_run, progress=False)
+  with pytest.raises(data.DatasetError, match="no dataset"):
+    train.train_and_evaluate(short_config(), str(tmp_path / "none"), str(tmp_path / "w"))
+  monkeypatch.setattr(jax, "device_count", lambda: 3)
+  with pytest.raises(ValueError, match="multiple of the 3 devices"):
+    train.train_and_evaluate(short_config(), tiny_dataset, str(tmp_path / "w3"))
