@@ -1,8 +1,13 @@
-"""Demo: a random block tower under the paper's four pushes, simulated in MJX (and MuJoCo C).
+"""Demo: physics, dataset and training on one preset (the README's first command).
 
   python -m ppdjax.demo --config=ppdjax/configs/tiny.py --out=out/demo
 
-Writes OUT/trajectories.png, OUT/summary.md and OUT/summary.json.
+1. a random block tower under the paper's four pushes, simulated in MJX (and MuJoCo C):
+   OUT/trajectories.png, OUT/summary.md, OUT/summary.json;
+2. the preset's block-tower dataset: OUT/blocks (with its card.md);
+3. the PPD network trained on it: OUT/train (checkpoints, metrics.jsonl,
+   learning_curve.png).
+Each step resumes where a previous run stopped.
 """
 
 from __future__ import annotations
@@ -102,9 +107,21 @@ def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
   out = flags.FLAGS.out
-  summary = run_demo(flags.FLAGS.config, out)
-  print(f"done: {out}/trajectories.png, summary.md, summary.json "
-        f"(speeds after push {summary['speed_after_push_m_s']} m/s)")
+  config = flags.FLAGS.config
+  summary = run_demo(config, out)
+  print(f"physics: {out}/trajectories.png, summary.md, summary.json "
+        f"(speeds after push {summary['speed_after_push_m_s']} m/s)", flush=True)
+  from ppdjax import generate, train
+  print(f"dataset: {config.data.num_towers} towers x {config.data.configs_per_tower} "
+        f"configurations -> {out}/blocks", flush=True)
+  generate.generate(config, os.path.join(out, "blocks"))
+  print(f"training ({config.train.geometry_steps} geometry + {config.train.joint_steps} joint "
+        f"steps) -> {out}/train", flush=True)
+  final = train.train_and_evaluate(config, os.path.join(out, "blocks"),
+                                   os.path.join(out, "train"))
+  if final:
+    print("validation: " + ", ".join(f"{k} {v:.3g}" for k, v in final.items()))
+  print(f"done: {out}/summary.md, {out}/blocks/card.md, {out}/train/learning_curve.png")
 
 
 if __name__ == "__main__":

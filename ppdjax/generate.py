@@ -13,6 +13,7 @@ import shutil
 import time
 
 import numpy as np
+import ml_collections
 from absl import app, flags, logging
 from ml_collections import config_flags
 
@@ -83,7 +84,10 @@ def generate(config, out: str, progress: bool = True) -> dict:
   check_config(cfg)
   os.makedirs(out, exist_ok=True)
   config_path = os.path.join(out, "config.json")
-  text = config.to_json_best_effort(sort_keys=True, indent=1)
+  # a dataset depends on the seed and the data section only (not on model or train)
+  text = ml_collections.ConfigDict({"name": config.name, "seed": config.seed,
+                                    "data": config.data.to_dict()}
+                                   ).to_json_best_effort(sort_keys=True, indent=1)
   if os.path.exists(config_path):
     with open(config_path) as f:
       if f.read() != text:

@@ -11,7 +11,7 @@ import json
 import os
 import time
 
-from absl import app, flags
+from absl import app, flags, logging
 
 from ppdjax import checkpoints
 
@@ -188,6 +188,7 @@ class MetricsLog:
 
 def main(argv):
   del argv
+  logging.set_verbosity(logging.WARNING)  # orbax reports every save at INFO
   from ppdjax import sharding
   sharding.maybe_initialize_distributed()
   metrics = train_and_evaluate(flags.FLAGS.config, flags.FLAGS.data, flags.FLAGS.workdir)

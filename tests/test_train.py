@@ -75,12 +75,13 @@ def test_load_returns_the_trained_model(tiny_run, tiny_dataset):
   assert config.train.batch_size == tiny.get_config().train.batch_size
   sample = data.open_dataset(tiny_dataset, "test")[0]
   obs = {k: jnp.asarray(sample[k])[None] for k in trainer.OBS_KEYS}
-  prims, raw = jax.jit(lambda o: model.decode(o))(obs)
+  prims, raw = nnx.jit(lambda m, o: m.decode(o))(model, obs)
   assert prims.density.shape == (1, 5) and bool(prims.valid[0, 0])
   with pytest.raises(checkpoints.CheckpointError, match="config.json is missing"):
     load(os.path.dirname(workdir))
 
 
+@pytest.mark.slow  # about 2.5 minutes on 2 cores: run with `make test-all`
 def test_overfits_sixteen_samples(tiny_dataset):
   """Geometry loss near zero and density top-1 above 90% on the 16 samples it saw."""
   config = tiny.get_config()
