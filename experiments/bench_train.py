@@ -51,7 +51,7 @@ def main(argv):
     with tempfile.TemporaryDirectory() as workdir:
       trainer = Trainer(config, workdir)
       t = time.perf_counter()
-      loader = Loader(ds, bs, bs, seed=0, start_step=0, prefetch=config.train.prefetch,
+      loader = Loader(ds, bs, seed=0, start_step=0, prefetch=config.train.prefetch,
                       mesh=trainer.mesh)
       fixed = next(loader)
       jax.block_until_ready(trainer.train_step(fixed, 0, 0.5))

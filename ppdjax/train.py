@@ -99,7 +99,7 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
   if pushes != config.model.num_pushes:
     raise ValueError(f"{data_dir} has {pushes} pushes per sample; config.model.num_pushes "
                      f"is {config.model.num_pushes}")
-  local_batch = sharding.check_batch_size(t.batch_size)
+  sharding.check_batch_size(t.batch_size)
   steps_per_epoch = len(train_ds) // t.batch_size
   if steps_per_epoch == 0:
     raise ValueError(f"the train split has {len(train_ds)} samples, fewer than "
@@ -111,7 +111,7 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
   start = trainer.restore_latest()
   total = t.geometry_steps + t.joint_steps
   log = MetricsLog(workdir, start, enabled=jax.process_index() == 0)
-  loader = Loader(train_ds, t.batch_size, local_batch, seed=t.seed, start_step=start,
+  loader = Loader(train_ds, t.batch_size, seed=t.seed, start_step=start,
                   prefetch=t.prefetch, mesh=trainer.mesh)
   bar = tqdm(total=total, initial=start, desc="train", unit="step", disable=not progress,
              dynamic_ncols=True)
@@ -146,9 +146,13 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
     loader.close()
     trainer.close()
     log.close()
+  if last_val is None:  # nothing left to train: report the run's last validation
+    with open(log.path) as f:
+      rows = [json.loads(line) for line in f if '"val"' in line]
+    last_val = {k: v for k, v in rows[-1].items() if k not in ("step", "split")} if rows else {}
   if jax.process_index() == 0:
     plot_learning_curve(log.path, os.path.join(workdir, "learning_curve.png"))
-  return last_val or {}
+  return last_val
 
 
 class MetricsLog:

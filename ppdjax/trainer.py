@@ -138,8 +138,8 @@ class Loader:
   run sees exactly the batches an uninterrupted one would.
   """
 
-  def __init__(self, dataset, batch_size: int, local_batch: int, *, seed: int,
-               start_step: int, prefetch: int, mesh):
+  def __init__(self, dataset, batch_size: int, *, seed: int, start_step: int, prefetch: int,
+               mesh):
     self.dataset, self.batch_size, self.seed = dataset, batch_size, seed
     self.part = (jax.process_index(), jax.process_count())
     self.sharding = sharding.batch_sharded(mesh)

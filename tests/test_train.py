@@ -70,7 +70,10 @@ def test_tiny_preset_trains_with_a_falling_loss(tiny_run):
 
 
 def test_load_returns_the_trained_model(tiny_run, tiny_dataset):
-  workdir, _ = tiny_run
+  workdir, final = tiny_run
+  # a finished run, run again, trains nothing and reports its last validation
+  assert train.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir,
+                                  progress=False) == final
   model, config = load(workdir)
   assert config.train.batch_size == tiny.get_config().train.batch_size
   sample = data.open_dataset(tiny_dataset, "test")[0]
