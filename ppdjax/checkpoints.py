@@ -37,7 +37,7 @@ def managers(workdir: str, keep: int) -> tuple[ocp.CheckpointManager, ocp.Checkp
 
 def save(latest, best, step: int, model_state, opt_state, val_loss: float | None) -> None:
   """Saves the run (and, with a validation loss, offers the model to the best manager)."""
-  pure = lambda s: nnx.to_pure_dict(s)
+  pure = nnx.to_pure_dict
   latest.save(step, args=ocp.args.Composite(model=ocp.args.StandardSave(pure(model_state)),
                                             optimizer=ocp.args.StandardSave(pure(opt_state))))
   if val_loss is not None:

@@ -55,9 +55,9 @@ def train_step(graphdef, state, batch, step, w, seed):
 def eval_step(graphdef, state, batch, w):
   """Validation loss (teacher forced, eval mode) and metric counts of decoded predictions."""
   model, _ = nnx.merge(graphdef, state)
-  _, aux = _loss(model, batch, w, False, None)
-  pred, raw = model.decode(batch)
   tgt = losses.targets(batch["primitives"])
+  _, aux = losses.loss_fn(model(batch, tgt["prev"], train=False), tgt, w)
+  pred, raw = model.decode(batch)
   k = pred.num_slots
   true = losses.bottom_to_top(batch["primitives"])
   counts = metrics.density_counts(raw.density_logits[:, :k, :NUM_DENSITY_SLOTS],
