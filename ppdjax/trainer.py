@@ -58,11 +58,10 @@ def eval_step(graphdef, state, batch, w):
   tgt = losses.targets(batch["primitives"])
   _, aux = losses.loss_fn(model(batch, tgt["prev"], train=False), tgt, w)
   pred, raw = model.decode(batch)
-  k = pred.num_slots
-  true = losses.bottom_to_top(batch["primitives"])
+  k = pred.num_slots  # density: k-th step vs k-th true box (bottom to top); F1 is order-free
   counts = metrics.density_counts(raw.density_logits[:, :k, :NUM_DENSITY_SLOTS],
-                                  tgt["slot"], true.valid)
-  counts.update(metrics.shape_counts(pred, true))
+                                  tgt["slot"], tgt["geometry_mask"][:, :k])
+  counts.update(metrics.shape_counts(pred, batch["primitives"]))
   return aux, jax.tree.map(jnp.sum, counts)
 
 
