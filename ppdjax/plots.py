@@ -1,4 +1,4 @@
-"""Figures: a tower and its push trajectories; learning curves."""
+"""Figures: a tower and its push trajectories; learning curves; confusion; decompositions."""
 
 from __future__ import annotations
 
@@ -98,6 +98,59 @@ def plot_learning_curve(metrics_path: str, path: str = "learning_curve.png") -> 
   for ax in axes[:2]:
     ax.legend(fontsize=7)
   fig.tight_layout()
+  fig.savefig(path, dpi=110)
+  plt.close(fig)
+  return path
+
+
+def plot_confusion(confusion: dict, path: str = "confusion.png") -> str:
+  """Row-normalised density confusion matrices (true slot × predicted slot), one per row."""
+  names = list(confusion)
+  fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 4.0), squeeze=False)
+  for ax, name in zip(axes[0], names):
+    m = np.asarray(confusion[name], np.float64)
+    m = m / np.maximum(m.sum(1, keepdims=True), 1.0)
+    ax.imshow(m, origin="lower", cmap="magma", vmin=0, vmax=max(m.max(), 1e-6),
+              extent=(0.5, 100.5, 0.5, 100.5))
+    ax.set_title(name, fontsize=9)
+    ax.set_xlabel("predicted density (×100 kg/m³)")
+    ax.set_ylabel("true density (×100 kg/m³)")
+  fig.tight_layout()
+  fig.savefig(path, dpi=110)
+  plt.close(fig)
+  return path
+
+
+def plot_decomposition(image, prims, path: str = "decomposition.png", true=None,
+                       title: str = "") -> str:
+  """The input image beside the recovered boxes coloured by density (and the truth's)."""
+  from matplotlib import cm, colors
+  from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+  faces = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5))
+  norm = colors.Normalize(100.0, 10000.0)
+  cmap = matplotlib.colormaps["viridis"]
+  shown = [("recovered", prims)] + ([("ground truth", true)] if true is not None else [])
+  fig = plt.figure(figsize=(4.2 * (1 + len(shown)) + 0.8, 4.2))
+  ax = fig.add_subplot(1, 1 + len(shown), 1)
+  ax.imshow(np.asarray(image))
+  ax.set_title("input image")
+  ax.axis("off")
+  for i, (name, p) in enumerate(shown):
+    ax = fig.add_subplot(1, 1 + len(shown), i + 2, projection="3d")
+    c = np.asarray(corners(p))
+    for k in np.nonzero(np.asarray(p.valid))[0]:
+      poly = [[c[k, j] for j in f] for f in faces]
+      d = float(np.asarray(p.density)[k])
+      ax.add_collection3d(Poly3DCollection(poly, facecolor=cmap(norm(d)), edgecolor="k",
+                                           linewidth=0.5, alpha=0.9))
+      ax.text(*c[k].mean(0), f"{d:.0f}", fontsize=7, ha="center")
+    ax.set(xlim=(-0.6, 0.6), ylim=(-0.6, 0.6), zlim=(-0.6, 0.6), title=name)
+    ax.set_box_aspect((1, 1, 1))
+  fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=fig.axes, shrink=0.8,
+               label="density (kg/m³)")
+  if title:
+    fig.suptitle(title, fontsize=9)
   fig.savefig(path, dpi=110)
   plt.close(fig)
   return path

@@ -31,3 +31,13 @@ def tiny_dataset(tmp_path_factory):
   out = str(tmp_path_factory.mktemp("tiny") / "blocks")
   generate.generate(tiny.get_config(), out, progress=False)
   return out
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tiny_dataset, tmp_path_factory):
+  """The tiny preset trained exactly as the README's demo trains it: (workdir, final)."""
+  from ppdjax import train
+  from ppdjax.configs import tiny
+  workdir = str(tmp_path_factory.mktemp("tiny_run"))
+  final = train.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir, progress=False)
+  return workdir, final

@@ -160,6 +160,8 @@ def test_box_iou_against_exact_and_monte_carlo(rng):
   exact = inter / (0.4 * 0.2 * 0.6 + 0.2 * 0.2 * 0.6 - inter)
   np.testing.assert_allclose(primitives.pair_iou(a, b), exact, atol=1e-3)
   np.testing.assert_allclose(primitives.pair_iou(a, a), 1.0, atol=1e-6)
+  far = a.replace(pos=jnp.array([0.5, 0.0, 0.0]))  # disjoint: gap of 0.1 along x
+  np.testing.assert_allclose(primitives.pair_iou(a, far), 0.0, atol=1e-6)
   for _ in range(3):  # rotated boxes against 10^6 random points
     boxes = _random_boxes(rng, 1, 2)
     x, y = jax.tree.map(lambda v: v[0, 0], boxes), jax.tree.map(lambda v: v[0, 1], boxes)

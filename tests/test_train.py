@@ -36,14 +36,6 @@ def _params(workdir):
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tiny_dataset, tmp_path_factory):
-  """The tiny preset exactly as the README's demo trains it."""
-  workdir = str(tmp_path_factory.mktemp("tiny_run"))
-  final = train.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir, progress=False)
-  return workdir, final
-
-
-@pytest.fixture(scope="module")
 def straight_run(tiny_dataset, tmp_path_factory):
   workdir = str(tmp_path_factory.mktemp("straight"))
   train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)

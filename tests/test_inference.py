@@ -1,0 +1,167 @@
+"""Inference: density sampling and refinement through MJX, decompose, evaluate CLI, errors."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ppdjax import checkpoints, data, evaluate, inference, metrics, towers
+from ppdjax.physics import default_pushes
+from ppdjax.primitives import quat_mul
+from ppdjax.rollout_mjx import rollout_object
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PUSHES = default_pushes()
+
+
+def _simulate(prims):
+  return jax.jit(jax.vmap(lambda p: rollout_object(p, PUSHES, steps=256)))(prims)
+
+
+def test_candidates_keep_the_mode_and_have_no_duplicates(rng):
+  logits = jnp.asarray(rng.normal(size=(5, 100)), jnp.float32)
+  valid = jnp.array([True, True, True, False, False])
+  slots, distinct = inference.candidate_slots(logits, valid, 64, jax.random.key(0))
+  assert slots.shape == (64, 5) and bool(distinct.all())
+  np.testing.assert_array_equal(slots[0, :3], jnp.argmax(logits, -1)[:3])
+  assert not np.asarray(slots[:, 3:]).any()  # padded boxes
+  assert len({tuple(r) for r in np.asarray(slots)}) == 64
+  # support of 2 x 2 assignments: 4 distinct ones come first, then repeats flagged
+  small = jnp.full((5, 100), -1e9).at[:, 7].set(0.0).at[:, 40].set(0.0)
+  slots, distinct = inference.candidate_slots(small, valid.at[2].set(False), 8,
+                                              jax.random.key(1))
+  assert list(np.asarray(distinct)) == [True] * 4 + [False] * 4
+  assert len({tuple(r) for r in np.asarray(slots[:4])}) == 4
+
+
+def test_trajectory_metrics_on_hand_cases():
+  obs = jnp.zeros((2, 3, 7)).at[..., 3].set(1.0)
+  sim = obs.at[..., 0].add(0.003).at[..., 2].add(-0.006)  # 3 mm, -6 mm
+  assert float(metrics.trajectory_mae(sim, obs)) == pytest.approx(3.0, rel=1e-5)
+  assert float(metrics.trajectory_distance(sim, obs)) == pytest.approx(
+      np.hypot(0.003, 0.006), rel=1e-4)
+  half = jnp.array([np.cos(0.05), 0.0, 0.0, np.sin(0.05)])  # 0.1 rad about z
+  r = metrics.pose_residual(obs.at[..., 3:].set(half), obs)
+  np.testing.assert_allclose(r[0, 0], [0, 0, 0, 0, 0, 0.1 * metrics.ROTATION_LENGTH],
+                             atol=1e-6)
+  q = jnp.asarray(np.random.default_rng(0).normal(size=(10, 4)), jnp.float32)
+  q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+  np.testing.assert_allclose(metrics.rotation_vector(quat_mul(q, q * jnp.array(
+      [1.0, -1, -1, -1]))), 0.0, atol=1e-3)
+  np.testing.assert_allclose(metrics.rotation_vector(-q), metrics.rotation_vector(q),
+                             atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def tower():
+  """A two-block tower that moves under the pushes, and its observed trajectories."""
+  prims = jax.tree.map(jnp.asarray, towers.sample_towers(3, 1, num_blocks=2))
+  return jax.tree.map(lambda x: x[0], prims), _simulate(prims)[0]
+
+
+def test_sampling_finds_the_truth_when_the_prior_contains_it(tower):
+  prims, observed = tower
+  true = np.asarray(jnp.rint(prims.density / 100.0) - 1).astype(int)
+  logits = jnp.full((5, 100), -1e9)
+  for k in range(2):  # support {t - 3, t, t + 3}; the mode (t + 3) is wrong
+    t = true[k]
+    logits = logits.at[k, t - 3].set(0.0).at[k, t].set(0.5).at[k, t + 3].set(1.0)
+  sel = jax.jit(lambda p, lg, o, key: inference.select_densities(
+      p, lg, o, PUSHES, num_samples=16, key=key))(prims, logits, observed, jax.random.key(0))
+  np.testing.assert_allclose(sel.density[:2], prims.density[:2])
+  assert float(sel.score) < 1e-5 and float(sel.scores[0]) > 1e-4
+  assert int(sel.distinct.sum()) == 9  # the whole support, each once
+
+
+@pytest.mark.slow
+def test_refinement_from_thirty_percent_off_lands_within_five_percent():
+  prims = jax.tree.map(jnp.asarray, towers.sample_towers(11, 24, num_blocks=2))
+  observed = _simulate(prims)
+  moved = jnp.linalg.norm(observed[..., :3] - observed[:, :, :1, :3], axis=-1).mean((1, 2))
+  pick = np.nonzero(np.asarray(moved) > 0.03)[0][:6]  # towers whose motion shows their mass
+  assert len(pick) >= 4
+  prims, observed = jax.tree.map(lambda x: x[pick], prims), observed[pick]
+  signs = jnp.asarray(np.random.default_rng(0).choice([-1.0, 1.0], (len(pick), 5)))
+  start = prims.replace(density=prims.density * (1.0 + 0.3 * signs))
+  out, info = jax.jit(jax.vmap(lambda p, o: inference.refine_densities(p, o, PUSHES)))(
+      start, observed)
+  ratio = np.asarray(out.density / prims.density)[:, :2]
+  assert np.all(np.abs(ratio - 1.0) < 0.05), ratio
+  assert np.all(np.asarray(info["cost"]) < np.asarray(info["cost_start"]))
+
+
+@pytest.fixture(scope="module")
+def decompose(tiny_run):
+  return inference.make_decompose_fn(tiny_run[0], num_samples=4)
+
+
+def test_decompose_one_and_a_batch(decompose, tiny_dataset):
+  sample = data.open_dataset(tiny_dataset, "test").take([0])
+  obs = {k: sample[k] for k in ("voxels", "image", "trajectories")}
+  batched = decompose(obs, jax.random.key(0))
+  one = decompose(jax.tree.map(lambda x: x[0], obs), jax.random.key(0))
+  assert batched.primitives.density.shape == (1, 5) and one.primitives.density.shape == (5,)
+  np.testing.assert_allclose(one.primitives.density, batched.primitives.density[0])
+  assert one.scores.shape == (4,) and float(one.score) <= float(one.scores.min()) + 1e-6
+  d = np.asarray(one.primitives.density)[np.asarray(one.primitives.valid)]
+  assert np.all((d >= 100) & (d <= 10000)) and np.allclose(d % 100, 0)
+  np.testing.assert_allclose(metrics.trajectory_distance(one.trajectories,
+                                                         obs["trajectories"][0]), one.score,
+                             rtol=1e-4)
+
+
+def test_bad_observations_are_named(decompose, tiny_dataset):
+  sample = data.open_dataset(tiny_dataset, "test")[0]
+  obs = {k: sample[k] for k in ("voxels", "image", "trajectories")}
+  key = jax.random.key(0)
+  with pytest.raises(ValueError, match="lacks"):
+    decompose({"voxels": obs["voxels"]}, key)
+  with pytest.raises(ValueError, match=r"trajectories.*expected shape \(4, any, 7\)"):
+    decompose({**obs, "trajectories": obs["trajectories"][:, :, :3]}, key)
+  with pytest.raises(ValueError, match="voxels"):
+    decompose({**obs, "voxels": obs["voxels"][:16]}, key)
+  with pytest.raises(ValueError, match="NaN or inf"):
+    decompose({**obs, "trajectories": obs["trajectories"].copy() * np.nan}, key)
+
+
+def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
+  out = str(tmp_path / "eval")
+  env = {**os.environ, "JAX_PLATFORMS": "cpu",
+         "JAX_COMPILATION_CACHE_DIR": os.path.join(ROOT, ".jax_cache")}
+  done = subprocess.run([sys.executable, "-m", "ppdjax.evaluate", f"--workdir={tiny_run[0]}",
+                         f"--data={tiny_dataset}", "--samples=4", f"--out={out}"],
+                        cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+  assert done.returncode == 0, done.stderr[-3000:]
+  with open(os.path.join(out, "results.json")) as f:
+    results = json.load(f)
+  rows = results["table2"]
+  assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample"}
+  for row in rows.values():
+    assert 0 <= row["top1"] <= row["top5"] <= row["top10"] <= 100 and row["mae"] >= 0
+  assert rows["Oracle"]["top10"] > rows["Frequent"]["top10"]
+  assert set(results["table4"]) == {"PPD", "Sample Phys.", "Sample Phys.+Shape"}
+  for r in results["table4"].values():  # best of more samples is never worse
+    assert r["4"] <= r["1"] + 1e-9
+  assert results["table4"]["PPD"]["1"] == pytest.approx(rows["PPD"]["mae"])
+  assert results["objects"] == len(data.open_dataset(tiny_dataset, "test"))
+  text = open(os.path.join(out, "results.md")).read()
+  assert "Table 2" in text and "Table 4" in text and "| PPD+Sample |" in text
+  assert os.path.exists(os.path.join(out, "confusion.png"))
+
+
+def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
+  with pytest.raises(checkpoints.CheckpointError, match="config.json"):
+    evaluate.evaluate(str(tmp_path), tiny_dataset)
+  empty = tmp_path / "empty"
+  empty.mkdir()
+  with pytest.raises(data.DatasetError, match="no dataset|manifest"):
+    evaluate.evaluate(tiny_run[0], str(empty))
+  done = subprocess.run([sys.executable, "-m", "ppdjax.evaluate", f"--workdir={tmp_path}",
+                         f"--data={tiny_dataset}"], cwd=ROOT, capture_output=True, text=True,
+                        env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)
+  assert done.returncode != 0 and "not a training workdir" in done.stderr
