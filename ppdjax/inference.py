@@ -38,6 +38,7 @@ class Selection:
     slots: (S, K) the candidates' density slots (0 for padded boxes).
     distinct: (S,) False for a candidate that repeats an earlier one (small supports).
     mae: (S,) every candidate's trajectory MAE (mm, `metrics.trajectory_mae`).
+    trajectories: (P, T, 7) the best candidate simulated under the pushes.
   """
 
   density: jax.Array
@@ -46,6 +47,7 @@ class Selection:
   slots: jax.Array
   distinct: jax.Array
   mae: jax.Array
+  trajectories: jax.Array
 
 
 def candidate_slots(logits_Kx100: jax.Array, valid_K: jax.Array, num_samples: int,
@@ -89,14 +91,16 @@ def with_slots(prims: Primitives, slots: jax.Array) -> Primitives:
 
 
 def score_candidates(candidates: Primitives, observed_PTx7: jax.Array, pushes: Pushes,
-                     settings: MjxSettings = DEFAULT_SETTINGS) -> tuple[jax.Array, jax.Array]:
-  """(distance (S,), MAE (S,)) of candidates (S, K) simulated under the pushes."""
+                     settings: MjxSettings = DEFAULT_SETTINGS, *,
+                     keep_trajectories: bool = False):
+  """(distance (S,), MAE (S,)[, trajectories (S, P, T, 7)]) of candidates (S, K)."""
   steps = observed_PTx7.shape[-2]
 
   def one(p):
     sim = rollout_object(p, pushes, steps=steps, settings=settings)
-    return metrics.trajectory_distance(sim, observed_PTx7), metrics.trajectory_mae(
-        sim, observed_PTx7)
+    scores = (metrics.trajectory_distance(sim, observed_PTx7),
+              metrics.trajectory_mae(sim, observed_PTx7))
+    return scores + (sim,) if keep_trajectories else scores
   return jax.vmap(one)(candidates)
 
 
@@ -122,10 +126,12 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   pushes = default_pushes() if pushes is None else pushes
   slots, distinct = candidate_slots(density_logits[:, :NUM_DENSITY_SLOTS], prims.valid,
                                     num_samples, key, include_mode=include_mode)
-  scores, mae = score_candidates(with_slots(prims, slots), observed, pushes, settings)
+  scores, mae, sims = score_candidates(with_slots(prims, slots), observed, pushes, settings,
+                                       keep_trajectories=True)
   best = jnp.argmin(scores)
   return Selection(density=(slots[best] + 1.0) * SLOT_DENSITY, score=scores[best],
-                   scores=scores, slots=slots, distinct=distinct, mae=mae)
+                   scores=scores, slots=slots, distinct=distinct, mae=mae,
+                   trajectories=sims[best])
 
 
 def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | None = None, *,
@@ -269,13 +275,12 @@ def make_decompose_fn(trained, *, num_samples: int = 512, refine: bool = False,
         p, l, o, pushes, num_samples=num_samples, key=kk, settings=settings))(
             prims, logits, traj, keys)
     prims = prims.replace(density=sel.density)
-    score = sel.score
+    score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
     if refine:
       prims, _ = jax.vmap(lambda p, o: refine_densities(p, o, pushes, steps=refine_steps,
                                                         settings=settings))(prims, traj)
-    steps = traj.shape[-2]
-    sim = jax.vmap(lambda p: rollout_object(p, pushes, steps=steps, settings=settings))(prims)
-    if refine:
+      steps = traj.shape[-2]
+      sim = jax.vmap(lambda p: rollout_object(p, pushes, steps=steps, settings=settings))(prims)
       score = metrics.trajectory_distance(sim, traj)
     return Decomposition(prims, logits, score, sel.scores, sim)
 

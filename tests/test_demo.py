@@ -16,3 +16,11 @@ def test_demo_writes_plot_and_summary(tmp_path):
   assert len(summary["speed_after_push_m_s"]) == 4
   assert all(0.05 < v < 10 for v in summary["speed_after_push_m_s"])
   assert max(summary["gap_to_reference_mm"]["first_0.1s_max"]) < 2.0
+
+
+def test_demo_evaluates_and_decomposes(tiny_run, tiny_dataset, tmp_path):
+  results = demo.run_evaluation(tiny.get_config(), tiny_dataset, tiny_run[0], str(tmp_path))
+  for name in ("decomposition.png", "eval/results.md", "eval/results.json", "eval/confusion.png"):
+    assert os.path.getsize(tmp_path / name) > 100, name
+  assert results["samples"] == tiny.get_config().eval.samples
+  assert {"PPD", "PPD+Sample", "Oracle"} <= set(results["table2"])

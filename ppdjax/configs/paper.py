@@ -26,4 +26,7 @@ def get_config():
   config.train.eval_every = 4_000
   config.train.eval_batches = 0  # the whole validation split
   config.train.prefetch = 4
+  config.eval.samples = 512
+  config.eval.refine = True
+  config.eval.batch_size = 64
   return config

@@ -51,4 +51,10 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.eval_batches = 4  # validation batches per evaluation (0: the whole split)
   config.train.keep_checkpoints = 3
   config.train.prefetch = 2  # batches read ahead in a background thread
+  # Evaluation and decomposition (python -m ppdjax.evaluate; the demo's last steps).
+  config.eval = ml_collections.ConfigDict()
+  config.eval.samples = 16  # density samples per object (the paper: 512)
+  config.eval.refine = False  # LM refinement through MJX (~3 min to compile on a CPU)
+  config.eval.refine_steps = 12
+  config.eval.batch_size = 8
   return config

@@ -1,0 +1,142 @@
+"""`decompose` speed: one object (latency) and a batch (objects/s), MJX vs MuJoCo C.
+
+  python experiments/bench_decompose.py --samples 512 --batch 64 --out FILE.json
+
+Both engines run the same sampling in one process: the paper preset's network (random
+weights: the cost does not depend on them) decodes the objects on the accelerator and
+draws `samples` density assignments per object; then
+  * MJX: everything above plus simulation under the four pushes, scoring and selection is
+    the one jitted `inference.make_decompose_fn` function;
+  * C (peer): the same decode and draws (jitted), then all candidates simulated with
+    `mujoco.batch` on every CPU core, scored with the same distance and selected.
+Latency: median of --repeats warm calls for one object; throughput: objects / s of a
+batch. Prints a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from ppdjax import inference, metrics, physics, towers, voxels
+from ppdjax.configs import paper
+from ppdjax.materials import NUM_DENSITY_SLOTS
+from ppdjax.model import PPD
+from ppdjax.rollout_mjx import rollout_object
+
+
+def observations(seed: int, count: int, image_size: int) -> dict:
+  prims = towers.sample_towers(seed, count)
+  rng = np.random.default_rng(seed)
+  return {"voxels": voxels.voxelize(prims),
+          "image": rng.integers(0, 255, (count, image_size, image_size, 3), np.uint8),
+          "trajectories": np.asarray(physics.simulate(prims))}
+
+
+def timed(fn, repeats: int) -> tuple[object, float]:
+  out = fn()  # warm-up (compiles)
+  times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    out = fn()
+    times.append(time.perf_counter() - t0)
+  return out, float(np.median(times))
+
+
+def c_peer(model, samples: int):
+  """Decode + draws jitted on the accelerator; simulation and scoring in MuJoCo C."""
+  graphdef, state = nnx.split(model)
+
+  @jax.jit
+  def propose(state, obs, key):
+    prims, raw = nnx.merge(graphdef, state).decode(obs)
+    logits = raw.density_logits[:, :prims.num_slots, :NUM_DENSITY_SLOTS]
+    keys = jax.random.split(key, logits.shape[0])
+    slots = jax.vmap(lambda lg, v, k: inference.candidate_slots(lg, v, samples, k)[0])(
+        logits, prims.valid, keys)
+    return jax.vmap(inference.with_slots)(prims, slots)
+
+  def run(obs, key):
+    cands = jax.device_get(propose(state, obs, key))  # (B, S, K)
+    sim = physics.simulate(cands, backend="mujoco")  # (B, S, P, T, 7), all cores
+    dist = np.asarray(metrics.trajectory_distance(
+        jnp.asarray(sim, jnp.float32), jnp.asarray(obs["trajectories"])[:, None]))
+    return cands.density[np.arange(len(dist)), np.argmin(dist, -1)]
+  return run
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--samples", type=int, default=512)
+  parser.add_argument("--batch", type=int, default=64)
+  parser.add_argument("--repeats", type=int, default=5)
+  parser.add_argument("--refine", action="store_true", help="also time decompose(refine=True)")
+  parser.add_argument("--skip_c", action="store_true", help="MJX only")
+  parser.add_argument("--skip_batch", action="store_true", help="one object only")
+  parser.add_argument("--out", default="")
+  args = parser.parse_args()
+  config = paper.get_config()
+  model = PPD(config.model, rngs=nnx.Rngs(0))
+  obs = observations(0, args.batch, config.data.image_size)
+  one = jax.tree.map(lambda x: x[:1], obs)
+  key = jax.random.key(0)
+  meta = {"device": jax.devices()[0].device_kind, "cpu_count": os.cpu_count(),
+          "jax": jax.__version__, "python": platform.python_version(),
+          "samples": args.samples, "batch": args.batch}
+  rows = []
+
+  def add(engine, what, n, seconds):
+    rows.append({"engine": engine, "case": what, "objects": n, "seconds": seconds,
+                 "objects_per_s": n / seconds})
+    print(f"{engine:28s} {what:22s} {seconds * 1e3:9.1f} ms  {n / seconds:8.2f} objects/s",
+          flush=True)
+
+  decompose = inference.make_decompose_fn((model, config), num_samples=args.samples)
+  block = lambda out: jax.block_until_ready(out.primitives.density)
+  t0 = time.perf_counter()
+  block(decompose(one, key))
+  meta["compile_one_s"] = time.perf_counter() - t0
+  _, s = timed(lambda: block(decompose(one, key)), args.repeats)
+  add("MJX (jitted decompose)", "1 object", 1, s)
+  if not args.skip_batch:
+    _, s = timed(lambda: block(decompose(obs, key)), max(1, args.repeats // 2))
+    add("MJX (jitted decompose)", f"batch of {args.batch}", args.batch, s)
+  physics_only = jax.jit(lambda c: jax.vmap(lambda p: rollout_object(
+      p, physics.default_pushes(), steps=256))(c))
+  cands = jax.tree.map(lambda x: jnp.broadcast_to(x[0], (args.samples,) + x.shape[1:]),
+                       jax.tree.map(jnp.asarray, towers.sample_towers(1, 1)))
+  _, s = timed(lambda: jax.block_until_ready(physics_only(cands)), args.repeats)
+  add("MJX rollouts alone", f"{args.samples} candidates", 1, s)
+  if args.refine:
+    refined = inference.make_decompose_fn((model, config), num_samples=args.samples,
+                                          refine=True)
+    _, s = timed(lambda: block(refined(one, key)), args.repeats)
+    add("MJX decompose + refine", "1 object", 1, s)
+  if not args.skip_c:
+    peer = c_peer(model, args.samples)
+    _, s = timed(lambda: peer(one, key), max(1, args.repeats // 2))
+    add(f"MuJoCo C, {os.cpu_count()} threads", "1 object", 1, s)
+    if not args.skip_batch:
+      _, s = timed(lambda: peer(obs, key), 1)
+      add(f"MuJoCo C, {os.cpu_count()} threads", f"batch of {args.batch}", args.batch, s)
+  c = {r["case"]: r["seconds"] for r in rows if r["engine"].startswith("MuJoCo C")}
+  print("\n| engine | case | ms | objects/s | × C |\n|---|---|--:|--:|--:|")
+  for r in rows:
+    ratio = c.get(r["case"], float("nan")) / r["seconds"]
+    print(f"| {r['engine']} | {r['case']} | {r['seconds'] * 1e3:.1f} | "
+          f"{r['objects_per_s']:.2f} | {ratio:.2f} |")
+  if args.out:
+    with open(args.out, "w") as f:
+      json.dump({"meta": meta, "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+  main()

@@ -1,0 +1,85 @@
+"""Shared steps of the block-tower experiment scripts (table2/4/5.py, figures.py).
+
+Each model variant trains into ROOT/<variant> and is evaluated into ROOT/<variant>/eval;
+both steps resume or are skipped when already done, so a script can be rerun after an
+interruption and scripts can share work.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import jax
+
+jax.config.update("jax_compilation_cache_dir",
+                  os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
+
+from ppdjax import evaluate, train  # noqa: E402
+
+# variant -> (model switch turned off, the paper's Table 2 row)
+VARIANTS = {"full": (None, "PPD (full)"), "no_trajectory": ("use_trajectory", "PPD (no trajectory)"),
+            "no_image": ("use_image", "PPD (no image)"), "no_voxels": ("use_voxels", "PPD (no voxels)")}
+
+
+def variant_config(config, variant: str):
+  config = config.copy_and_resolve_references()
+  switch = VARIANTS[variant][0]
+  if switch:
+    config.model[switch] = False
+    if switch == "use_image":
+      config.model.image_weights = ""
+  return config
+
+
+def ensure_trained(config, data_dir: str, root: str, variant: str) -> str:
+  """Trains (or resumes, or skips) a variant; returns its workdir."""
+  workdir = os.path.join(root, variant)
+  t0 = time.perf_counter()
+  print(f"[{variant}] training -> {workdir}", flush=True)
+  train.train_and_evaluate(variant_config(config, variant), data_dir, workdir)
+  _log_step(root, f"train {variant}", time.perf_counter() - t0)
+  return workdir
+
+
+def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples: int,
+                     refine: bool, max_objects: int = 0) -> dict:
+  """Evaluates a trained variant unless results with the same settings exist."""
+  workdir = ensure_trained(config, data_dir, root, variant)
+  out = os.path.join(workdir, "eval")
+  path = os.path.join(out, "results.json")
+  if os.path.exists(path):
+    with open(path) as f:
+      results = json.load(f)
+    if (results["samples"], results["refine"], results.get("max_objects", 0)) == (
+        samples, refine, max_objects):
+      return results
+  print(f"[{variant}] evaluating ({samples} samples{', refine' if refine else ''})", flush=True)
+  t0 = time.perf_counter()
+  results = evaluate.evaluate(workdir, data_dir, samples=samples, refine=refine,
+                              refine_steps=config.eval.refine_steps,
+                              batch_size=config.eval.batch_size, max_objects=max_objects)
+  results["max_objects"] = max_objects
+  evaluate.write_results(results, out, f"python -m ppdjax.evaluate --workdir={workdir} "
+                         f"--data={data_dir} --samples={samples}"
+                         + (" --refine" if refine else "")
+                         + (f" --max_objects={max_objects}" if max_objects else ""))
+  _log_step(root, f"evaluate {variant}", time.perf_counter() - t0)
+  return results
+
+
+def _log_step(root: str, step: str, seconds: float) -> None:
+  os.makedirs(root, exist_ok=True)
+  with open(os.path.join(root, "steps.jsonl"), "a") as f:
+    f.write(json.dumps({"step": step, "seconds": round(seconds, 1),
+                        "device": jax.devices()[0].device_kind}) + "\n")
+
+
+def write(out_dir: str, name: str, payload: dict, markdown: str) -> None:
+  os.makedirs(out_dir, exist_ok=True)
+  with open(os.path.join(out_dir, f"{name}.json"), "w") as f:
+    json.dump(payload, f, indent=1)
+  with open(os.path.join(out_dir, f"{name}.md"), "w") as f:
+    f.write(markdown)
+  print(f"wrote {out_dir}/{name}.json and {name}.md", flush=True)

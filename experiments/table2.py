@@ -1,0 +1,91 @@
+"""Paper Table 2 on block towers: baselines, the three ablations, full, +Sample, +Refine.
+
+  python experiments/table2.py --config=ppdjax/configs/tiny.py --data=out/blocks_tiny \
+      --root=out/blocks_runs --out=experiments/results/tiny
+
+Trains (or resumes) the full model and the no-trajectory, no-image and no-voxels
+ablations into ROOT/<variant>, evaluates each on the test split and writes
+OUT/table2.json and OUT/table2.md beside the paper's numbers.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from absl import app, flags
+from ml_collections import config_flags
+
+import blocks_common as common
+from ppdjax import evaluate
+
+config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
+flags.DEFINE_string("data", None, "Block-tower dataset directory.", required=True)
+flags.DEFINE_string("root", "out/blocks_runs", "Where the variants train and evaluate.")
+flags.DEFINE_string("out", "experiments/results/tiny", "Where the tables go.")
+flags.DEFINE_integer("samples", None, "Density samples (default: the preset's eval.samples).")
+flags.DEFINE_bool("refine", None, "Refine (default: the preset's eval.refine).")
+flags.DEFINE_integer("max_objects", 0, "Evaluate the first N test objects (0: all).")
+flags.DEFINE_list("variants", list(common.VARIANTS), "Model variants to include.")
+FLAGS = flags.FLAGS
+
+PAPER = {**{k: v for k, v in evaluate.PAPER_TABLE2.items() if not k.startswith("PPD")},
+         "PPD (no trajectory)": (7.2, 35.2, 69.5, 19.0, 51.7),
+         "PPD (no image)": (7.1, 31.0, 50.8, 16.7, 36.4),
+         "PPD (no voxels)": (15.9, 56.3, 82.4, 10.3, 29.9),
+         "PPD (full)": (16.1, 56.4, 82.5, 9.9, 21.0),
+         "PPD (full)+Sample": (18.2, 59.7, 84.0, 8.8, 13.9)}
+COLUMNS = ("top1", "top5", "top10", "rmse", "mae")
+
+
+def table2(config, data_dir, root, variants, samples, refine, max_objects=0):
+  """(rows, observes, f1): Table 2 rows from the variants' evaluations."""
+  rows, observes = {}, {}
+  full = None
+  for v in variants:
+    res = common.ensure_evaluated(config, data_dir, root, v, samples=samples,
+                                  refine=refine and v == "full", max_objects=max_objects)
+    name = common.VARIANTS[v][1]
+    m = res["model"]
+    if v == "full":
+      full = res
+      for b in evaluate.BASELINES:
+        rows[b] = res["table2"][b]
+      observes.update({"Frequent": (False, False), "Nearest": (False, True),
+                       "Oracle": (True, False)})
+    for suffix, key in (("", "PPD"), ("+Sample", "PPD+Sample"),
+                        ("+Sample+Refine", "PPD+Sample+Refine")):
+      if key in res["table2"] and (v == "full" or not suffix):
+        rows[name + suffix] = res["table2"][key]
+        observes[name + suffix] = (m["use_image"], m["use_trajectory"])
+  order = list(evaluate.BASELINES) + [common.VARIANTS[v][1] for v in
+                                       ("no_trajectory", "no_image", "no_voxels", "full")]
+  ranked = [r for base in order for r in rows if r.split("+")[0] == base]
+  return {r: rows[r] for r in ranked}, observes, (full or {}).get("f1")
+
+
+def main(argv):
+  del argv
+  config = FLAGS.config
+  samples = FLAGS.samples or config.eval.samples
+  refine = config.eval.refine if FLAGS.refine is None else FLAGS.refine
+  rows, observes, f1 = table2(config, FLAGS.data, FLAGS.root, FLAGS.variants, samples, refine,
+                              FLAGS.max_objects)
+  command = "python experiments/table2.py " + " ".join(sys.argv[1:])
+  md = [f"# Table 2 ({config.name} preset): physical parameters of block towers", "",
+        "```", command, "```", "",
+        f"Test split, {samples} density samples" + (", LM refinement" if refine else "")
+        + ". Density top-k in %, RMSE in slots (×100 kg/m³), trajectory MAE in mm"
+        " (the paper's units are not stated)." + (f" Shape F1 of the full model: {f1:.1f} "
+                                                 "(paper 97.5)." if f1 is not None else ""),
+        ""]
+  md += evaluate.table2_md(rows, observes)
+  md += ["", "Paper:", "", "| Method | Top 1 | Top 5 | Top 10 | RMSE | MAE |",
+         "|---|--:|--:|--:|--:|--:|"]
+  md += [f"| {k} | " + " | ".join(str(x) for x in v) + " |" for k, v in PAPER.items()]
+  common.write(FLAGS.out, "table2", {"command": command, "samples": samples, "refine": refine,
+                                     "table2": rows, "f1": f1, "paper": PAPER},
+               "\n".join(md) + "\n")
+
+
+if __name__ == "__main__":
+  app.run(main)

@@ -1,0 +1,61 @@
+"""Paper Table 5: density RMSE by number of blocks, by what the model observes.
+
+  python experiments/table5.py --config=ppdjax/configs/tiny.py --data=out/blocks_tiny \
+      --root=out/blocks_runs --out=experiments/results/tiny
+
+Texture: the model without trajectories; Physics: the model without the image; Texture +
+Physics: the full model, plain and with +Sample. Reuses table2.py's evaluations.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from absl import app, flags
+from ml_collections import config_flags
+
+import blocks_common as common
+from ppdjax import evaluate
+
+config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
+flags.DEFINE_string("data", None, "Block-tower dataset directory.", required=True)
+flags.DEFINE_string("root", "out/blocks_runs", "Where the variants train and evaluate.")
+flags.DEFINE_string("out", "experiments/results/tiny", "Where the table goes.")
+flags.DEFINE_integer("samples", None, "Density samples (default: the preset's eval.samples).")
+flags.DEFINE_bool("refine", None, "Match table2.py's evaluation (default: eval.refine).")
+flags.DEFINE_integer("max_objects", 0, "Evaluate the first N test objects (0: all).")
+FLAGS = flags.FLAGS
+
+PAPER = {"Texture": (18.2, 18.5, 18.8, 19.7, 19.1), "Physics": (3.6, 7.9, 15.8, 20.0, 14.7),
+         "Texture + Physics": (2.3, 4.9, 7.8, 10.9, 8.0)}
+ROWS = (("Texture", "no_trajectory", "PPD"), ("Physics", "no_image", "PPD"),
+        ("Texture + Physics", "full", "PPD"),
+        ("Texture + Physics (+Sample)", "full", "PPD+Sample"),
+        ("Texture + Physics (+Sample+Refine)", "full", "PPD+Sample+Refine"))
+
+
+def main(argv):
+  del argv
+  config = FLAGS.config
+  samples = FLAGS.samples or config.eval.samples
+  refine = config.eval.refine if FLAGS.refine is None else FLAGS.refine
+  table = {}
+  for name, variant, row in ROWS:
+    res = common.ensure_evaluated(config, FLAGS.data, FLAGS.root, variant, samples=samples,
+                                  refine=refine and variant == "full",
+                                  max_objects=FLAGS.max_objects)
+    if row in res["table5"]:
+      table[name] = res["table5"][row]
+  command = "python experiments/table5.py " + " ".join(sys.argv[1:])
+  md = [f"# Table 5 ({config.name} preset): density RMSE (slots) by number of blocks", "",
+        "```", command, "```", ""]
+  md += evaluate.table5_md(table)
+  md += ["", "Paper:", "", "| | 2 blocks | 3 blocks | 4 blocks | 5 blocks | Overall |",
+         "|---|--:|--:|--:|--:|--:|"]
+  md += [f"| {k} | " + " | ".join(str(x) for x in v) + " |" for k, v in PAPER.items()]
+  common.write(FLAGS.out, "table5", {"command": command, "table5": table, "paper": PAPER},
+               "\n".join(md) + "\n")
+
+
+if __name__ == "__main__":
+  app.run(main)
