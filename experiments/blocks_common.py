@@ -12,6 +12,7 @@ import os
 import time
 
 import jax
+from absl import logging
 
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
@@ -35,6 +36,7 @@ def variant_config(config, variant: str):
 
 def ensure_trained(config, data_dir: str, root: str, variant: str) -> str:
   """Trains (or resumes, or skips) a variant; returns its workdir."""
+  logging.set_verbosity(logging.WARNING)  # orbax logs every save at INFO
   workdir = os.path.join(root, variant)
   t0 = time.perf_counter()
   print(f"[{variant}] training -> {workdir}", flush=True)

@@ -82,13 +82,16 @@ def _simulate(pred, logits, true, base_slots, pool, obs_traj, key, *, samples, w
   return jax.lax.map(one, (pred, logits, true, base_slots, obs_traj, keys), batch_size=chunk)
 
 
-def _refine(prims, obs_traj, *, steps, pushes, settings):
-  def one(p, traj):
+def _refine(prims, obs_traj, sample_dist, sample_mae, *, steps, pushes, settings):
+  """Refined densities, kept where they also lower the trajectory distance (as `decompose`)."""
+  def one(p, traj, d0, m0):
     out, info = inference.refine_densities(p, traj, pushes, steps=steps, settings=settings)
     sim = rollout_object(out, pushes, steps=traj.shape[-2], settings=settings)
-    return (out.density, info["cost_start"], info["cost"],
-            metrics.trajectory_distance(sim, traj), metrics.trajectory_mae(sim, traj))
-  return jax.vmap(one)(prims, obs_traj)
+    d1 = metrics.trajectory_distance(sim, traj)
+    better = d1 < d0
+    return (jnp.where(better, out.density, p.density), info["cost_start"], info["cost"],
+            jnp.minimum(d1, d0), jnp.where(better, metrics.trajectory_mae(sim, traj), m0))
+  return jax.vmap(one)(prims, obs_traj, sample_dist, sample_mae)
 
 
 def sample_scores(logits, slots, dist, valid):
@@ -152,7 +155,9 @@ class Evaluator:
       best = np.argmin(out["dist"][:, :self.samples], -1)
       start = np.take_along_axis(out["slots"], best[:, None, None], 1)[:, 0]
       prims = pred.replace(density=jnp.asarray((start + 1.0) * SLOT_DENSITY))
-      density, c0, c1, rdist, rmae = jax.device_get(self._refine(prims, obs["trajectories"]))
+      rows = np.arange(len(best))
+      density, c0, c1, rdist, rmae = jax.device_get(self._refine(
+          prims, obs["trajectories"], out["dist"][rows, best], out["mae"][rows, best]))
       out["refine"] = {"density": density, "cost_start": c0, "cost": c1, "dist": rdist,
                        "mae": rmae}
     return out

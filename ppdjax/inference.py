@@ -159,7 +159,8 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
 
   Returns:
     (Primitives with refined densities, {"cost_start", "cost": 0.5·|r|² over the whole
-    trajectory before and after, "accepted": iterations that lowered the cost}).
+    trajectory before and after, "accepted": iterations that lowered the cost}). If the
+    iterations end with a higher whole-trajectory cost, the start is returned.
   """
   pushes = default_pushes() if pushes is None else pushes
   t = observed.shape[-2]
@@ -190,9 +191,12 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   horizons = jnp.where(jnp.arange(steps) < steps // 2, min(warmup_steps, t), t)
   u0 = jnp.log(jnp.clip(prims.density, MIN_DENSITY, MAX_DENSITY))
   (u, _, accepted), _ = jax.lax.scan(iterate, (u0, jnp.float32(damping), 0), horizons)
+  # The warm-up iterations fit a shorter horizon and may raise the full-trajectory cost:
+  # never return something worse than the start.
+  c0, c1 = cost(residual(u0, t)), cost(residual(u, t))
+  u = jnp.where(c1 < c0, u, u0)
   out = prims.replace(density=jnp.where(valid, jnp.exp(u), prims.density))
-  return out, {"cost_start": cost(residual(u0, t)), "cost": cost(residual(u, t)),
-               "accepted": accepted}
+  return out, {"cost_start": c0, "cost": jnp.minimum(c1, c0), "accepted": accepted}
 
 
 @struct.dataclass
@@ -277,11 +281,16 @@ def make_decompose_fn(trained, *, num_samples: int = 512, refine: bool = False,
     prims = prims.replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
     if refine:
-      prims, _ = jax.vmap(lambda p, o: refine_densities(p, o, pushes, steps=refine_steps,
-                                                        settings=settings))(prims, traj)
+      refined, _ = jax.vmap(lambda p, o: refine_densities(p, o, pushes, steps=refine_steps,
+                                                          settings=settings))(prims, traj)
       steps = traj.shape[-2]
-      sim = jax.vmap(lambda p: rollout_object(p, pushes, steps=steps, settings=settings))(prims)
-      score = metrics.trajectory_distance(sim, traj)
+      r_sim = jax.vmap(lambda p: rollout_object(p, pushes, steps=steps, settings=settings))(
+          refined)
+      r_score = metrics.trajectory_distance(r_sim, traj)
+      better = r_score < score  # LM lowers the squared residual; keep it if the distance agrees
+      pick = lambda a, b: jnp.where(better.reshape(better.shape + (1,) * (a.ndim - 1)), a, b)
+      prims = jax.tree.map(pick, refined, prims)
+      sim, score = pick(r_sim, sim), jnp.minimum(r_score, score)
     return Decomposition(prims, logits, score, sel.scores, sim)
 
   def decompose(observation: dict, key: jax.Array) -> Decomposition:

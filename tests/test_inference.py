@@ -86,7 +86,8 @@ def test_refinement_from_thirty_percent_off_lands_within_five_percent():
   prims = jax.tree.map(jnp.asarray, towers.sample_towers(11, 24, num_blocks=2))
   observed = _simulate(prims)
   moved = jnp.linalg.norm(observed[..., :3] - observed[:, :, :1, :3], axis=-1).mean((1, 2))
-  pick = np.nonzero(np.asarray(moved) > 0.03)[0][:6]  # towers whose motion shows their mass
+  # towers whose motion shows how their mass is split (docs/inference.md: identifiability)
+  pick = np.nonzero(np.asarray(moved) > 0.05)[0][:6]
   assert len(pick) >= 4
   prims, observed = jax.tree.map(lambda x: x[pick], prims), observed[pick]
   signs = jnp.asarray(np.random.default_rng(0).choice([-1.0, 1.0], (len(pick), 5)))
