@@ -12,7 +12,8 @@ import os
 import time
 
 import jax
-from absl import logging
+from absl import flags, logging
+from ml_collections import config_flags
 
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
@@ -22,6 +23,25 @@ from ppdjax import evaluate, train  # noqa: E402
 # variant -> (model switch turned off, the paper's Table 2 row)
 VARIANTS = {"full": (None, "PPD (full)"), "no_trajectory": ("use_trajectory", "PPD (no trajectory)"),
             "no_image": ("use_image", "PPD (no image)"), "no_voxels": ("use_voxels", "PPD (no voxels)")}
+
+
+def define_flags() -> None:
+  """The flags every table script takes."""
+  config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
+  flags.DEFINE_string("data", None, "Block-tower dataset directory.", required=True)
+  flags.DEFINE_string("root", "out/blocks_runs", "Where the variants train and evaluate.")
+  flags.DEFINE_string("out", "experiments/results/tiny", "Where the tables go.")
+  flags.DEFINE_integer("samples", None, "Density samples (default: the preset's eval.samples).")
+  flags.DEFINE_bool("refine", None, "Refine the full model (default: the preset's eval.refine).")
+  flags.DEFINE_integer("max_objects", 0, "Evaluate the first N test objects (0: all).")
+
+
+def evaluation_settings() -> tuple:
+  """(config, samples, refine) from the flags."""
+  f = flags.FLAGS
+  config = f.config
+  samples = f.samples or config.eval.samples
+  return config, samples, config.eval.refine if f.refine is None else f.refine
 
 
 def variant_config(config, variant: str):

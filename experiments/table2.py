@@ -13,18 +13,11 @@ from __future__ import annotations
 import sys
 
 from absl import app, flags
-from ml_collections import config_flags
 
 import blocks_common as common
 from ppdjax import evaluate
 
-config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
-flags.DEFINE_string("data", None, "Block-tower dataset directory.", required=True)
-flags.DEFINE_string("root", "out/blocks_runs", "Where the variants train and evaluate.")
-flags.DEFINE_string("out", "experiments/results/tiny", "Where the tables go.")
-flags.DEFINE_integer("samples", None, "Density samples (default: the preset's eval.samples).")
-flags.DEFINE_bool("refine", None, "Refine (default: the preset's eval.refine).")
-flags.DEFINE_integer("max_objects", 0, "Evaluate the first N test objects (0: all).")
+common.define_flags()
 flags.DEFINE_list("variants", list(common.VARIANTS), "Model variants to include.")
 FLAGS = flags.FLAGS
 
@@ -34,7 +27,6 @@ PAPER = {**{k: v for k, v in evaluate.PAPER_TABLE2.items() if not k.startswith("
          "PPD (no voxels)": (15.9, 56.3, 82.4, 10.3, 29.9),
          "PPD (full)": (16.1, 56.4, 82.5, 9.9, 21.0),
          "PPD (full)+Sample": (18.2, 59.7, 84.0, 8.8, 13.9)}
-COLUMNS = ("top1", "top5", "top10", "rmse", "mae")
 
 
 def table2(config, data_dir, root, variants, samples, refine, max_objects=0):
@@ -65,9 +57,7 @@ def table2(config, data_dir, root, variants, samples, refine, max_objects=0):
 
 def main(argv):
   del argv
-  config = FLAGS.config
-  samples = FLAGS.samples or config.eval.samples
-  refine = config.eval.refine if FLAGS.refine is None else FLAGS.refine
+  config, samples, refine = common.evaluation_settings()
   rows, observes, f1 = table2(config, FLAGS.data, FLAGS.root, FLAGS.variants, samples, refine,
                               FLAGS.max_objects)
   command = "python experiments/table2.py " + " ".join(sys.argv[1:])

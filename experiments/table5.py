@@ -12,18 +12,11 @@ from __future__ import annotations
 import sys
 
 from absl import app, flags
-from ml_collections import config_flags
 
 import blocks_common as common
 from ppdjax import evaluate
 
-config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
-flags.DEFINE_string("data", None, "Block-tower dataset directory.", required=True)
-flags.DEFINE_string("root", "out/blocks_runs", "Where the variants train and evaluate.")
-flags.DEFINE_string("out", "experiments/results/tiny", "Where the table goes.")
-flags.DEFINE_integer("samples", None, "Density samples (default: the preset's eval.samples).")
-flags.DEFINE_bool("refine", None, "Match table2.py's evaluation (default: eval.refine).")
-flags.DEFINE_integer("max_objects", 0, "Evaluate the first N test objects (0: all).")
+common.define_flags()
 FLAGS = flags.FLAGS
 
 PAPER = {"Texture": (18.2, 18.5, 18.8, 19.7, 19.1), "Physics": (3.6, 7.9, 15.8, 20.0, 14.7),
@@ -36,9 +29,7 @@ ROWS = (("Texture", "no_trajectory", "PPD"), ("Physics", "no_image", "PPD"),
 
 def main(argv):
   del argv
-  config = FLAGS.config
-  samples = FLAGS.samples or config.eval.samples
-  refine = config.eval.refine if FLAGS.refine is None else FLAGS.refine
+  config, samples, refine = common.evaluation_settings()
   table = {}
   for name, variant, row in ROWS:
     res = common.ensure_evaluated(config, FLAGS.data, FLAGS.root, variant, samples=samples,
