@@ -41,6 +41,7 @@ OBS_KEYS = ("voxels", "image", "trajectories")
 PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
 BASELINES = ("Frequent", "Nearest", "Oracle")
 PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine")
+PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)  # τ swept for +Sample (m/nat)
 
 
 def simultaneous_candidates() -> int:
@@ -126,11 +127,12 @@ class Evaluator:
   """Compiles the per-batch calls once for a model, batch size and sample count."""
 
   def __init__(self, model, config, *, samples: int, refine: bool, refine_steps: int = 12,
-               baselines_on: bool = True, pushes=None, settings=DEFAULT_SETTINGS):
+               baselines_on: bool = True, prior_weight: float = 0.0, pushes=None,
+               settings=DEFAULT_SETTINGS):
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     self.config, self.samples, self.refine = config, samples, refine
-    self.baselines_on = baselines_on
+    self.baselines_on, self.prior_weight = baselines_on, prior_weight
     pushes = default_pushes() if pushes is None else pushes
     per_object = samples * (3 if baselines_on else 1) + (3 if baselines_on else 0)
     chunk = max(1, simultaneous_candidates() // per_object)
@@ -158,7 +160,8 @@ class Evaluator:
     out = jax.device_get({"pred": pred, "logits": logits, "shape": shape, "dist": dist,
                           "mae": mae, "slots": slots})
     if self.refine:
-      best = np.argmin(out["dist"][:, :self.samples], -1)
+      logp = jax.vmap(inference.log_prior)(logits, jnp.asarray(out["slots"]), pred.valid)
+      best = np.argmin(out["dist"][:, :self.samples] - self.prior_weight * np.asarray(logp), -1)
       start = np.take_along_axis(out["slots"], best[:, None, None], 1)[:, 0]
       prims = pred.replace(density=jnp.asarray((start + 1.0) * SLOT_DENSITY))
       rows = np.arange(len(best))
@@ -178,8 +181,12 @@ def _row_counts(scores, slot, valid):
 def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              refine: bool = False, refine_steps: int = 12, batch_size: int = 16,
              max_objects: int = 0, with_baselines: bool = True, seed: int = 0,
-             progress: bool = True) -> dict:
+             prior_weight: float = 0.0, progress: bool = True) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
+
+  +Sample selects by distance − prior_weight · log p (`inference.select_densities`);
+  `results["prior_sweep"]` also scores the selection for every τ in PRIOR_WEIGHTS (free:
+  the candidates are simulated once). Choose τ on the validation split.
 
   Raises:
     CheckpointError for a workdir without a checkpoint, DatasetError for a dataset
@@ -193,13 +200,14 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   train = baselines.TrainingSet(data.open_dataset(data_dir, "train"),
                                 progress=progress) if with_baselines else None
   ev = Evaluator(model, config, samples=samples, refine=refine, refine_steps=refine_steps,
-                 baselines_on=with_baselines)
+                 baselines_on=with_baselines, prior_weight=prior_weight)
   rows = {}
   per_object = {"num_blocks": [], "matched": [], "predicted": [], "true": []}
   confusion = {r: np.zeros((NUM_DENSITY_SLOTS,) * 2, np.int64) for r in PPD_ROWS}
   mae = {}  # row -> list of per-object MAE
   prefix_mae = {}  # (method, N) -> list
   refine_log = {"cost_start": [], "cost": [], "sample_dist": [], "dist": []}
+  sweep = {}  # prior weight -> per-batch counts of +Sample
   key = jax.random.key(seed)
   s = samples
   prefixes = sorted({p for p in PREFIXES if p <= s} | {s})
@@ -224,8 +232,17 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
     pvalid = cut(np.asarray(out["pred"].valid))
     logits = cut(out["logits"]).astype(np.float64)
     dist, omae, slots = cut(out["dist"]), cut(out["mae"]), cut(out["slots"])
-    best = np.argmin(dist[:, :s], -1)
-    scores = {"PPD": logits, "PPD+Sample": sample_scores(logits, slots, dist[:, :s], pvalid)}
+    logp = np.asarray(jax.vmap(inference.log_prior)(jnp.asarray(logits, jnp.float32),
+                                                     jnp.asarray(slots), jnp.asarray(pvalid)))
+    objective = lambda tau: dist[:, :s] - tau * logp
+    best = np.argmin(objective(prior_weight), -1)
+    scores = {"PPD": logits,
+              "PPD+Sample": sample_scores(logits, slots, objective(prior_weight), pvalid)}
+    for tau in PRIOR_WEIGHTS:
+      pick = np.argmin(objective(tau), -1)
+      c = _row_counts(sample_scores(logits, slots, objective(tau), pvalid), slot, valid)
+      c["mae"] = omae[np.arange(keep), pick]
+      sweep.setdefault(tau, []).append(c)
     mae.setdefault("PPD", []).append(omae[:, 0])
     mae.setdefault("PPD+Sample", []).append(omae[np.arange(keep), best])
     for p in prefixes:
@@ -281,6 +298,12 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
         str(b): metrics.summarize({k: v[nb == b] for k, v in counts.items()})["rmse"]
         for b in range(2, nb.max() + 1) if np.any(nb == b)}
     results["table5"][name]["overall"] = row["rmse"]
+  results["prior_weight"] = prior_weight
+  results["prior_sweep"] = {}
+  for tau, parts in sweep.items():
+    counts = {k: cat([p[k] for p in parts]) for k in parts[0] if k != "mae"}
+    results["prior_sweep"][str(tau)] = {**metrics.summarize(counts),
+                                        "mae": float(np.mean(cat([p["mae"] for p in parts])))}
   for (name, p), parts in prefix_mae.items():
     results["table4"].setdefault(name, {})[str(p)] = float(np.mean(cat(parts)))
   if refine:
@@ -364,6 +387,13 @@ def results_md(results: dict, command: str = "") -> str:
   lines += ["## Table 5: density RMSE by number of blocks", ""]
   lines += table5_md(results["table5"])
   lines += ["", "Paper, Texture + Physics: 2.3 / 4.9 / 7.8 / 10.9, overall 8.0.", ""]
+  if results.get("prior_sweep"):
+    lines += ["## +Sample selection: distance − τ · log prior", "",
+              "| τ (m per nat) | Top 1 | Top 5 | Top 10 | RMSE | MAE (mm) |",
+              "|--:|--:|--:|--:|--:|--:|"]
+    lines += [f"| {t} | {r['top1']:.1f} | {r['top5']:.1f} | {r['top10']:.1f} | {r['rmse']:.1f} "
+              f"| {r['mae']:.1f} |" for t, r in results["prior_sweep"].items()]
+    lines += ["", f"Table 2's +Sample rows use τ = {results['prior_weight']}.", ""]
   if "refine_stats" in results:
     r = results["refine_stats"]
     lines += ["## Refinement", "",
@@ -402,6 +432,8 @@ def _define_flags():
   flags.DEFINE_integer("max_objects", 0, "Evaluate only the first N objects (0: all).")
   flags.DEFINE_bool("baselines", True, "Also run Frequent, Nearest, Oracle and Table 4's.")
   flags.DEFINE_integer("seed", 0, "Sampling seed.")
+  flags.DEFINE_float("prior_weight", 0.0, "+Sample selects by distance - prior_weight * "
+                     "log prior (metres per nat; 0: the closest trajectory, as the paper).")
 
 
 def main(argv):
@@ -414,7 +446,8 @@ def main(argv):
   try:
     results = evaluate(f.workdir, f.data, split=f.split, samples=f.samples, refine=f.refine,
                        refine_steps=f.refine_steps, batch_size=f.batch_size,
-                       max_objects=f.max_objects, with_baselines=f.baselines, seed=f.seed)
+                       max_objects=f.max_objects, with_baselines=f.baselines, seed=f.seed,
+                       prior_weight=f.prior_weight)
   except (checkpoints.CheckpointError, data.DatasetError) as e:
     sys.exit(f"error: {e}")
   command = "python -m ppdjax.evaluate " + " ".join(sys.argv[1:])

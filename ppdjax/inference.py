@@ -82,6 +82,13 @@ def candidate_slots(logits_Kx100: jax.Array, valid_K: jax.Array, num_samples: in
   return draws[take], ~duplicate[take]
 
 
+def log_prior(logits_Kx100: jax.Array, slots_SxK: jax.Array, valid_K: jax.Array) -> jax.Array:
+  """(S,) log-probability of each joint assignment under the per-box categoricals."""
+  lp = jax.nn.log_softmax(logits_Kx100[:, :NUM_DENSITY_SLOTS], -1)
+  per_box = jnp.take_along_axis(lp[None], slots_SxK[..., None], -1)[..., 0]
+  return jnp.sum(jnp.where(valid_K, per_box, 0.0), -1)
+
+
 def with_slots(prims: Primitives, slots: jax.Array) -> Primitives:
   """`prims` (K) with densities from slots (..., K); leading axes are broadcast."""
   batch = slots.shape[:-1]
@@ -106,7 +113,7 @@ def score_candidates(candidates: Primitives, observed_PTx7: jax.Array, pushes: P
 
 def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax.Array,
                      pushes: Pushes | None = None, *, num_samples: int, key: jax.Array,
-                     include_mode: bool = True,
+                     include_mode: bool = True, prior_weight: float = 0.0,
                      settings: MjxSettings = DEFAULT_SETTINGS) -> Selection:
   """Samples joint density assignments and keeps the one that best explains the motion.
 
@@ -118,6 +125,8 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
     num_samples: candidates S (all simulated in one batched call).
     key: PRNG key.
     include_mode: make candidate 0 the most likely assignment.
+    prior_weight: τ in metres per nat: the winner minimises distance − τ · log p(slots)
+      under the network's distribution (0: the paper's closest trajectory).
     settings: MJX solver settings (those the dataset was simulated with).
 
   Returns:
@@ -128,7 +137,7 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
                                     num_samples, key, include_mode=include_mode)
   scores, mae, sims = score_candidates(with_slots(prims, slots), observed, pushes, settings,
                                        keep_trajectories=True)
-  best = jnp.argmin(scores)
+  best = jnp.argmin(scores - prior_weight * log_prior(density_logits, slots, prims.valid))
   return Selection(density=(slots[best] + 1.0) * SLOT_DENSITY, score=scores[best],
                    scores=scores, slots=slots, distinct=distinct, mae=mae,
                    trajectories=sims[best])
@@ -241,7 +250,8 @@ def check_observation(obs: dict, config) -> bool:
 
 
 def make_decompose_fn(trained, *, num_samples: int = 512, refine: bool = False,
-                      refine_steps: int = 12, pushes: Pushes | None = None,
+                      refine_steps: int = 12, prior_weight: float = 0.0,
+                      pushes: Pushes | None = None,
                       settings: MjxSettings = DEFAULT_SETTINGS):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
 
@@ -250,6 +260,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, refine: bool = False,
     num_samples: density candidates per object (1: the network's arg-max only).
     refine: fit the best candidate's densities by Levenberg–Marquardt through MJX.
     refine_steps: LM iterations.
+    prior_weight: τ of `select_densities` (0: the closest trajectory wins).
     pushes: the pushes the observations were recorded with (None: the paper's four).
     settings: MJX settings the observations were simulated with (the dataset's).
 
@@ -276,7 +287,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, refine: bool = False,
     traj = obs["trajectories"].astype(jnp.float32)
     keys = jax.random.split(key, traj.shape[0])
     sel = jax.vmap(lambda p, l, o, kk: select_densities(
-        p, l, o, pushes, num_samples=num_samples, key=kk, settings=settings))(
+        p, l, o, pushes, num_samples=num_samples, key=kk, prior_weight=prior_weight,
+        settings=settings))(
             prims, logits, traj, keys)
     prims = prims.replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
