@@ -74,18 +74,21 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
   if os.path.exists(path):
     with open(path) as f:
       results = json.load(f)
-    if (results["samples"], results["refine"], results.get("max_objects", 0)) == (
-        samples, refine, max_objects):
+    if (results["samples"], results["refine"], results.get("max_objects", 0),
+        results.get("prior_weight", 0.0)) == (samples, refine, max_objects,
+                                               config.eval.prior_weight):
       return results
   print(f"[{variant}] evaluating ({samples} samples{', refine' if refine else ''})", flush=True)
   t0 = time.perf_counter()
   results = evaluate.evaluate(workdir, data_dir, samples=samples, refine=refine,
                               refine_steps=config.eval.refine_steps,
-                              batch_size=config.eval.batch_size, max_objects=max_objects)
+                              batch_size=config.eval.batch_size, max_objects=max_objects,
+                              prior_weight=config.eval.prior_weight)
   results["max_objects"] = max_objects
   evaluate.write_results(results, out, f"python -m ppdjax.evaluate --workdir={workdir} "
                          f"--data={data_dir} --samples={samples}"
                          + (" --refine" if refine else "")
+                         + f" --prior_weight={config.eval.prior_weight}"
                          + (f" --max_objects={max_objects}" if max_objects else ""))
   _log_step(root, f"evaluate {variant}", time.perf_counter() - t0)
   return results

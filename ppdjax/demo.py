@@ -143,7 +143,8 @@ def run_evaluation(config, blocks: str, workdir: str, out: str) -> dict:
   print(f"evaluating on the test split with {cfg.samples} density samples per object "
         f"(compiles once) -> {out}/eval", flush=True)
   results = evaluate.evaluate(trained, blocks, samples=cfg.samples, refine=cfg.refine,
-                              refine_steps=cfg.refine_steps, batch_size=cfg.batch_size)
+                              refine_steps=cfg.refine_steps, batch_size=cfg.batch_size,
+                              prior_weight=cfg.prior_weight)
   evaluate.write_results(results, os.path.join(out, "eval"),
                          f"python -m ppdjax.evaluate --workdir={workdir} --data={blocks} "
                          f"--samples={cfg.samples}" + (" --refine" if cfg.refine else ""))
@@ -153,7 +154,8 @@ def run_evaluation(config, blocks: str, workdir: str, out: str) -> dict:
   print("decomposing one test tower with the jitted decompose()...", flush=True)
   sample = data.open_dataset(blocks, "test")[0]
   decompose = inference.make_decompose_fn(trained, num_samples=cfg.samples, refine=cfg.refine,
-                                          refine_steps=cfg.refine_steps)
+                                          refine_steps=cfg.refine_steps,
+                                          prior_weight=cfg.prior_weight)
   got = decompose({k: sample[k] for k in ("voxels", "image", "trajectories")},
                   jax.random.key(config.seed))
   prims = jax.device_get(got.primitives)

@@ -12,7 +12,8 @@ jitted call fits the best sample's densities by Levenberg–Marquardt through MJ
 Rows (density metrics over true boxes, the k-th decoded box against the k-th true box
 from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
   PPD             the network's per-box slot scores;
-  PPD+Sample      slots ranked by the best trajectory distance of a sample that has them;
+  PPD+Sample      slots ranked by the best selection objective of a sample that has them
+                  (trajectory distance − prior_weight · log prior; the paper: distance);
   PPD+Sample+Refine  slots ranked by closeness to the refined continuous density;
   Frequent, Nearest, Oracle (`ppdjax.baselines`), on the true shape.
 MAE is the paper's trajectory MAE in mm (`metrics.trajectory_mae`).

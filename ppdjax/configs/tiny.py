@@ -57,4 +57,5 @@ def get_config() -> ml_collections.ConfigDict:
   config.eval.refine = False  # LM refinement through MJX (~3 min to compile on a CPU)
   config.eval.refine_steps = 12
   config.eval.batch_size = 8
+  config.eval.prior_weight = 0.0  # +Sample: distance - tau log prior (m per nat; 0: the paper's)
   return config
