@@ -25,6 +25,19 @@ VARIANTS = {"full": (None, "PPD (full)"), "no_trajectory": ("use_trajectory", "P
             "no_image": ("use_image", "PPD (no image)"), "no_voxels": ("use_voxels", "PPD (no voxels)")}
 
 
+# the paper's Table 2 (top-1, top-5, top-10, RMSE, MAE) and Table 5 (RMSE for 2-5 blocks,
+# overall), block towers
+PAPER_TABLE2 = {**{k: v for k, v in evaluate.PAPER_TABLE2.items() if not k.startswith("PPD")},
+                "PPD (no trajectory)": (7.2, 35.2, 69.5, 19.0, 51.7),
+                "PPD (no image)": (7.1, 31.0, 50.8, 16.7, 36.4),
+                "PPD (no voxels)": (15.9, 56.3, 82.4, 10.3, 29.9),
+                "PPD (full)": (16.1, 56.4, 82.5, 9.9, 21.0),
+                "PPD (full)+Sample": (18.2, 59.7, 84.0, 8.8, 13.9)}
+PAPER_TABLE5 = {"Texture": (18.2, 18.5, 18.8, 19.7, 19.1),
+                "Physics": (3.6, 7.9, 15.8, 20.0, 14.7),
+                "Texture + Physics": (2.3, 4.9, 7.8, 10.9, 8.0)}
+
+
 def define_flags() -> None:
   """The flags every table script takes."""
   config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")

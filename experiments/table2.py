@@ -21,12 +21,7 @@ common.define_flags()
 flags.DEFINE_list("variants", list(common.VARIANTS), "Model variants to include.")
 FLAGS = flags.FLAGS
 
-PAPER = {**{k: v for k, v in evaluate.PAPER_TABLE2.items() if not k.startswith("PPD")},
-         "PPD (no trajectory)": (7.2, 35.2, 69.5, 19.0, 51.7),
-         "PPD (no image)": (7.1, 31.0, 50.8, 16.7, 36.4),
-         "PPD (no voxels)": (15.9, 56.3, 82.4, 10.3, 29.9),
-         "PPD (full)": (16.1, 56.4, 82.5, 9.9, 21.0),
-         "PPD (full)+Sample": (18.2, 59.7, 84.0, 8.8, 13.9)}
+PAPER = common.PAPER_TABLE2
 
 
 def table2(config, data_dir, root, variants, samples, refine, max_objects=0):

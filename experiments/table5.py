@@ -19,8 +19,7 @@ from ppdjax import evaluate
 common.define_flags()
 FLAGS = flags.FLAGS
 
-PAPER = {"Texture": (18.2, 18.5, 18.8, 19.7, 19.1), "Physics": (3.6, 7.9, 15.8, 20.0, 14.7),
-         "Texture + Physics": (2.3, 4.9, 7.8, 10.9, 8.0)}
+PAPER = common.PAPER_TABLE5
 ROWS = (("Texture", "no_trajectory", "PPD"), ("Physics", "no_image", "PPD"),
         ("Texture + Physics", "full", "PPD"),
         ("Texture + Physics (+Sample)", "full", "PPD+Sample"),

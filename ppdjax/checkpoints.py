@@ -2,20 +2,24 @@
 
 A workdir holds `config.json` (the preset the run was made with), `checkpoints/` (the
 last few: model and optimizer, for exact resume) and `best/` (the model with the lowest
-validation loss).
+validation loss). `export` writes a model to ship instead: `config.json`, `export.json`
+and its weights as `weights-NN.npz` files of bounded size; `load` reads both layouts.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 
 import jax
 import ml_collections
+import numpy as np
 import orbax.checkpoint as ocp
 from flax import nnx
 
 LATEST, BEST = "checkpoints", "best"
+EXPORT = "export.json"
 
 
 class CheckpointError(ValueError):
@@ -84,8 +88,8 @@ def load(workdir: str, which: str = "best"):
   """The trained model of a workdir, in eval mode, and its config.
 
   Args:
-    workdir: a directory written by `python -m ppdjax.train` (or a shipped model: the
-      same layout).
+    workdir: a directory written by `python -m ppdjax.train`, or a model written by
+      `export` (such as the one shipped in assets/).
     which: "best" (lowest validation loss) or "latest".
 
   Returns:
@@ -94,11 +98,11 @@ def load(workdir: str, which: str = "best"):
   Raises:
     CheckpointError naming what is missing.
   """
-  from ppdjax.model import PPD
-
   if which not in (BEST, "latest"):
     raise ValueError(f"which must be 'best' or 'latest', got {which!r}")
   config = read_config(workdir)
+  if os.path.exists(os.path.join(workdir, EXPORT)):
+    return _load_export(workdir, config), config
   folder = os.path.join(os.path.abspath(workdir), BEST if which == BEST else LATEST)
   if not os.path.isdir(folder):
     raise CheckpointError(f"{workdir} has no checkpoint: {folder} is missing")
@@ -108,8 +112,97 @@ def load(workdir: str, which: str = "best"):
   step = manager.latest_step()
   if step is None:
     raise CheckpointError(f"{workdir} has no checkpoint: {folder} is empty")
-  graphdef, abstract = nnx.split(nnx.eval_shape(lambda: PPD(config.model, rngs=nnx.Rngs(0))))
+  graphdef, abstract = _abstract_model(config)
   state = restore(manager, step, model=abstract)["model"]
   model = nnx.merge(graphdef, state)
   manager.close()
   return model, config  # every call site passes train=False unless training
+
+
+def _abstract_model(config):
+  from ppdjax.model import PPD
+  return nnx.split(nnx.eval_shape(lambda: PPD(config.model, rngs=nnx.Rngs(0))))
+
+
+def _flat(tree, prefix=""):
+  """{'a/b/0': leaf} of a nested dict (nnx pure dicts key lists by int)."""
+  out = {}
+  for k, v in tree.items():
+    out.update(_flat(v, f"{prefix}{k}/") if isinstance(v, dict) else {f"{prefix}{k}": v})
+  return out
+
+
+def export(workdir: str, out: str, *, dtype: str = "float16", max_file_mb: float = 15.0,
+           which: str = "best") -> dict:
+  """Writes a trained model to ship: config.json, export.json and weights-NN.npz files.
+
+  Args:
+    workdir: a training workdir.
+    out: the folder to write (created).
+    dtype: storage type of floating-point weights ("float16" halves the size; `load`
+      casts back to float32).
+    max_file_mb: no weights file is larger than this (MiB).
+    which: "best" or "latest".
+
+  Returns:
+    the export.json record: files with sizes and sha256, dtype, parameter count.
+  """
+  model, config = load(workdir, which)
+  arrays = {k: np.asarray(v) for k, v in _flat(nnx.to_pure_dict(nnx.state(model))).items()}
+  arrays = {k: v.astype(dtype) if np.issubdtype(v.dtype, np.floating) else v
+            for k, v in arrays.items()}
+  limit = max_file_mb * 2 ** 20
+  cost = lambda k: arrays[k].nbytes + 512  # with the npz container's per-array overhead
+  big = max(arrays, key=cost)
+  if cost(big) > limit:
+    raise ValueError(f"{big} alone takes {arrays[big].nbytes / 2 ** 20:.2f} MiB, more than "
+                     f"max_file_mb={max_file_mb}")
+  groups, size = [[]], 0
+  for k in sorted(arrays):
+    if groups[-1] and size + cost(k) > limit:
+      groups.append([])
+      size = 0
+    groups[-1].append(k)
+    size += cost(k)
+  os.makedirs(out, exist_ok=True)
+  files = []
+  for i, keys in enumerate(groups):
+    name = f"weights-{i:02d}.npz"
+    path = os.path.join(out, name)
+    np.savez(path, **{k: arrays[k] for k in keys})
+    with open(path, "rb") as f:
+      digest = hashlib.sha256(f.read()).hexdigest()
+    files.append({"name": name, "bytes": os.path.getsize(path), "sha256": digest})
+  save_config(out, config)
+  record = {"dtype": dtype, "parameters": int(sum(v.size for v in arrays.values())),
+            "files": files, "source": os.path.basename(os.path.normpath(workdir))}
+  with open(os.path.join(out, EXPORT), "w") as f:
+    json.dump(record, f, indent=1)
+  return record
+
+
+def _load_export(folder: str, config):
+  with open(os.path.join(folder, EXPORT)) as f:
+    record = json.load(f)
+  arrays = {}
+  for entry in record["files"]:
+    path = os.path.join(folder, entry["name"])
+    if not os.path.exists(path):
+      raise CheckpointError(f"{folder}: weights file {entry['name']} is missing")
+    with open(path, "rb") as f:
+      if hashlib.sha256(f.read()).hexdigest() != entry["sha256"]:
+        raise CheckpointError(f"{path} is corrupt (sha256 differs from {EXPORT})")
+    with np.load(path) as npz:
+      arrays.update({k: npz[k] for k in npz.files})
+  graphdef, abstract = _abstract_model(config)
+  pure = nnx.to_pure_dict(abstract)
+  missing = sorted(set(_flat(pure)) - set(arrays))
+  if missing:
+    raise CheckpointError(f"{folder} lacks weights for {missing[:3]} ({len(missing)} in all)")
+
+  def fill(tree, prefix=""):
+    return {k: fill(v, f"{prefix}{k}/") if isinstance(v, dict)
+            else jax.numpy.asarray(arrays[f"{prefix}{k}"], v.dtype) for k, v in tree.items()}
+
+  nnx.replace_by_pure_dict(abstract, fill(pure))
+  return nnx.merge(graphdef, abstract)

@@ -179,15 +179,29 @@ def _row_counts(scores, slot, valid):
   return {n: np.asarray(v) for n, v in c.items()}
 
 
+def evaluation_objects(total: int, max_objects: int = 0, subset: str = "first") -> np.ndarray:
+  """Indices of the objects to evaluate: all, the first N, or N spread evenly ("spread")."""
+  if subset not in ("first", "spread"):
+    raise ValueError(f"subset must be 'first' or 'spread', got {subset!r}")
+  if max_objects < 0:
+    raise ValueError(f"max_objects must be >= 0, got {max_objects}")
+  n = total if not max_objects else min(max_objects, total)
+  if subset == "first" or n == total:
+    return np.arange(n)
+  return np.unique(np.linspace(0, total - 1, n).round().astype(np.int64))
+
+
 def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              refine: bool = False, refine_steps: int = 12, batch_size: int = 16,
              max_objects: int = 0, with_baselines: bool = True, seed: int = 0,
-             prior_weight: float = 0.0, progress: bool = True) -> dict:
+             prior_weight: float = 0.0, subset: str = "first", progress: bool = True) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by distance − prior_weight · log p (`inference.select_densities`);
   `results["prior_sweep"]` also scores the selection for every τ in PRIOR_WEIGHTS (free:
-  the candidates are simulated once). Choose τ on the validation split.
+  the candidates are simulated once). Choose τ on the validation split. With
+  `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
+  split ("spread": many towers, since a tower's 8 configurations are stored together).
 
   Raises:
     CheckpointError for a workdir without a checkpoint, DatasetError for a dataset
@@ -196,7 +210,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   t_start = time.perf_counter()
   model, config = checkpoints.load(trained) if isinstance(trained, str) else trained
   test = data.open_dataset(data_dir, split)
-  n = len(test) if not max_objects else min(max_objects, len(test))
+  objects = evaluation_objects(len(test), max_objects, subset)
+  n = len(objects)
   batch_size = max(1, min(batch_size, n))
   train = baselines.TrainingSet(data.open_dataset(data_dir, "train"),
                                 progress=progress) if with_baselines else None
@@ -214,7 +229,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   prefixes = sorted({p for p in PREFIXES if p <= s} | {s})
   bar = tqdm(total=n, desc="evaluating", unit="object", disable=not progress)
   for start in range(0, n, batch_size):
-    idx = np.arange(start, min(start + batch_size, n))
+    idx = objects[start:start + batch_size]
     keep = len(idx)
     idx = np.pad(idx, (0, batch_size - keep), mode="edge")  # one compiled shape
     batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials"))
@@ -299,7 +314,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
         str(b): metrics.summarize({k: v[nb == b] for k, v in counts.items()})["rmse"]
         for b in range(2, nb.max() + 1) if np.any(nb == b)}
     results["table5"][name]["overall"] = row["rmse"]
-  results["prior_weight"] = prior_weight
+  results["prior_weight"], results["subset"] = prior_weight, subset
   results["prior_sweep"] = {}
   for tau, parts in sweep.items():
     counts = {k: cat([p[k] for p in parts]) for k in parts[0] if k != "mae"}
@@ -430,7 +445,9 @@ def _define_flags():
   flags.DEFINE_bool("refine", False, "Refine the best sample's densities through MJX.")
   flags.DEFINE_integer("refine_steps", 12, "Levenberg–Marquardt iterations.")
   flags.DEFINE_integer("batch_size", 16, "Objects per jitted call.")
-  flags.DEFINE_integer("max_objects", 0, "Evaluate only the first N objects (0: all).")
+  flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")
+  flags.DEFINE_enum("subset", "first", ["first", "spread"],
+                    "With --max_objects: the first N objects, or N spread over the split.")
   flags.DEFINE_bool("baselines", True, "Also run Frequent, Nearest, Oracle and Table 4's.")
   flags.DEFINE_integer("seed", 0, "Sampling seed.")
   flags.DEFINE_float("prior_weight", 0.0, "+Sample selects by distance - prior_weight * "
@@ -447,7 +464,7 @@ def main(argv):
   try:
     results = evaluate(f.workdir, f.data, split=f.split, samples=f.samples, refine=f.refine,
                        refine_steps=f.refine_steps, batch_size=f.batch_size,
-                       max_objects=f.max_objects, with_baselines=f.baselines, seed=f.seed,
+                       max_objects=f.max_objects, subset=f.subset, with_baselines=f.baselines, seed=f.seed,
                        prior_weight=f.prior_weight)
   except (checkpoints.CheckpointError, data.DatasetError) as e:
     sys.exit(f"error: {e}")

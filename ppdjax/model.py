@@ -117,11 +117,11 @@ class Conv3x3x3(nnx.Module):
 
 
 class VoxelEncoder(nnx.Module):
-  """Five 3×3×3 convolutions (channels 1→2→4→8→16→32), each with BatchNorm, LeakyReLU(0.2)
-  and 2×2×2 max-pooling (32³ → 1³), then two 1×1×1 convolutions → f_V."""
+  """Five 3×3×3 convolutions (channels 1→2→4→8→16→32, times `width`), each with BatchNorm,
+  LeakyReLU(0.2) and 2×2×2 max-pooling (32³ → 1³), then two 1×1×1 convolutions → f_V."""
 
-  def __init__(self, out_features: int, *, rngs: nnx.Rngs):
-    chans = [1, 2, 4, 8, 16, 32]
+  def __init__(self, out_features: int, width: int = 1, *, rngs: nnx.Rngs):
+    chans = [1] + [c * width for c in (2, 4, 8, 16, 32)]
     self.convs = nnx.List([Conv3x3x3(a, b, rngs=rngs)
                            for a, b in zip(chans[:-1], chans[1:])])
     self.norms = nnx.List([nnx.BatchNorm(b, momentum=0.9, rngs=rngs) for b in chans[1:]])
@@ -183,7 +183,8 @@ class PPD(nnx.Module):
     c = config
     self.feature, self.hidden, self.max_primitives = c.feature, c.hidden, c.max_primitives
     f = c.feature
-    self.voxel_encoder = VoxelEncoder(f, rngs=rngs) if c.use_voxels else None
+    self.voxel_encoder = (VoxelEncoder(f, c.get("voxel_width", 1), rngs=rngs)
+                          if c.use_voxels else None)
     self.image_encoder = ResNet18(f, c.resnet_width, rngs=rngs) if c.use_image else None
     self.trajectory_encoder = (TrajectoryEncoder(c.num_pushes, c.hidden, f, c.dropout,
                                                  rngs=rngs) if c.use_trajectory else None)

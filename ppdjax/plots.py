@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -96,6 +98,40 @@ def plot_learning_curve(metrics_path: str, path: str = "learning_curve.png") -> 
   axes[2].plot([r["step"] for r in val], [r["density_rmse"] for r in val], "o-", color="k")
   axes[2].set_title("validation density RMSE (slots)")
   for ax in axes[:2]:
+    ax.legend(fontsize=7)
+  fig.tight_layout()
+  fig.savefig(path, dpi=110)
+  plt.close(fig)
+  return path
+
+
+def plot_variant_curves(metrics_paths: dict, path: str = "learning_curves.png") -> str:
+  """Learning curves of several runs side by side: {name: metrics.jsonl path}."""
+  import json
+  fig, axes = plt.subplots(1, 4, figsize=(18, 3.8))
+  for i, (name, file) in enumerate(metrics_paths.items()):
+    if not os.path.exists(file):
+      continue
+    with open(file) as f:
+      rows = [json.loads(line) for line in f if line.strip()]
+    train = [r for r in rows if r.get("split", "train") == "train"]
+    val = [r for r in rows if r.get("split") == "val"]
+    c = f"C{i}"
+    axes[0].plot([r["step"] for r in train], [r["geometry_loss"] for r in train], color=c,
+                 label=name)
+    axes[1].plot([r["step"] for r in train], [r["density_loss"] for r in train], color=c,
+                 alpha=0.6, label=f"{name} train")
+    axes[1].plot([r["step"] for r in val], [r["density_loss"] for r in val], "o--", color=c,
+                 label=f"{name} val")
+    axes[2].plot([r["step"] for r in val], [r["shape_f1"] for r in val], "o-", color=c,
+                 label=name)
+    axes[3].plot([r["step"] for r in val], [r["density_top1"] for r in val], "o-", color=c,
+                 label=name)
+  axes[0].set(title="geometry loss (train)", yscale="log", xlabel="step")
+  axes[1].set(title="density loss", yscale="log", xlabel="step")
+  axes[2].set(title="validation shape F1 (%)", xlabel="step")
+  axes[3].set(title="validation density top-1 (%)", xlabel="step")
+  for ax in axes:
     ax.legend(fontsize=7)
   fig.tight_layout()
   fig.savefig(path, dpi=110)

@@ -75,7 +75,8 @@ def _check_resume(workdir: str, config) -> None:
                      "differ); use a new --workdir")
 
 
-def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = True) -> dict:
+def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = True,
+                       time_limit_s: float | None = None) -> dict:
   """Trains (or resumes) a PPD model; returns the last validation metrics.
 
   Args:
@@ -83,6 +84,8 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
     data_dir: a generated dataset with train and val splits.
     workdir: checkpoints, config.json, metrics.jsonl, tensorboard/ and learning_curve.png.
     progress: show a progress bar.
+    time_limit_s: if set, stop after about this many seconds of steps with a checkpoint
+      (rerun to resume); `trained_steps(workdir)` then tells how far the run got.
   """
   import jax
   import numpy as np
@@ -116,8 +119,14 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
   bar = tqdm(total=total, initial=start, desc="train", unit="step", disable=not progress,
              dynamic_ncols=True)
   pending, tick, step, last_val = [], time.perf_counter(), start, None
+  deadline = None if time_limit_s is None else time.perf_counter() + time_limit_s
   try:
     for step in range(start, total):
+      if deadline is not None and time.perf_counter() > deadline and step > start:
+        print(f"\ntime limit: stopping at step {step}; run again to resume", flush=True)
+        if step not in trainer.latest.all_steps():
+          trainer.save(step, None)
+        break
       w = 0.0 if step < t.geometry_steps else t.density_weight
       pending.append(trainer.train_step(next(loader), step, w))
       done = step + 1
@@ -153,6 +162,13 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
   if jax.process_index() == 0:
     plot_learning_curve(log.path, os.path.join(workdir, "learning_curve.png"))
   return last_val
+
+
+def trained_steps(workdir: str) -> int:
+  """The step of a workdir's latest checkpoint (0 if it has none)."""
+  path = os.path.join(workdir, checkpoints.LATEST)
+  steps = [int(d) for d in os.listdir(path) if d.isdigit()] if os.path.isdir(path) else []
+  return max(steps, default=0)
 
 
 class MetricsLog:

@@ -32,8 +32,22 @@ def build(config) -> tuple[PPD, nnx.Optimizer]:
     if not config.model.use_image:
       raise ValueError("config.model.image_weights is set but use_image is False")
     load_torchvision_weights(model.image_encoder, config.model.image_weights)
-  tx = optax.adam(config.train.learning_rate, b1=0.9, b2=0.999)
+  tx = optax.adam(learning_rate(config.train), b1=0.9, b2=0.999)
   return model, nnx.Optimizer(model, tx, wrt=nnx.Param)
+
+
+def learning_rate(t):
+  """Adam's rate: constant (the paper's), or cosine-decayed to 0 over all the run's steps.
+
+  The geometry loss is an L1: its gradients keep their size near the optimum, so at a
+  constant rate the boxes jitter at the rate's scale; the decay lets them settle
+  (docs/training.md).
+  """
+  if t.get("schedule", "constant") == "constant":
+    return t.learning_rate
+  if t.schedule != "cosine":
+    raise ValueError(f"config.train.schedule must be 'constant' or 'cosine', got {t.schedule!r}")
+  return optax.cosine_decay_schedule(t.learning_rate, t.geometry_steps + t.joint_steps)
 
 
 def _loss(model, batch, w, train, key):

@@ -159,6 +159,16 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   assert os.path.exists(os.path.join(out, "confusion.png"))
 
 
+def test_evaluation_subsets():
+  np.testing.assert_array_equal(evaluate.evaluation_objects(10), np.arange(10))
+  np.testing.assert_array_equal(evaluate.evaluation_objects(10, 3), [0, 1, 2])
+  np.testing.assert_array_equal(evaluate.evaluation_objects(10, 3, "spread"), [0, 4, 9])
+  assert len(evaluate.evaluation_objects(4800, 128, "spread")) == 128
+  np.testing.assert_array_equal(evaluate.evaluation_objects(5, 9, "spread"), np.arange(5))
+  with pytest.raises(ValueError, match="subset"):
+    evaluate.evaluation_objects(10, 3, "random")
+
+
 def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
   with pytest.raises(checkpoints.CheckpointError, match="config.json"):
     evaluate.evaluate(str(tmp_path), tiny_dataset)

@@ -157,3 +157,60 @@ def test_bad_configs_and_inputs_are_named(tiny_dataset, straight_run, tmp_path, 
   monkeypatch.setattr(jax, "device_count", lambda: 3)
   with pytest.raises(ValueError, match="multiple of the 3 devices"):
     train.train_and_evaluate(short_config(), tiny_dataset, str(tmp_path / "w3"))
+
+
+def test_time_limit_stops_with_a_checkpoint_and_resumes(straight_run, tiny_dataset, tmp_path):
+  """A call with no time left trains one step and saves it; the next call finishes the run
+  exactly as an uninterrupted one."""
+  workdir = str(tmp_path / "limited")
+  train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False,
+                           time_limit_s=0.0)
+  assert train.trained_steps(workdir) == 1
+  train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+  assert train.trained_steps(workdir) == 6
+  key = lambda rows: [(r["step"], r["loss"]) for r in rows]
+  assert key(_rows(workdir)) == key(_rows(straight_run))
+
+
+def test_cosine_schedule_and_bad_schedule():
+  t = tiny.get_config().train
+  assert trainer.learning_rate(t) == t.learning_rate
+  t.schedule = "cosine"
+  rate = trainer.learning_rate(t)
+  total = t.geometry_steps + t.joint_steps
+  assert float(rate(0)) == pytest.approx(t.learning_rate)
+  assert float(rate(total // 2)) == pytest.approx(t.learning_rate / 2, rel=1e-3)
+  assert float(rate(total)) == pytest.approx(0.0, abs=1e-9)
+  t.schedule = "linear"
+  with pytest.raises(ValueError, match="schedule"):
+    trainer.learning_rate(t)
+
+
+def test_export_round_trip_and_corruption(tiny_run, tiny_dataset, tmp_path):
+  """An exported model loads like the workdir (float16 weights), in files under the limit;
+  a damaged or missing weights file is named."""
+  workdir, _ = tiny_run
+  out = str(tmp_path / "exported")
+  with pytest.raises(ValueError, match="alone takes"):
+    checkpoints.export(workdir, out, max_file_mb=0.1)
+  record = checkpoints.export(workdir, out, max_file_mb=0.5)
+  assert len(record["files"]) > 1
+  assert all(f["bytes"] <= 0.5 * 2 ** 20 for f in record["files"])
+  (a, _), (b, config) = load(workdir), load(out)
+  assert config.model.to_dict() == tiny.get_config().model.to_dict()
+  for x, y in zip(jax.tree.leaves(nnx.state(a)), jax.tree.leaves(nnx.state(b)), strict=True):
+    assert y.dtype == x.dtype
+    np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=2e-3, atol=2e-4)
+  sample = data.open_dataset(tiny_dataset, "test")[0]
+  obs = {k: jnp.asarray(sample[k])[None] for k in trainer.OBS_KEYS}
+  decode = nnx.jit(lambda m, o: m.decode(o)[1].density_logits)
+  np.testing.assert_allclose(decode(b, obs), decode(a, obs), atol=0.05)
+  path = os.path.join(out, record["files"][0]["name"])
+  with open(path, "r+b") as f:
+    f.seek(100)
+    f.write(b"\0\0\0\0")
+  with pytest.raises(checkpoints.CheckpointError, match="corrupt"):
+    load(out)
+  os.remove(path)
+  with pytest.raises(checkpoints.CheckpointError, match="missing"):
+    load(out)

@@ -31,6 +31,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.model.hidden = 64  # LSTM hidden size (trajectory encoder and generator)
   config.model.generator_layers = 3
   config.model.dropout = 0.5
+  config.model.voxel_width = 1  # channel multiplier of the voxel encoder (1: the paper's)
   config.model.resnet_width = 16  # 64 is ResNet-18 proper (paper preset); 16 for CPUs
   config.model.image_weights = ""  # optional .npz of converted torchvision ResNet-18 weights
   config.model.num_pushes = 4
@@ -43,6 +44,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.seed = 0
   config.train.batch_size = 16  # global, split over all devices
   config.train.learning_rate = 1e-3  # Adam, beta = (0.9, 0.999), as in the appendix
+  config.train.schedule = "constant"  # or "cosine": decay to 0 over all steps
   config.train.geometry_steps = 60  # phase 1: geometry only (w = 0)
   config.train.joint_steps = 140  # phase 2: geometry + w x density
   config.train.density_weight = 0.5  # w of Eq. 4-5 (docs/training.md says why 0.5)
