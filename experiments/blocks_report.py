@@ -56,7 +56,8 @@ def collect(pipe) -> dict:
       "f1_ablations": {name: res[v]["f1"] for v, name in ABLATIONS.items()},
       "table4": full["table4"], "table5": table5,
       "mae_units": full["mae_units"], "objects": full["objects"], "split": full["split"],
-      "samples": full["samples"], "refine": full["refine"],
+      "subset": full.get("subset", "first"), "samples": full["samples"],
+      "refine": full["refine"],
       "prior_weight": full.get("prior_weight", 0.0), "prior_sweep": full.get("prior_sweep"),
       "refine_stats": full.get("refine_stats"), "steps": steps,
       "total_seconds": round(sum(s["seconds"] for s in steps.values()), 1),
@@ -84,8 +85,10 @@ def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
 def markdown(r: dict, command: str) -> str:
   devices = sorted({s["device"] for s in r["steps"].values()})
   lines = ["# Block towers at paper scale: Tables 2, 4 and 5", "", "```", command, "```", "",
-           f"Machine: {', '.join(devices)}. Test split, first {r['objects']} objects; "
-           f"{r['samples']} density samples" + (", LM refinement" if r["refine"] else "")
+           f"Machine: {', '.join(devices)}. Test split, "
+           + (f"first {r['objects']} objects; " if r.get("subset", "first") == "first"
+              else f"{r['objects']} objects spread over the split; ")
+           + f"{r['samples']} density samples" + (", LM refinement" if r["refine"] else "")
            + f"; +Sample selects by distance − {r['prior_weight']} · log prior. Density "
            f"top-k in %, RMSE in slots (×100 kg/m³), trajectory MAE in {r['mae_units']}.", "",
            "## Targets (issue 6)", "", "| target | ours | goal | met |", "|---|--:|--:|:-:|"]

@@ -464,8 +464,8 @@ def main(argv):
   try:
     results = evaluate(f.workdir, f.data, split=f.split, samples=f.samples, refine=f.refine,
                        refine_steps=f.refine_steps, batch_size=f.batch_size,
-                       max_objects=f.max_objects, subset=f.subset, with_baselines=f.baselines, seed=f.seed,
-                       prior_weight=f.prior_weight)
+                       max_objects=f.max_objects, subset=f.subset, with_baselines=f.baselines,
+                       seed=f.seed, prior_weight=f.prior_weight)
   except (checkpoints.CheckpointError, data.DatasetError) as e:
     sys.exit(f"error: {e}")
   command = "python -m ppdjax.evaluate " + " ".join(sys.argv[1:])

@@ -24,6 +24,8 @@ def _define_flags():  # at run time only, so other entry points can be imported 
   flags.mark_flags_as_required(["data", "workdir"])
 
 
+# Keys added since runs were first saved, with the value that reproduces older runs.
+ADDED_KEYS = {"model.voxel_width": 1, "train.schedule": "constant"}
 # Keys a resumed run may change without invalidating its checkpoints.
 RESUMABLE_CHANGES = ("train.joint_steps", "train.log_every", "train.eval_every",
                      "train.eval_batches", "train.prefetch", "train.keep_checkpoints")
@@ -66,7 +68,7 @@ def _check_resume(workdir: str, config) -> None:
   """Refuses to resume a run made with another model, data or optimiser setting."""
   if not os.path.exists(os.path.join(workdir, "config.json")):
     return
-  old = _flatten(checkpoints.read_config(workdir).to_dict())
+  old = {**ADDED_KEYS, **_flatten(checkpoints.read_config(workdir).to_dict())}
   new = _flatten(json.loads(config.to_json_best_effort()))
   changed = sorted(k for k in set(old) | set(new)
                    if k not in RESUMABLE_CHANGES and json.dumps(old.get(k)) != json.dumps(new.get(k)))

@@ -1,0 +1,55 @@
+"""experiments/blocks.py: the step list, and (slow) the whole pipeline on the tiny preset."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TINY = ["--config=ppdjax/configs/tiny.py", "--config.train.geometry_steps=10",
+        "--config.train.joint_steps=10", "--config.train.eval_every=10", "--max_objects=4"]
+
+
+def _blocks(*args, timeout=120):
+  env = {**os.environ, "JAX_PLATFORMS": "cpu",
+         "JAX_COMPILATION_CACHE_DIR": os.path.join(ROOT, ".jax_cache")}
+  return subprocess.run([sys.executable, "experiments/blocks.py", *args], cwd=ROOT, env=env,
+                        capture_output=True, text=True, timeout=timeout)
+
+
+def test_list_shows_every_step_and_bad_steps_are_named(tmp_path):
+  done = _blocks(*TINY, f"--root={tmp_path}", "--list")
+  assert done.returncode == 0, done.stderr[-2000:]
+  names = [line.split()[1] for line in done.stdout.splitlines() if line.startswith("todo")]
+  assert names == ["generate", "train:full", "train:no_image", "train:no_trajectory",
+                   "train:no_voxels", "evaluate:full", "evaluate:no_image",
+                   "evaluate:no_trajectory", "evaluate:no_voxels", "report"]
+  bad = _blocks(*TINY, f"--root={tmp_path}", "--step=train")
+  assert bad.returncode != 0 and "--step must be" in bad.stderr
+
+
+@pytest.mark.slow  # about 6 minutes on 2 cores
+def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
+  root, results, assets = (str(tmp_path / d) for d in ("root", "results", "assets"))
+  args = [*TINY, f"--root={root}", f"--results={results}", f"--assets={assets}"]
+  for _ in range(12):  # one step per call, as an interrupted user would go on
+    done = _blocks(*args, "--step=next", timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    if os.path.exists(os.path.join(results, "blocks.json")):
+      break
+  with open(os.path.join(results, "blocks.json")) as f:
+    r = json.load(f)
+  assert set(r["table2"]) >= {"Frequent", "Nearest", "Oracle", "PPD (no trajectory)",
+                              "PPD (no image)", "PPD (no voxels)", "PPD (full)",
+                              "PPD (full)+Sample"}
+  assert all(set(row) == {"top1", "top5", "top10", "rmse", "mae"}
+             for row in r["table2"].values())
+  assert "f1" in r and r["table4"] and r["table5"] and r["steps"]["generate"]["calls"] == 1
+  for name in ("blocks.md", "blocks_learning_curves.png", "blocks_confusion.png",
+               "blocks_decomposition.png"):
+    assert os.path.exists(os.path.join(results, name)), name
+  assert os.path.exists(os.path.join(assets, "blocks_model", "export.json"))
+  listed = _blocks(*args, "--list")
+  assert listed.stdout.count("done") == 9
