@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 
 import numpy as np
 
@@ -125,6 +126,19 @@ def markdown(r: dict, command: str) -> str:
   return "\n".join(lines)
 
 
+def save_logs(pipe, out_dir: str) -> None:
+  """Copies the run's small logs beside the tables: each variant's metrics.jsonl, the
+  steps' wall times and the dataset card."""
+  os.makedirs(out_dir, exist_ok=True)
+  copies = {os.path.join(pipe.workdir(v), "metrics.jsonl"): f"{v}.metrics.jsonl"
+            for v in ("full",) + tuple(ABLATIONS)}
+  copies[os.path.join(pipe.root, "steps.jsonl")] = "steps.jsonl"
+  copies[os.path.join(pipe.data, "card.md")] = "data_card.md"
+  for src, name in copies.items():
+    if os.path.exists(src):
+      shutil.copyfile(src, os.path.join(out_dir, name))
+
+
 def write_all(pipe, results_dir: str, assets_dir: str, command: str,
               exported: bool = False) -> dict:
   """The report step: every output file; returns blocks.json's content.
@@ -153,6 +167,7 @@ def write_all(pipe, results_dir: str, assets_dir: str, command: str,
       model_dir, example, path("blocks_decomposition.png"), samples=pipe.config.eval.samples)
   r["example"]["path"] = "blocks_decomposition.png"
   r["command"] = command
+  save_logs(pipe, path("blocks_runs"))
   with open(path("blocks.json"), "w") as f:
     json.dump(r, f, indent=1)
   with open(path("blocks.md"), "w") as f:

@@ -34,6 +34,7 @@ _LR = flags.DEFINE_float("lr", 1e-3, "Adam learning rate")
 _TRAIN = flags.DEFINE_integer("train_towers", 8000, "distinct training geometries")
 _TEST = flags.DEFINE_integer("test_towers", 512, "held-out geometries")
 _SCHEDULE = flags.DEFINE_enum("schedule", "constant", ["constant", "cosine"], "Adam's rate")
+_COORDS = flags.DEFINE_bool("coords", False, "coordinate channels in the voxel encoder")
 _OUT = flags.DEFINE_string("out", "", "JSON file for the results")
 
 
@@ -47,6 +48,7 @@ def run(width: int, train, test, steps: int) -> dict:
   config.use_image = config.use_trajectory = False
   config.voxel_width, config.feature, config.hidden, config.dropout = width, _FEATURES.value, \
       _FEATURES.value, 0.0
+  config.voxel_coords = _COORDS.value
   model = PPD(config, rngs=nnx.Rngs(params=0))
   optimizer = nnx.Optimizer(model, optax.adam(learning_rate(ml_collections.ConfigDict(
       {"learning_rate": _LR.value, "schedule": _SCHEDULE.value, "geometry_steps": steps,
@@ -78,7 +80,7 @@ def run(width: int, train, test, steps: int) -> dict:
   c = counts(model, test[0], test[1])
   return {"width": width, "feature": _FEATURES.value, "steps": steps, "batch": _BATCH.value,
           "lr": _LR.value, "schedule": _SCHEDULE.value,
-          "f1": metrics.f1_from_counts(c["matched"], c["predicted"], c["true"]),
+          "coords": _COORDS.value, "f1": metrics.f1_from_counts(c["matched"], c["predicted"], c["true"]),
           "train_loss": curve, "seconds": time.time() - start}
 
 

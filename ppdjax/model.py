@@ -118,10 +118,17 @@ class Conv3x3x3(nnx.Module):
 
 class VoxelEncoder(nnx.Module):
   """Five 3×3×3 convolutions (channels 1→2→4→8→16→32, times `width`), each with BatchNorm,
-  LeakyReLU(0.2) and 2×2×2 max-pooling (32³ → 1³), then two 1×1×1 convolutions → f_V."""
+  LeakyReLU(0.2) and 2×2×2 max-pooling (32³ → 1³), then two 1×1×1 convolutions → f_V.
 
-  def __init__(self, out_features: int, width: int = 1, *, rngs: nnx.Rngs):
-    chans = [1] + [c * width for c in (2, 4, 8, 16, 32)]
+  With `coords`, the occupancy is joined by three channels holding each voxel's centre in
+  [−0.5, 0.5] (CoordConv): convolutions and max-pooling are blind to where a feature
+  sits, and where the boxes sit is what the generator must regress.
+  """
+
+  def __init__(self, out_features: int, width: int = 1, coords: bool = False, *,
+               rngs: nnx.Rngs):
+    self.coords = coords
+    chans = [4 if coords else 1] + [c * width for c in (2, 4, 8, 16, 32)]
     self.convs = nnx.List([Conv3x3x3(a, b, rngs=rngs)
                            for a, b in zip(chans[:-1], chans[1:])])
     self.norms = nnx.List([nnx.BatchNorm(b, momentum=0.9, rngs=rngs) for b in chans[1:]])
@@ -130,6 +137,11 @@ class VoxelEncoder(nnx.Module):
 
   def __call__(self, voxels_BxDxDxD: jax.Array, train: bool) -> jax.Array:
     x = voxels_BxDxDxD.astype(jnp.float32)[..., None]
+    if self.coords:
+      d = x.shape[1]
+      axis = (jnp.arange(d, dtype=jnp.float32) + 0.5) / d - 0.5
+      grid = jnp.stack(jnp.meshgrid(axis, axis, axis, indexing="ij"), -1)
+      x = jnp.concatenate([x, jnp.broadcast_to(grid, x.shape[:4] + (3,))], -1)
     for conv, norm in zip(self.convs, self.norms):
       x = nnx.leaky_relu(norm(conv(x), use_running_average=not train), 0.2)
       x = _max_pool_2x(x)
@@ -183,7 +195,8 @@ class PPD(nnx.Module):
     c = config
     self.feature, self.hidden, self.max_primitives = c.feature, c.hidden, c.max_primitives
     f = c.feature
-    self.voxel_encoder = (VoxelEncoder(f, c.get("voxel_width", 1), rngs=rngs)
+    self.voxel_encoder = (VoxelEncoder(f, c.get("voxel_width", 1), c.get("voxel_coords", False),
+                                       rngs=rngs)
                           if c.use_voxels else None)
     self.image_encoder = ResNet18(f, c.resnet_width, rngs=rngs) if c.use_image else None
     self.trajectory_encoder = (TrajectoryEncoder(c.num_pushes, c.hidden, f, c.dropout,

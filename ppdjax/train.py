@@ -25,7 +25,7 @@ def _define_flags():  # at run time only, so other entry points can be imported 
 
 
 # Keys added since runs were first saved, with the value that reproduces older runs.
-ADDED_KEYS = {"model.voxel_width": 1, "train.schedule": "constant"}
+ADDED_KEYS = {"model.voxel_width": 1, "model.voxel_coords": False, "train.schedule": "constant"}
 # Keys a resumed run may change without invalidating its checkpoints.
 RESUMABLE_CHANGES = ("train.joint_steps", "train.log_every", "train.eval_every",
                      "train.eval_batches", "train.prefetch", "train.keep_checkpoints")

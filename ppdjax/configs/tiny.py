@@ -32,6 +32,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.model.generator_layers = 3
   config.model.dropout = 0.5
   config.model.voxel_width = 1  # channel multiplier of the voxel encoder (1: the paper's)
+  config.model.voxel_coords = False  # voxel centres as 3 extra input channels (CoordConv)
   config.model.resnet_width = 16  # 64 is ResNet-18 proper (paper preset); 16 for CPUs
   config.model.image_weights = ""  # optional .npz of converted torchvision ResNet-18 weights
   config.model.num_pushes = 4
