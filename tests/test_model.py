@@ -216,3 +216,17 @@ def test_torchvision_weights_load_by_name(tmp_path, rng):
     load_torchvision_weights(net, str(tmp_path / "bad.npz"))
   with pytest.raises(ValueError, match="cannot read"):
     load_torchvision_weights(net, str(tmp_path / "missing.npz"))
+
+
+def test_coordinate_channels_reach_the_voxel_feature():
+  """With `coords`, the first convolution reads occupancy + 3 coordinate channels, and those
+  channels change the feature of the same grid."""
+  enc = model.VoxelEncoder(8, coords=True, rngs=nnx.Rngs(params=0))
+  kernel = enc.convs[0].kernel
+  assert kernel.value.shape == (3, 3, 3, 4, 2)
+  vox = np.zeros((1, 32, 32, 32), np.uint8)
+  vox[0, 4:9, 10:20, 2:6] = 1
+  with_coords = enc(jnp.asarray(vox), train=False)
+  kernel.value = kernel.value.at[:, :, :, 1:].set(0.0)
+  assert with_coords.shape == (1, 8)
+  assert not np.allclose(with_coords, enc(jnp.asarray(vox), train=False))
