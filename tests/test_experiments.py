@@ -51,5 +51,8 @@ def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
                "blocks_decomposition.png"):
     assert os.path.exists(os.path.join(results, name)), name
   assert os.path.exists(os.path.join(assets, "blocks_model", "export.json"))
+  logs = sorted(os.listdir(os.path.join(results, "blocks_runs")))
+  assert logs == ["data_card.md", "full.metrics.jsonl", "no_image.metrics.jsonl",
+                  "no_trajectory.metrics.jsonl", "no_voxels.metrics.jsonl", "steps.jsonl"]
   listed = _blocks(*args, "--list")
   assert listed.stdout.count("done") == 9
