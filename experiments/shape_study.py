@@ -80,7 +80,8 @@ def run(width: int, train, test, steps: int) -> dict:
   c = counts(model, test[0], test[1])
   return {"width": width, "feature": _FEATURES.value, "steps": steps, "batch": _BATCH.value,
           "lr": _LR.value, "schedule": _SCHEDULE.value,
-          "coords": _COORDS.value, "f1": metrics.f1_from_counts(c["matched"], c["predicted"], c["true"]),
+          "coords": _COORDS.value,
+          "f1": metrics.f1_from_counts(c["matched"], c["predicted"], c["true"]),
           "train_loss": curve, "seconds": time.time() - start}
 
 

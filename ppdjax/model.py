@@ -121,8 +121,8 @@ class VoxelEncoder(nnx.Module):
   LeakyReLU(0.2) and 2×2×2 max-pooling (32³ → 1³), then two 1×1×1 convolutions → f_V.
 
   With `coords`, the occupancy is joined by three channels holding each voxel's centre in
-  [−0.5, 0.5] (CoordConv): convolutions and max-pooling are blind to where a feature
-  sits, and where the boxes sit is what the generator must regress.
+  [−0.5, 0.5] (CoordConv): convolutions and max-pooling see where a feature sits only
+  through the grid's borders, and where the boxes sit is what the generator must regress.
   """
 
   def __init__(self, out_features: int, width: int = 1, coords: bool = False, *,
