@@ -6,7 +6,7 @@ Both engines run the same sampling in one process: the paper preset's network (r
 weights: the cost does not depend on them) decodes the objects on the accelerator and
 draws `samples` density assignments per object; then
   * MJX: everything above plus simulation under the four pushes, scoring and selection is
-    the one jitted `inference.make_decompose_fn` function;
+    the one jitted `ppdjax.make_decompose_fn` function;
   * C (peer): the same decode and draws (jitted), then all candidates simulated with
     `mujoco.batch` on every CPU core, scored with the same distance and selected.
 Latency: median of --repeats warm calls for one object; throughput: objects / s of a
@@ -26,19 +26,20 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from ppdjax import inference, metrics, physics, towers, voxels
+import ppdjax
+from ppdjax import metrics
 from ppdjax.configs import paper
-from ppdjax.materials import NUM_DENSITY_SLOTS
-from ppdjax.model import PPD
-from ppdjax.rollout_mjx import rollout_object
+from ppdjax.conventions import NUM_DENSITY_SLOTS
+from ppdjax.infer import sampling
+from ppdjax.nn.model import PPD
 
 
 def observations(seed: int, count: int, image_size: int) -> dict:
-  prims = towers.sample_towers(seed, count)
+  prims = ppdjax.sample_towers(seed, count)
   rng = np.random.default_rng(seed)
-  return {"voxels": voxels.voxelize(prims),
+  return {"voxels": ppdjax.voxelize(prims),
           "image": rng.integers(0, 255, (count, image_size, image_size, 3), np.uint8),
-          "trajectories": np.asarray(physics.simulate(prims))}
+          "trajectories": np.asarray(ppdjax.simulate(prims))}
 
 
 def timed(fn, repeats: int) -> tuple[object, float]:
@@ -60,13 +61,13 @@ def c_peer(model, samples: int):
     prims, raw = nnx.merge(graphdef, state).decode(obs)
     logits = raw.density_logits[:, :prims.num_slots, :NUM_DENSITY_SLOTS]
     keys = jax.random.split(key, logits.shape[0])
-    slots = jax.vmap(lambda lg, v, k: inference.candidate_slots(lg, v, samples, k)[0])(
+    slots = jax.vmap(lambda lg, v, k: sampling.candidate_slots(lg, v, samples, k)[0])(
         logits, prims.valid, keys)
-    return jax.vmap(inference.with_slots)(prims, slots)
+    return jax.vmap(sampling.with_slots)(prims, slots)
 
   def run(obs, key):
     cands = jax.device_get(propose(state, obs, key))  # (B, S, K)
-    sim = physics.simulate(cands, backend="mujoco")  # (B, S, P, T, 7), all cores
+    sim = ppdjax.simulate(cands, backend="mujoco")  # (B, S, P, T, 7), all cores
     dist = np.asarray(metrics.trajectory_distance(
         jnp.asarray(sim, jnp.float32), jnp.asarray(obs["trajectories"])[:, None]))
     return cands.density[np.arange(len(dist)), np.argmin(dist, -1)]
@@ -99,7 +100,7 @@ def main():
     print(f"{engine:28s} {what:22s} {seconds * 1e3:9.1f} ms  {n / seconds:8.2f} objects/s",
           flush=True)
 
-  decompose = inference.make_decompose_fn((model, config), num_samples=args.samples)
+  decompose = ppdjax.make_decompose_fn((model, config), num_samples=args.samples)
   block = lambda out: jax.block_until_ready(out.primitives.density)
   t0 = time.perf_counter()
   block(decompose(one, key))
@@ -109,14 +110,13 @@ def main():
   if not args.skip_batch:
     _, s = timed(lambda: block(decompose(obs, key)), max(1, args.repeats // 2))
     add("MJX (jitted decompose)", f"batch of {args.batch}", args.batch, s)
-  physics_only = jax.jit(lambda c: jax.vmap(lambda p: rollout_object(
-      p, physics.default_pushes(), steps=256))(c))
+  physics_only = jax.jit(lambda c: ppdjax.simulate(c, ppdjax.default_pushes()))
   cands = jax.tree.map(lambda x: jnp.broadcast_to(x[0], (args.samples,) + x.shape[1:]),
-                       jax.tree.map(jnp.asarray, towers.sample_towers(1, 1)))
+                       jax.tree.map(jnp.asarray, ppdjax.sample_towers(1, 1)))
   _, s = timed(lambda: jax.block_until_ready(physics_only(cands)), args.repeats)
   add("MJX rollouts alone", f"{args.samples} candidates", 1, s)
   if args.refine:
-    refined = inference.make_decompose_fn((model, config), num_samples=args.samples,
+    refined = ppdjax.make_decompose_fn((model, config), num_samples=args.samples,
                                           refine=True)
     _, s = timed(lambda: block(refined(one, key)), args.repeats)
     add("MJX decompose + refine", "1 object", 1, s)

@@ -1,11 +1,11 @@
-"""Benchmark: steps/s of physics.simulate, MJX (accelerator) against MuJoCo C (all CPU cores).
+"""Benchmark: steps/s of ppdjax.simulate, MJX (accelerator) against MuJoCo C (all CPU cores).
 
 Both engines run in this one process on the same random towers under the paper's four
 pushes (rollouts = towers x 4). Each MJX variant is timed after compilation and checked
 against the C trajectories of the same rollouts (the agreement columns, in mm of the
 object-frame origin). Prints a markdown table and writes JSON.
 
-  python experiments/bench_physics.py --sizes 2048,65536 --out bench.json
+  python experiments/bench_ppdjax.py --sizes 2048,65536 --out bench.json
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ import time
 import jax
 import numpy as np
 
-from ppdjax import physics, towers
-from ppdjax.rollout_mjx import MjxSettings
+import ppdjax
+from ppdjax.sim.rollout_mjx import MjxSettings
 
 def _v(iterations, ls, contacts=-1, fixed=True, push=(100, 50), chol=False, unroll=1):
   return MjxSettings(iterations=iterations, ls_iterations=ls, max_contact_points=contacts,
@@ -30,7 +30,7 @@ def _v(iterations, ls, contacts=-1, fixed=True, push=(100, 50), chol=False, unro
 
 
 # A ladder: each row adds one change to the row above; the last is the package default
-# (ppdjax.rollout_mjx.MjxSettings()). From the second row on, the push step is solved to
+# (ppdjax.sim.rollout_mjx.MjxSettings()). From the second row on, the push step is solved to
 # convergence and the settings apply to the steps after it.
 VARIANTS = {
     "MJX as shipped (Newton 100 / ls 50)": _v(100, 50, fixed=False),
@@ -81,7 +81,7 @@ def main():
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--out", default="", help="JSON file for the results")
   args = parser.parse_args()
-  pushes = physics.default_pushes()
+  pushes = ppdjax.default_pushes()
   rows = []
   meta = {"device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
           "cpu_count": os.cpu_count(), "jax": jax.__version__, "python": platform.python_version(),
@@ -93,10 +93,10 @@ def main():
         json.dump({"meta": meta, "rows": rows}, f, indent=1)
 
   for size in (int(s) for s in args.sizes.split(",")):
-    prims = towers.sample_towers(args.seed, size // pushes.num)
+    prims = ppdjax.sample_towers(args.seed, size // pushes.num)
     rollouts = size // pushes.num * pushes.num
-    physics.simulate(prims, pushes, steps=2, backend="mujoco")  # compiles the preprocessing
-    ref, t_c = timed(lambda: physics.simulate(prims, pushes, steps=args.steps,
+    ppdjax.simulate(prims, pushes, steps=2, backend="mujoco")  # compiles the preprocessing
+    ref, t_c = timed(lambda: ppdjax.simulate(prims, pushes, steps=args.steps,
                                               backend="mujoco"), max(1, args.repeats - 1))
     c_rate = rollouts * args.steps / t_c
     rows.append({"rollouts": rollouts, "engine": f"MuJoCo C, mujoco.batch, {os.cpu_count()} threads",
@@ -105,7 +105,7 @@ def main():
     save()
     for name in args.variants.split(","):
       settings = VARIANTS[name]
-      run = lambda s=settings: physics.simulate(prims, pushes, steps=args.steps, settings=s)
+      run = lambda s=settings: ppdjax.simulate(prims, pushes, steps=args.steps, settings=s)
       t0 = time.perf_counter()
       jax.block_until_ready(run())
       compile_s = time.perf_counter() - t0

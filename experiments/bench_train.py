@@ -40,10 +40,11 @@ def _rate(fn, steps, batch_size):
 def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
-  from ppdjax import data
-  from ppdjax.trainer import BATCH_KEYS, Loader, Trainer
+  from ppdjax.dataset import storage
+  from ppdjax.training.loader import BATCH_KEYS, Loader
+  from ppdjax.training.state import Trainer
 
-  ds = data.open_dataset(FLAGS.data, "train")
+  ds = storage.open_dataset(FLAGS.data, "train")
   rows = []
   for bs in [int(b) for b in FLAGS.batch_sizes.split(",")]:
     config = FLAGS.config.copy_and_resolve_references()
@@ -69,7 +70,7 @@ def main(argv):
       model = _rate(model_only, FLAGS.steps, bs)
       full = _rate(pipeline, FLAGS.steps, bs)
       loader.close()
-      it = data.batches(ds, bs, seed=1, keys=BATCH_KEYS)
+      it = storage.batches(ds, bs, seed=1, keys=BATCH_KEYS)
       read = _rate(lambda: next(it)["image"], min(FLAGS.steps, len(ds) // bs - 4), bs)
       trainer.close()
     row = {"batch_size": bs, "model_step_samples_s": round(model, 1),

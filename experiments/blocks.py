@@ -31,7 +31,9 @@ jax.config.update("jax_compilation_cache_dir",
 
 import blocks_common as common  # noqa: E402
 import blocks_report  # noqa: E402
-from ppdjax import evaluate, generate, train  # noqa: E402
+from ppdjax.dataset import generation  # noqa: E402
+from ppdjax.infer import evaluation, tables  # noqa: E402
+from ppdjax.training import loop  # noqa: E402
 
 config_flags.DEFINE_config_file("config", "ppdjax/configs/paper.py", "Preset file.")
 flags.DEFINE_string("root", "out/blocks_paper", "Dataset, runs and evaluations go here.")
@@ -69,10 +71,10 @@ class Pipeline:
 
   def steps(self) -> list[tuple[str, callable, callable]]:
     out = [("generate", lambda: os.path.exists(os.path.join(self.data, "manifest.json")),
-            lambda: generate.generate(self.config, self.data))]
+            lambda: generation.generate(self.config, self.data))]
     t = self.config.train
     for v in ORDER:
-      out.append((f"train:{v}", lambda v=v: train.trained_steps(self.workdir(v))
+      out.append((f"train:{v}", lambda v=v: loop.trained_steps(self.workdir(v))
                   >= t.geometry_steps + t.joint_steps, lambda v=v: self.train(v)))
     for v in ORDER:
       out.append((f"evaluate:{v}", lambda v=v: self.evaluated(v), lambda v=v: self.evaluate(v)))
@@ -80,7 +82,7 @@ class Pipeline:
     return out
 
   def train(self, variant: str) -> None:
-    train.train_and_evaluate(common.variant_config(self.config, variant), self.data,
+    loop.train_and_evaluate(common.variant_config(self.config, variant), self.data,
                              self.workdir(variant), time_limit_s=FLAGS.step_seconds)
 
   def evaluated(self, variant: str) -> bool:
@@ -95,11 +97,11 @@ class Pipeline:
 
   def evaluate(self, variant: str) -> None:
     s, e = self.eval_settings(variant), self.config.eval
-    results = evaluate.evaluate(self.workdir(variant), self.data, refine_steps=e.refine_steps,
-                                batch_size=e.batch_size, max_objects=FLAGS.max_objects,
-                                subset=FLAGS.subset, **s)
+    results = evaluation.evaluate(self.workdir(variant), self.data,
+                                  refine_steps=e.refine_steps, batch_size=e.batch_size,
+                                  max_objects=FLAGS.max_objects, subset=FLAGS.subset, **s)
     results["max_objects"] = FLAGS.max_objects
-    evaluate.write_results(
+    tables.write_results(
         results, os.path.dirname(self.eval_path(variant)),
         f"python -m ppdjax.evaluate --workdir={variant} --data=data --samples={s['samples']}"
         + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"

@@ -18,24 +18,13 @@ from ml_collections import config_flags
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
-from ppdjax import evaluate, train  # noqa: E402
+from ppdjax.infer import evaluation, tables  # noqa: E402
+from ppdjax.training import loop  # noqa: E402
 
 # variant -> (model switch turned off, the paper's Table 2 row)
 VARIANTS = {"full": (None, "PPD (full)"), "no_trajectory": ("use_trajectory", "PPD (no trajectory)"),
             "no_image": ("use_image", "PPD (no image)"), "no_voxels": ("use_voxels", "PPD (no voxels)")}
 
-
-# the paper's Table 2 (top-1, top-5, top-10, RMSE, MAE) and Table 5 (RMSE for 2-5 blocks,
-# overall), block towers
-PAPER_TABLE2 = {**{k: v for k, v in evaluate.PAPER_TABLE2.items() if not k.startswith("PPD")},
-                "PPD (no trajectory)": (7.2, 35.2, 69.5, 19.0, 51.7),
-                "PPD (no image)": (7.1, 31.0, 50.8, 16.7, 36.4),
-                "PPD (no voxels)": (15.9, 56.3, 82.4, 10.3, 29.9),
-                "PPD (full)": (16.1, 56.4, 82.5, 9.9, 21.0),
-                "PPD (full)+Sample": (18.2, 59.7, 84.0, 8.8, 13.9)}
-PAPER_TABLE5 = {"Texture": (18.2, 18.5, 18.8, 19.7, 19.1),
-                "Physics": (3.6, 7.9, 15.8, 20.0, 14.7),
-                "Texture + Physics": (2.3, 4.9, 7.8, 10.9, 8.0)}
 
 
 def define_flags() -> None:
@@ -73,7 +62,7 @@ def ensure_trained(config, data_dir: str, root: str, variant: str) -> str:
   workdir = os.path.join(root, variant)
   t0 = time.perf_counter()
   print(f"[{variant}] training -> {workdir}", flush=True)
-  train.train_and_evaluate(variant_config(config, variant), data_dir, workdir)
+  loop.train_and_evaluate(variant_config(config, variant), data_dir, workdir)
   _log_step(root, f"train {variant}", time.perf_counter() - t0)
   return workdir
 
@@ -93,12 +82,10 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
       return results
   print(f"[{variant}] evaluating ({samples} samples{', refine' if refine else ''})", flush=True)
   t0 = time.perf_counter()
-  results = evaluate.evaluate(workdir, data_dir, samples=samples, refine=refine,
-                              refine_steps=config.eval.refine_steps,
-                              batch_size=config.eval.batch_size, max_objects=max_objects,
-                              prior_weight=config.eval.prior_weight)
+  settings = evaluation.eval_settings(config, samples=samples, refine=refine)
+  results = evaluation.evaluate(workdir, data_dir, max_objects=max_objects, **settings)
   results["max_objects"] = max_objects
-  evaluate.write_results(results, out, f"python -m ppdjax.evaluate --workdir={workdir} "
+  tables.write_results(results, out, f"python -m ppdjax.evaluate --workdir={workdir} "
                          f"--data={data_dir} --samples={samples}"
                          + (" --refine" if refine else "")
                          + f" --prior_weight={config.eval.prior_weight}"

@@ -18,10 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ppdjax import inference, metrics, towers
-from ppdjax.materials import NUM_DENSITY_SLOTS
-from ppdjax.physics import default_pushes
-from ppdjax.rollout_mjx import rollout_object
+import ppdjax
+from ppdjax import metrics
+from ppdjax.conventions import NUM_DENSITY_SLOTS
+from ppdjax.infer import refine, sampling
+from ppdjax.sim.pushes import default_pushes
 
 
 def main():
@@ -33,19 +34,19 @@ def main():
   parser.add_argument("--out", default="experiments/results/refine_study")
   args = parser.parse_args()
   pushes = default_pushes()
-  true = jax.tree.map(jnp.asarray, towers.sample_towers(args.seed, args.objects))
+  true = jax.tree.map(jnp.asarray, ppdjax.sample_towers(args.seed, args.objects))
 
   @jax.jit
   def run(true, key):
-    obs = jax.vmap(lambda p: rollout_object(p, pushes, steps=256))(true)
+    obs = ppdjax.simulate(true, pushes)
     keys = jax.random.split(key, args.objects)
-    sel = jax.vmap(lambda p, o, k: inference.select_densities(
+    sel = jax.vmap(lambda p, o, k: sampling.select_densities(
         p, jnp.zeros((p.num_slots, NUM_DENSITY_SLOTS)), o, pushes, num_samples=args.samples,
         key=k, include_mode=False))(true, obs, keys)
     start = true.replace(density=sel.density)
-    refined, info = jax.vmap(lambda p, o: inference.refine_densities(
+    refined, info = jax.vmap(lambda p, o: refine.refine_densities(
         p, o, pushes, steps=args.steps))(start, obs)
-    sim = jax.vmap(lambda p: rollout_object(p, pushes, steps=256))(refined)
+    sim = ppdjax.simulate(refined, pushes)
     return (obs, sel.density, sel.score, sel.mae.min(-1), refined.density,
             metrics.trajectory_distance(sim, obs), metrics.trajectory_mae(sim, obs), info)
 

@@ -3,7 +3,7 @@
 Trains the generator's geometry (paper Eq. 4, w = 0) from voxels alone on freshly sampled
 towers (no simulation or rendering needed) and reports shape F1 on held-out towers, for
 each voxel-encoder width and feature size given. It isolates the shape half of PPD: the
-block pipeline's F1 target (97.5) is reached or missed here.
+block pipeline's F1 target (the paper's) is reached or missed here.
 
   python experiments/shape_study.py --widths=1,8 --steps=2000 --out=experiments/results/shape_study.json
 """
@@ -21,10 +21,12 @@ import optax
 from absl import app, flags
 from flax import nnx
 
-from ppdjax import losses, metrics, towers, voxels
+import ppdjax
+from ppdjax import metrics
 from ppdjax.configs import tiny
-from ppdjax.model import PPD
-from ppdjax.trainer import learning_rate
+from ppdjax.nn import losses
+from ppdjax.nn.model import PPD
+from ppdjax.training.state import learning_rate
 
 _WIDTHS = flags.DEFINE_list("widths", ["1", "8"], "voxel encoder channel multipliers")
 _FEATURES = flags.DEFINE_integer("feature", 64, "feature and hidden size")
@@ -39,8 +41,8 @@ _OUT = flags.DEFINE_string("out", "", "JSON file for the results")
 
 
 def tower_set(seed: int, count: int) -> tuple[np.ndarray, object]:
-  prims = towers.sample_towers(seed, count)
-  return voxels.voxelize(prims), prims
+  prims = ppdjax.sample_towers(seed, count)
+  return ppdjax.voxelize(prims), prims
 
 
 def run(width: int, train, test, steps: int) -> dict:

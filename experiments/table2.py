@@ -15,13 +15,13 @@ import sys
 from absl import app, flags
 
 import blocks_common as common
-from ppdjax import evaluate
+from ppdjax.infer import tables
 
 common.define_flags()
 flags.DEFINE_list("variants", list(common.VARIANTS), "Model variants to include.")
 FLAGS = flags.FLAGS
 
-PAPER = common.PAPER_TABLE2
+PAPER = tables.PAPER_TABLE2
 
 
 def table2(config, data_dir, root, variants, samples, refine, max_objects=0):
@@ -35,7 +35,7 @@ def table2(config, data_dir, root, variants, samples, refine, max_objects=0):
     m = res["model"]
     if v == "full":
       full = res
-      for b in evaluate.BASELINES:
+      for b in tables.BASELINES:
         rows[b] = res["table2"][b]
       observes.update({"Frequent": (False, False), "Nearest": (False, True),
                        "Oracle": (True, False)})
@@ -44,7 +44,7 @@ def table2(config, data_dir, root, variants, samples, refine, max_objects=0):
       if key in res["table2"] and (v == "full" or not suffix):
         rows[name + suffix] = res["table2"][key]
         observes[name + suffix] = (m["use_image"], m["use_trajectory"])
-  order = list(evaluate.BASELINES) + [common.VARIANTS[v][1] for v in
+  order = list(tables.BASELINES) + [common.VARIANTS[v][1] for v in
                                        ("no_trajectory", "no_image", "no_voxels", "full")]
   ranked = [r for base in order for r in rows if r.split("+")[0] == base]
   return {r: rows[r] for r in ranked}, observes, (full or {}).get("f1")
@@ -61,9 +61,9 @@ def main(argv):
         f"Test split, {samples} density samples" + (", LM refinement" if refine else "")
         + ". Density top-k in %, RMSE in slots (×100 kg/m³), trajectory MAE in mm"
         " (the paper's units are not stated)." + (f" Shape F1 of the full model: {f1:.1f} "
-                                                 "(paper 97.5)." if f1 is not None else ""),
+                                                 f"(paper {tables.PAPER_SHAPE_F1})." if f1 is not None else ""),
         ""]
-  md += evaluate.table2_md(rows, observes)
+  md += tables.table2_md(rows, observes)
   md += ["", "Paper:", "", "| Method | Top 1 | Top 5 | Top 10 | RMSE | MAE |",
          "|---|--:|--:|--:|--:|--:|"]
   md += [f"| {k} | " + " | ".join(str(x) for x in v) + " |" for k, v in PAPER.items()]

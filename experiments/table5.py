@@ -14,12 +14,12 @@ import sys
 from absl import app, flags
 
 import blocks_common as common
-from ppdjax import evaluate
+from ppdjax.infer import tables
 
 common.define_flags()
 FLAGS = flags.FLAGS
 
-PAPER = common.PAPER_TABLE5
+PAPER = tables.PAPER_TABLE5
 ROWS = (("Texture", "no_trajectory", "PPD"), ("Physics", "no_image", "PPD"),
         ("Texture + Physics", "full", "PPD"),
         ("Texture + Physics (+Sample)", "full", "PPD+Sample"),
@@ -39,7 +39,7 @@ def main(argv):
   command = "python experiments/table5.py " + " ".join(sys.argv[1:])
   md = [f"# Table 5 ({config.name} preset): density RMSE (slots) by number of blocks", "",
         "```", command, "```", ""]
-  md += evaluate.table5_md(table)
+  md += tables.table5_md(table)
   md += ["", "Paper:", "", "| | 2 blocks | 3 blocks | 4 blocks | 5 blocks | Overall |",
          "|---|--:|--:|--:|--:|--:|"]
   md += [f"| {k} | " + " | ".join(str(x) for x in v) + " |" for k, v in PAPER.items()]

@@ -1,19 +1,27 @@
-"""ppdjax: Physical Primitive Decomposition in JAX, with MuJoCo MJX physics."""
+"""ppdjax: Physical Primitive Decomposition in JAX, with MuJoCo MJX physics.
+
+The public API, re-exported from the subpackages that follow the data flow:
+primitives -> sim (physics) -> dataset -> nn (network) -> training -> infer (decompose).
+"""
 
 import os
 
 # MuJoCo picks its OpenGL platform when it is first imported: headless EGL unless the
-# user chose otherwise (ppdjax.render needs it; physics does not).
+# user chose otherwise (rendering needs it; physics does not).
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+# pylint: disable=wrong-import-position
 from ppdjax.primitives import Primitives  # noqa: E402
+from ppdjax.sim.mass import MassProperties, mass_properties  # noqa: E402
+from ppdjax.sim.pushes import Pushes, default_pushes  # noqa: E402
+from ppdjax.sim.simulate import simulate  # noqa: E402
+from ppdjax.dataset.towers import sample_towers  # noqa: E402
+from ppdjax.dataset.voxels import voxelize  # noqa: E402
+from ppdjax.dataset.storage import open_dataset  # noqa: E402
+from ppdjax.training.checkpoints import load  # noqa: E402
+from ppdjax.infer.decompose import make_decompose_fn  # noqa: E402
 
-
-def load(workdir: str, which: str = "best"):
-  """(model, config) of a training workdir; see `ppdjax.checkpoints.load`."""
-  from ppdjax import checkpoints
-  return checkpoints.load(workdir, which)
-
-
-__all__ = ["Primitives", "load"]
+__all__ = ["Primitives", "MassProperties", "mass_properties", "Pushes", "default_pushes",
+           "simulate", "sample_towers", "voxelize", "open_dataset", "load",
+           "make_decompose_fn"]
 __version__ = "0.1.0"

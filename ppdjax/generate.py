@@ -1,154 +1,22 @@
-"""`python -m ppdjax.generate --config=ppdjax/configs/tiny.py --out=DIR`: the block-tower dataset.
+"""`python -m ppdjax.generate --config=ppdjax/configs/tiny.py --out=DIR`: a block-tower dataset."""
 
-Shard s is a pure function of (config, s): its towers come from
-`default_rng([seed, s])`, so an interrupted run resumes at the first incomplete shard and
-ends byte-identical to an uninterrupted one (on the same machine and software).
-"""
-
-from __future__ import annotations
-
-import json
 import os
-import shutil
-import time
 
-import numpy as np
-import ml_collections
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-
-def _define_flags():  # at run time only, so other entry points can be imported beside this
-  config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
-  flags.DEFINE_string("out", None, "Dataset directory.", required=True)
-
-
-def check_config(cfg) -> None:
-  """Raises ValueError naming the first bad value of the `data` section."""
-  rules = [("num_towers", cfg.num_towers >= 1), ("towers_per_shard", cfg.towers_per_shard >= 1),
-           ("configs_per_tower", cfg.configs_per_tower >= 1),
-           ("render_workers", 0 <= cfg.render_workers <= 256),
-           ("image_size", 16 <= cfg.image_size <= 1024), ("steps", cfg.steps >= 1),
-           ("rotate", 0 <= cfg.rotate <= np.pi), ("size_noise", 0 <= cfg.size_noise < 1),
-           ("backend", cfg.backend in ("mjx", "mujoco")),
-           ("split_fractions", len(cfg.split_fractions) == 3
-            and abs(sum(cfg.split_fractions) - 1) < 1e-6 and min(cfg.split_fractions) >= 0)]
-  for key, ok in rules:
-    if not ok:
-      raise ValueError(f"config.data.{key} has a bad value: {cfg[key]!r}")
-
-
-def bytes_per_sample(cfg) -> int:
-  return (32 ** 3 + cfg.image_size ** 2 * 7 + 4 * cfg.steps * 7 * 4 + 5 * 11 * 4 + 32)
-
-
-def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray]:
-  """All arrays of one shard (towers × configurations)."""
-  import jax  # pylint: disable=import-outside-toplevel
-  from ppdjax import data, materials, physics, towers, voxels  # pylint: disable=import-outside-toplevel
-
-  rng = np.random.default_rng([seed, shard])
-  first = shard * cfg.towers_per_shard
-  count = min(cfg.towers_per_shard, cfg.num_towers - first)
-  prims, ids = [], []
-  for _ in range(count):
-    p, m = towers.sample_configurations(rng, cfg.configs_per_tower, rotate=cfg.rotate,
-                                        size_noise=cfg.size_noise)
-    prims.append(p)
-    ids.append(m)
-  vox = voxels.voxelize(towers.stack([jax.tree.map(lambda x: x[0], p) for p in prims]))
-  prims = towers.stack([jax.tree.map(lambda x, c=c: x[c], p) for p in prims
-                        for c in range(cfg.configs_per_tower)])
-  ids = np.concatenate(ids)
-  tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, ids.shape)
-  images, depths = renderer.render(prims, np.maximum(ids, 0), tex_seeds)
-  traj = np.asarray(physics.simulate(prims, steps=cfg.steps, backend=cfg.backend),
-                    np.float32)
-  tower_id = np.repeat(np.arange(first, first + count), cfg.configs_per_tower).astype(np.int64)
-  return {"voxels": np.repeat(vox, cfg.configs_per_tower, 0),
-          "image": images, "depth": depths, "trajectories": traj,
-          **{f: np.asarray(getattr(prims, f)) for f in ("half_size", "pos", "quat", "density",
-                                                         "valid")},
-          "materials": ids, "tower_id": tower_id,
-          "split": data.split_of(tower_id, tuple(cfg.split_fractions))}
-
-
-def generate(config, out: str, progress: bool = True) -> dict:
-  """Generates (or resumes) the dataset of `config` in `out`; returns the manifest."""
-  from tqdm import tqdm  # pylint: disable=import-outside-toplevel
-  from ppdjax import card, data, render  # pylint: disable=import-outside-toplevel
-  from ppdjax.rollout_mjx import DEFAULT_SETTINGS  # pylint: disable=import-outside-toplevel
-  import dataclasses  # pylint: disable=import-outside-toplevel
-
-  cfg = config.data
-  check_config(cfg)
-  os.makedirs(out, exist_ok=True)
-  config_path = os.path.join(out, "config.json")
-  # a dataset depends on the seed and the data section only (not on model or train)
-  text = ml_collections.ConfigDict({"name": config.name, "seed": config.seed,
-                                    "data": config.data.to_dict()}
-                                   ).to_json_best_effort(sort_keys=True, indent=1)
-  if os.path.exists(config_path):
-    with open(config_path) as f:
-      if f.read() != text:
-        raise ValueError(f"{out} holds a dataset made with another config ({config_path}); "
-                         "use a new directory")
-  else:
-    free = shutil.disk_usage(out).free
-    need = bytes_per_sample(cfg) * cfg.num_towers * cfg.configs_per_tower
-    if need > free:
-      raise OSError(f"not enough disk space in {out}: the dataset needs about "
-                    f"{need / 1e9:.2f} GB, {free / 1e9:.2f} GB are free")
-    with open(config_path, "w") as f:
-      f.write(text)
-
-  num_shards = -(-cfg.num_towers // cfg.towers_per_shard)
-  names = [f"shard-{s:05d}" for s in range(num_shards)]
-  sums = [data.shard_complete(os.path.join(out, n)) for n in names]
-  todo = [s for s in range(num_shards) if sums[s] is None]
-  bar = tqdm(total=cfg.num_towers, unit="tower", disable=not progress, desc="generate")
-  bar.update(cfg.num_towers - sum(min(cfg.towers_per_shard,
-                                      cfg.num_towers - s * cfg.towers_per_shard) for s in todo))
-  t0 = time.perf_counter()
-  if todo:
-    with render.BatchRenderer(cfg.image_size, cfg.image_size, cfg.render_workers) as renderer:
-      for s in todo:
-        arrays = generate_shard(cfg, config.seed, s, renderer)
-        sums[s] = data.write_shard(os.path.join(out, names[s]), arrays)
-        bar.update(len(np.unique(arrays["tower_id"])))
-  bar.close()
-  counts = []
-  for s, name in enumerate(names):
-    split = np.load(os.path.join(out, name, "split.npy"))
-    counts.append({"name": name, "samples": int(len(split)), "files": sums[s],
-                   "splits": {k: int((split == v).sum()) for k, v in data.SPLITS.items()}})
-  manifest = {
-      "format_version": data.FORMAT_VERSION, "config": json.loads(text), "seed": config.seed,
-      "towers": cfg.num_towers, "samples": sum(c["samples"] for c in counts),
-      "splits": {k: sum(c["splits"][k] for c in counts) for k in data.SPLITS},
-      "engine": {"backend": cfg.backend,
-                 "precision": "float32" if cfg.backend == "mjx" else "float64 (stored float32)",
-                 "mjx_settings": dataclasses.asdict(DEFAULT_SETTINGS)},
-      "shards": counts,
-  }
-  with open(os.path.join(out, "manifest.json"), "w") as f:
-    json.dump(manifest, f, indent=1, sort_keys=True)
-  card.write_card(out)
-  if progress:
-    print(f"{manifest['samples']} samples in {num_shards} shards at {out} "
-          f"({time.perf_counter() - t0:.0f} s this run); card: {out}/card.md")
-  return manifest
+_CONFIG = config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
+_OUT = flags.DEFINE_string("out", None, "Dataset directory.", required=True)
 
 
 def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
-  import jax  # pylint: disable=import-outside-toplevel
-  jax.config.update("jax_compilation_cache_dir",
-                    os.path.expanduser("~/.cache/ppdjax/jax_cache"))
-  generate(flags.FLAGS.config, flags.FLAGS.out)
+  import jax
+  jax.config.update("jax_compilation_cache_dir", os.path.expanduser("~/.cache/ppdjax/jax_cache"))
+  from ppdjax.dataset import generation
+  generation.generate(_CONFIG.value, _OUT.value)
 
 
 if __name__ == "__main__":
-  _define_flags()
   app.run(main)

@@ -10,8 +10,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ppdjax import scene  # noqa: E402
+from ppdjax.conventions import TIMESTEP  # noqa: E402
 from ppdjax.primitives import corners  # noqa: E402
+from ppdjax.sim.pushes import push_points  # noqa: E402
+from ppdjax.sim.scene import rest_position  # noqa: E402
 
 _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 
@@ -30,16 +32,15 @@ def plot_trajectories(prims, pushes, traj, ref=None, path="trajectories.png",
   """
   import jax
   import jax.numpy as jnp
-  from ppdjax import physics
 
   p = jax.tree.map(jnp.asarray, prims)
-  rest = np.asarray(scene.rest_position(p))
+  rest = np.asarray(rest_position(p))
   box_corners = np.asarray(corners(p)) + rest
   valid = np.asarray(p.valid)
   density = np.asarray(p.density)
-  points = np.asarray(physics.push_points(p, pushes)) + rest
+  points = np.asarray(push_points(p, pushes)) + rest
   sources = np.asarray(pushes.sources) + rest
-  t = np.arange(1, traj.shape[1] + 1) * scene.TIMESTEP
+  t = np.arange(1, traj.shape[1] + 1) * TIMESTEP
 
   fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
   ax = axes[0]

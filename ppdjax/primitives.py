@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-NUM_SLOTS = 5  # primitives are padded to K = 5 by convention
+from ppdjax.conventions import NUM_SLOTS
+
 QUAT_TOL = 1e-3  # allowed | |q| - 1 | for a "unit" quaternion
 
 
@@ -47,6 +50,25 @@ class Primitives:
     return self
 
 
+FIELDS = tuple(f.name for f in dataclasses.fields(Primitives))  # half_size ... valid
+
+
+def flatten(prims: Primitives) -> tuple[Primitives, tuple[int, ...]]:
+  """(Primitives (N, K), batch shape B...) of Primitives (B..., K); undo with `unflatten`."""
+  batch = prims.batch_shape
+  return jax.tree.map(lambda x: x.reshape((-1,) + np.shape(x)[len(batch):]), prims), batch
+
+
+def unflatten(x, batch: tuple[int, ...]):
+  """Arrays (or a pytree of them) with a leading (N,) axis back to (B..., ...)."""
+  return jax.tree.map(lambda a: a.reshape(tuple(batch) + a.shape[1:]), x)
+
+
+def stack(prims: list[Primitives]) -> Primitives:
+  """Stacks one-object Primitives (NumPy) on a new leading axis."""
+  return Primitives(*[np.stack([np.asarray(getattr(p, f)) for p in prims]) for f in FIELDS])
+
+
 def _fail(field: str, problem: str):
   raise ValueError(f"Primitives.{field}: {problem}")
 
@@ -54,8 +76,7 @@ def _fail(field: str, problem: str):
 def validate(prims: Primitives) -> None:
   """Raises ValueError (naming the field) unless `prims` is a well-formed batch of boxes."""
   try:
-    arrays = {k: np.asarray(getattr(prims, k)) for k in
-              ("half_size", "pos", "quat", "density", "valid")}
+    arrays = {k: np.asarray(getattr(prims, k)) for k in FIELDS}
   except jax.errors.TracerArrayConversionError as e:
     raise ValueError("Primitives.validate() needs concrete arrays; call it outside jit") from e
   density = arrays["density"]
@@ -67,7 +88,7 @@ def validate(prims: Primitives) -> None:
   for name, shape in expected.items():
     if arrays[name].shape != shape:
       _fail(name, f"expected shape {shape} (batch + (K,) from density), got {arrays[name].shape}")
-  for name in ("half_size", "pos", "quat", "density"):
+  for name in FIELDS[:-1]:  # the floating fields; `valid` is bool
     a = arrays[name]
     if not np.issubdtype(a.dtype, np.floating):
       _fail(name, f"expected a floating dtype, got {a.dtype}")
@@ -200,6 +221,23 @@ def ray_box_hits(origin: jax.Array, direction: jax.Array, prims: Primitives) -> 
   return jnp.where(hit, jnp.maximum(t_near, 0.0), jnp.inf)
 
 
+# --- bottom-to-top order: how the generator, its targets and every metric list boxes ------
+
+
+def bottom_to_top_order(prims: Primitives) -> jax.Array:
+  """(..., K) box indices by increasing centre height, padding last (stable for ties)."""
+  key = jnp.where(prims.valid, prims.pos[..., 2], jnp.inf)
+  return jnp.argsort(key, axis=-1, stable=True)
+
+
+def bottom_to_top(prims: Primitives) -> Primitives:
+  """Each object's boxes reordered bottom to top (`bottom_to_top_order`); padding last."""
+  order = bottom_to_top_order(prims)
+  return jax.tree.map(lambda x: jnp.take_along_axis(
+      jnp.asarray(x), order.reshape(order.shape + (1,) * (jnp.ndim(x) - order.ndim)),
+      axis=order.ndim - 1), prims)
+
+
 # --- one label per box ---------------------------------------------------------------------
 
 
@@ -247,11 +285,6 @@ def canonical_boxes(prims: Primitives) -> Primitives:
 # --- overlap of oriented boxes -------------------------------------------------------------
 
 
-def box_volume(prims: Primitives) -> jax.Array:
-  """(..., K) volumes in m^3."""
-  return 8.0 * jnp.prod(prims.half_size, axis=-1)
-
-
 def _inside(points: jax.Array, half_size, pos, quat) -> jax.Array:
   """Whether (N, 3) points lie in one box; (N,) bool."""
   local = (points - pos) @ quat_to_mat(quat)  # R^T (p - c)
@@ -295,7 +328,6 @@ def box_iou(a: Primitives, b: Primitives, grid: int = 32) -> jax.Array:
   def one(a1, b1):
     return pair_iou(a1, b1, grid)
   rows = jax.vmap(jax.vmap(one, (None, 0)), (0, None))
-  batch = a.batch_shape
-  flat = lambda p: jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), p)
-  iou = jax.vmap(rows)(flat(a), flat(b)).reshape(batch + (a.num_slots, b.num_slots))
+  (flat_a, batch), (flat_b, _) = flatten(a), flatten(b)
+  iou = unflatten(jax.vmap(rows)(flat_a, flat_b), batch)
   return jnp.where(a.valid[..., :, None] & b.valid[..., None, :], iou, 0.0)

@@ -26,18 +26,18 @@ def rng():
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory):
   """The tiny preset's dataset, generated once per session (as `make demo` makes it)."""
-  from ppdjax import generate
   from ppdjax.configs import tiny
+  from ppdjax.dataset import generation
   out = str(tmp_path_factory.mktemp("tiny") / "blocks")
-  generate.generate(tiny.get_config(), out, progress=False)
+  generation.generate(tiny.get_config(), out, progress=False)
   return out
 
 
 @pytest.fixture(scope="session")
 def tiny_run(tiny_dataset, tmp_path_factory):
   """The tiny preset trained exactly as the README's demo trains it: (workdir, final)."""
-  from ppdjax import train
   from ppdjax.configs import tiny
+  from ppdjax.training import loop
   workdir = str(tmp_path_factory.mktemp("tiny_run"))
-  final = train.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir, progress=False)
+  final = loop.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir, progress=False)
   return workdir, final

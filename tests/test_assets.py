@@ -1,7 +1,6 @@
 """The shipped block-tower model and example tower (assets/) load and decompose."""
 
 import os
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -10,12 +9,11 @@ import pytest
 from flax import nnx
 
 import ppdjax
-from ppdjax import data
+from ppdjax.dataset.storage import DatasetError
+from ppdjax.infer import example as decompose_example
 from ppdjax.primitives import box_iou
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "experiments"))
-import decompose_example  # noqa: E402
 
 MODEL = os.path.join(ROOT, "assets", "blocks_model")
 EXAMPLE = os.path.join(ROOT, "assets", "blocks_example.npz")
@@ -56,8 +54,8 @@ def test_physics_sampling_finds_the_heavy_blocks(tmp_path):
 def test_a_broken_example_file_is_named(tmp_path):
   bad = tmp_path / "bad.npz"
   bad.write_bytes(b"not a zip")
-  with pytest.raises(data.DatasetError, match="not a readable example"):
+  with pytest.raises(DatasetError, match="not a readable example"):
     decompose_example.load_example(str(bad))
   np.savez(tmp_path / "partial.npz", voxels=np.zeros((32, 32, 32), np.uint8))
-  with pytest.raises(data.DatasetError, match="not a readable example"):
+  with pytest.raises(DatasetError, match="not a readable example"):
     decompose_example.load_example(str(tmp_path / "partial.npz"))

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import ppdjax  # noqa: F401
-from ppdjax import data, generate
 from ppdjax.configs import tiny
+from ppdjax.dataset import generation, storage
 
 
 def small_config(**overrides):
@@ -25,7 +25,7 @@ def small_config(**overrides):
 @pytest.fixture(scope="module")
 def dataset_dir(tmp_path_factory):
   out = str(tmp_path_factory.mktemp("ds") / "a")
-  generate.generate(small_config(), out, progress=False)
+  generation.generate(small_config(), out, progress=False)
   return out
 
 
@@ -40,7 +40,7 @@ def _files(path):
 
 
 def test_samples_have_the_design_keys_and_shapes(dataset_dir):
-  ds = data.open_dataset(dataset_dir)
+  ds = storage.open_dataset(dataset_dir)
   assert len(ds) == 4 * 8
   s = ds[3]
   assert s["voxels"].shape == (32, 32, 32) and s["voxels"].dtype == np.uint8
@@ -58,21 +58,21 @@ def test_samples_have_the_design_keys_and_shapes(dataset_dir):
 
 def test_splits_are_disjoint_by_tower(dataset_dir):
   towers = {}
-  for split in data.SPLITS:
+  for split in storage.SPLITS:
     try:
-      ds = data.open_dataset(dataset_dir, split)
-    except data.DatasetError:
+      ds = storage.open_dataset(dataset_dir, split)
+    except storage.DatasetError:
       continue  # 4 towers may leave a split empty
     towers[split] = {ds[i]["tower_id"] for i in range(len(ds))}
   ids = [t for v in towers.values() for t in v]
   assert len(ids) == len(set(ids)) == 4
-  split = data.split_of(np.arange(10000))
+  split = storage.split_of(np.arange(10000))
   assert abs((split == 0).mean() - 0.8) < 0.02 and abs((split == 2).mean() - 0.1) < 0.02
 
 
 def test_resume_is_byte_identical(dataset_dir, tmp_path, monkeypatch):
   out = str(tmp_path / "b")
-  real = data.write_shard
+  real = storage.write_shard
   calls = []
 
   def interrupted(*args):
@@ -81,30 +81,30 @@ def test_resume_is_byte_identical(dataset_dir, tmp_path, monkeypatch):
     calls.append(1)
     return real(*args)
 
-  monkeypatch.setattr(data, "write_shard", interrupted)
+  monkeypatch.setattr(storage, "write_shard", interrupted)
   with pytest.raises(KeyboardInterrupt):
-    generate.generate(small_config(), out, progress=False)
+    generation.generate(small_config(), out, progress=False)
   assert not os.path.exists(os.path.join(out, "manifest.json"))
-  monkeypatch.setattr(data, "write_shard", real)
-  generate.generate(small_config(), out, progress=False)
+  monkeypatch.setattr(storage, "write_shard", real)
+  generation.generate(small_config(), out, progress=False)
   assert _files(out) == _files(dataset_dir)
 
 
 def test_refuses_another_config_and_bad_values(dataset_dir):
   with pytest.raises(ValueError, match="another config"):
-    generate.generate(small_config(image_size=48),
+    generation.generate(small_config(image_size=48),
                       dataset_dir, progress=False)
   with pytest.raises(ValueError, match="config.data.image_size"):
-    generate.check_config(small_config(image_size=4).data)
+    generation.check_config(small_config(image_size=4).data)
   with pytest.raises(ValueError, match="config.data.backend"):
-    generate.check_config(small_config(backend="bullet").data)
+    generation.check_config(small_config(backend="bullet").data)
 
 
 def test_disk_full_is_reported_before_starting(tmp_path, monkeypatch):
   import shutil
   monkeypatch.setattr(shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(1, 1, 10))
   with pytest.raises(OSError, match="not enough disk space"):
-    generate.generate(small_config(), str(tmp_path / "full"), progress=False)
+    generation.generate(small_config(), str(tmp_path / "full"), progress=False)
 
 
 def test_missing_or_corrupt_files_are_named(dataset_dir, tmp_path):
@@ -115,44 +115,67 @@ def test_missing_or_corrupt_files_are_named(dataset_dir, tmp_path):
   with open(victim, "r+b") as f:
     f.seek(200)
     f.write(b"\x00\x01\x02")
-  with pytest.raises(data.DatasetError, match="shard-00001/trajectories.npy"):
-    data.open_dataset(copy, verify=True)
+  with pytest.raises(storage.DatasetError, match="shard-00001/trajectories.npy"):
+    storage.open_dataset(copy, verify=True)
   with open(victim, "r+b") as f:
     f.truncate(100)
-  with pytest.raises(data.DatasetError, match="shard-00001/trajectories.npy"):
-    data.open_dataset(copy)
+  with pytest.raises(storage.DatasetError, match="shard-00001/trajectories.npy"):
+    storage.open_dataset(copy)
   os.remove(victim)
-  with pytest.raises(data.DatasetError, match="missing shard file .*trajectories.npy"):
-    data.open_dataset(copy)
+  with pytest.raises(storage.DatasetError, match="missing shard file .*trajectories.npy"):
+    storage.open_dataset(copy)
   os.remove(os.path.join(copy, "manifest.json"))
-  with pytest.raises(data.DatasetError, match="manifest.json is missing"):
-    data.open_dataset(copy)
-  with pytest.raises(data.DatasetError, match="no dataset directory"):
-    data.open_dataset(str(tmp_path / "nowhere"))
+  with pytest.raises(storage.DatasetError, match="manifest.json is missing"):
+    storage.open_dataset(copy)
+  with pytest.raises(storage.DatasetError, match="no dataset directory"):
+    storage.open_dataset(str(tmp_path / "nowhere"))
+
+
+def test_flipped_voxel_bytes_are_caught_when_a_shard_is_first_read(dataset_dir, tmp_path):
+  """Training opens datasets without verify=True: the first read of a shard checks it."""
+  import shutil
+  copy = str(tmp_path / "flipped")
+  shutil.copytree(dataset_dir, copy)
+  victim = os.path.join(copy, "shard-00000", "voxels.npy")
+  with open(victim, "r+b") as f:
+    f.seek(-100, os.SEEK_END)
+    f.write(b"\xff")
+  ds = storage.open_dataset(copy)  # opening reads headers and row counts only
+  with pytest.raises(storage.DatasetError, match="shard-00000/voxels.npy: checksum"):
+    ds.take([0, len(ds) - 1])
+  # a manifest that agrees with the damaged file: the value range still catches it
+  manifest_path = os.path.join(copy, "manifest.json")
+  manifest = json.load(open(manifest_path))
+  manifest["shards"][0]["files"]["voxels.npy"] = storage.sha256(victim)
+  with open(manifest_path, "w") as f:
+    json.dump(manifest, f)
+  with pytest.raises(storage.DatasetError, match="voxels.npy: occupancy values up to 255"):
+    storage.open_dataset(copy).take([0])
+  assert storage.open_dataset(copy, check=False).take([0])["voxels"].max() <= 255  # opted out
 
 
 def test_loader_is_deterministic_and_streams(dataset_dir):
-  ds = data.open_dataset(dataset_dir)
-  a = list(data.batches(ds, 8, seed=3))
-  b = list(data.batches(ds, 8, seed=3))
-  c = list(data.batches(ds, 8, seed=3, epoch=1))
+  ds = storage.open_dataset(dataset_dir)
+  a = list(storage.batches(ds, 8, seed=3))
+  b = list(storage.batches(ds, 8, seed=3))
+  c = list(storage.batches(ds, 8, seed=3, epoch=1))
   assert len(a) == 4 and a[0]["image"].shape == (8, 32, 32, 3)
   assert a[0]["primitives"].density.shape == (8, 5)
   assert all(np.array_equal(x["tower_id"], y["tower_id"]) for x, y in zip(a, b))
   assert not all(np.array_equal(x["tower_id"], y["tower_id"]) for x, y in zip(a, c))
-  resumed = list(data.batches(ds, 8, seed=3, start=2))
+  resumed = list(storage.batches(ds, 8, seed=3, start=2))
   assert np.array_equal(resumed[0]["tower_id"], a[2]["tower_id"])
   seen = np.concatenate([x["tower_id"] for x in a])
   assert len(seen) == len(ds)
   with pytest.raises(ValueError, match="batch_size"):
-    next(data.batches(ds, 0, seed=0))
+    next(storage.batches(ds, 0, seed=0))
   # a batch equals its samples read one by one; a slice per process, and chosen keys only
   rows = np.random.default_rng([3, 0]).permutation(len(ds))[:8]
   for i, r in enumerate(rows):
     s = ds[int(r)]
     assert np.array_equal(a[0]["image"][i], s["image"])
     assert np.array_equal(a[0]["primitives"].quat[i], s["primitives"].quat)
-  half = next(data.batches(ds, 8, seed=3, part=(1, 2), keys=("trajectories",)))
+  half = next(storage.batches(ds, 8, seed=3, part=(1, 2), keys=("trajectories",)))
   assert set(half) == {"trajectories"}
   assert np.array_equal(half["trajectories"], a[0]["trajectories"][4:])
 
@@ -163,6 +186,6 @@ def test_tiny_preset_generates(tiny_dataset):
     manifest = json.load(f)
   assert manifest["samples"] == 128 and manifest["towers"] == 16
   assert sum(manifest["splits"].values()) == 128
-  ds = data.open_dataset(tiny_dataset, verify=True)
+  ds = storage.open_dataset(tiny_dataset, verify=True)
   assert ds[127]["image"].shape == (64, 64, 3)
   assert ds[127]["trajectories"].shape == (4, 256, 7)

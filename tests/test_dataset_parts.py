@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 import ppdjax  # noqa: F401  (sets MUJOCO_GL before mujoco is imported)
-from ppdjax import materials, primitives, towers, voxels
+from ppdjax import primitives
+from ppdjax.conventions import density_to_slot
+from ppdjax.dataset import materials, render, towers, voxels
 
 
 def test_sampler_stacking_ranges_and_configurations():
@@ -28,7 +30,7 @@ def test_sampler_stacking_ranges_and_configurations():
     assert ratio.min() > 0.5 / 1.0 - 1e-6 and ratio.max() < 1.5 / 0.3 + 1e-6
     for c in range(towers.CONFIGS_PER_TOWER):
       for k in range(n):
-        slot = materials.density_to_slot(prims.density[c, k])
+        slot = density_to_slot(prims.density[c, k])
         assert slot in materials.material_slots(materials.MATERIAL_NAMES[ids[c, k]])
 
 
@@ -102,7 +104,6 @@ def test_voxels_against_point_sampling():
 
 
 def test_render_rgb_and_depth():
-  from ppdjax import render
   prims, ids = towers.sample_configurations(np.random.default_rng(3), 2)
   with render.ObjectRenderer(64, 80) as r:
     rgb0, depth0 = r.render(jax.tree.map(lambda x: x[0], prims), np.maximum(ids[0], 0),
@@ -119,7 +120,6 @@ def test_render_rgb_and_depth():
 
 
 def test_batch_renderer_workers_give_identical_images():
-  from ppdjax import render
   prims, ids = towers.sample_configurations(np.random.default_rng(4), 3)
   seeds = np.arange(15).reshape(3, 5)
   with render.BatchRenderer(32, 32, workers=0) as r:

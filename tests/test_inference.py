@@ -10,32 +10,35 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ppdjax import checkpoints, data, evaluate, inference, metrics, towers
+import ppdjax
+from ppdjax import metrics
 from ppdjax.configs import tiny
-from ppdjax.physics import default_pushes
+from ppdjax.conventions import OBS_KEYS
+from ppdjax.dataset import storage, towers
+from ppdjax.infer import evaluation, refine, sampling
 from ppdjax.primitives import quat_mul
-from ppdjax.rollout_mjx import rollout_object
+from ppdjax.training import checkpoints
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PUSHES = default_pushes()
+PUSHES = ppdjax.default_pushes()
 SAMPLES = tiny.get_config().eval.samples  # the demo's, so compilations are shared
 
 
 def _simulate(prims):
-  return jax.jit(jax.vmap(lambda p: rollout_object(p, PUSHES, steps=256)))(prims)
+  return jax.jit(lambda p: ppdjax.simulate(p, PUSHES))(prims)
 
 
 def test_candidates_keep_the_mode_and_have_no_duplicates(rng):
   logits = jnp.asarray(rng.normal(size=(5, 100)), jnp.float32)
   valid = jnp.array([True, True, True, False, False])
-  slots, distinct = inference.candidate_slots(logits, valid, 64, jax.random.key(0))
+  slots, distinct = sampling.candidate_slots(logits, valid, 64, jax.random.key(0))
   assert slots.shape == (64, 5) and bool(distinct.all())
   np.testing.assert_array_equal(slots[0, :3], jnp.argmax(logits, -1)[:3])
   assert not np.asarray(slots[:, 3:]).any()  # padded boxes
   assert len({tuple(r) for r in np.asarray(slots)}) == 64
   # support of 2 x 2 assignments: 4 distinct ones come first, then repeats flagged
   small = jnp.full((5, 100), -1e9).at[:, 7].set(0.0).at[:, 40].set(0.0)
-  slots, distinct = inference.candidate_slots(small, valid.at[2].set(False), 8,
+  slots, distinct = sampling.candidate_slots(small, valid.at[2].set(False), 8,
                                               jax.random.key(1))
   assert list(np.asarray(distinct)) == [True] * 4 + [False] * 4
   assert len({tuple(r) for r in np.asarray(slots[:4])}) == 4
@@ -73,7 +76,7 @@ def test_sampling_finds_the_truth_when_the_prior_contains_it(tower):
   for k in range(2):  # support {t - 3, t, t + 3}; the mode (t + 3) is wrong
     t = true[k]
     logits = logits.at[k, t - 3].set(0.0).at[k, t].set(0.5).at[k, t + 3].set(1.0)
-  sel = jax.jit(lambda p, lg, o, key: inference.select_densities(
+  sel = jax.jit(lambda p, lg, o, key: sampling.select_densities(
       p, lg, o, PUSHES, num_samples=16, key=key))(prims, logits, observed, jax.random.key(0))
   np.testing.assert_allclose(sel.density[:2], prims.density[:2])
   assert float(sel.score) < 1e-5 and float(sel.scores[0]) > 1e-4
@@ -92,7 +95,7 @@ def test_refinement_from_thirty_percent_off_lands_within_five_percent():
   prims, observed = jax.tree.map(lambda x: x[pick], prims), observed[pick]
   signs = jnp.asarray(np.random.default_rng(0).choice([-1.0, 1.0], (len(pick), 5)))
   start = prims.replace(density=prims.density * (1.0 + 0.3 * signs))
-  out, info = jax.jit(jax.vmap(lambda p, o: inference.refine_densities(p, o, PUSHES)))(
+  out, info = jax.jit(jax.vmap(lambda p, o: refine.refine_densities(p, o, PUSHES)))(
       start, observed)
   ratio = np.asarray(out.density / prims.density)[:, :2]
   assert np.all(np.abs(ratio - 1.0) < 0.05), ratio
@@ -101,12 +104,12 @@ def test_refinement_from_thirty_percent_off_lands_within_five_percent():
 
 @pytest.fixture(scope="module")
 def decompose(tiny_run):
-  return inference.make_decompose_fn(tiny_run[0], num_samples=SAMPLES)
+  return ppdjax.make_decompose_fn(tiny_run[0], num_samples=SAMPLES)
 
 
 def test_decompose_one_and_a_batch(decompose, tiny_dataset):
-  sample = data.open_dataset(tiny_dataset, "test").take([0])
-  obs = {k: sample[k] for k in ("voxels", "image", "trajectories")}
+  sample = storage.open_dataset(tiny_dataset, "test").take([0])
+  obs = {k: sample[k] for k in OBS_KEYS}
   batched = decompose(obs, jax.random.key(0))
   one = decompose(jax.tree.map(lambda x: x[0], obs), jax.random.key(0))
   assert batched.primitives.density.shape == (1, 5) and one.primitives.density.shape == (5,)
@@ -120,8 +123,8 @@ def test_decompose_one_and_a_batch(decompose, tiny_dataset):
 
 
 def test_bad_observations_are_named(decompose, tiny_dataset):
-  sample = data.open_dataset(tiny_dataset, "test")[0]
-  obs = {k: sample[k] for k in ("voxels", "image", "trajectories")}
+  sample = storage.open_dataset(tiny_dataset, "test")[0]
+  obs = {k: sample[k] for k in OBS_KEYS}
   key = jax.random.key(0)
   with pytest.raises(ValueError, match="lacks"):
     decompose({"voxels": obs["voxels"]}, key)
@@ -131,6 +134,27 @@ def test_bad_observations_are_named(decompose, tiny_dataset):
     decompose({**obs, "voxels": obs["voxels"][:16]}, key)
   with pytest.raises(ValueError, match="NaN or inf"):
     decompose({**obs, "trajectories": obs["trajectories"].copy() * np.nan}, key)
+  with pytest.raises(ValueError, match="image.*uint8"):  # a float image in [0, 1]
+    decompose({**obs, "image": obs["image"] / 255.0}, key)
+  with pytest.raises(ValueError, match="voxels.*0/1"):
+    decompose({**obs, "voxels": obs["voxels"] * 255}, key)
+
+
+def test_decompose_with_refinement_is_never_further(decompose, tiny_run, tiny_dataset):
+  """refine=True (one object): LM through MJX in the same jit; the answer is kept only
+  where it is closer, so its distance is never above the plain +Sample answer's."""
+  refined = ppdjax.make_decompose_fn(tiny_run[0], num_samples=SAMPLES, refine=True,
+                                     refine_steps=2)
+  sample = storage.open_dataset(tiny_dataset, "test")[0]
+  obs = {k: sample[k] for k in OBS_KEYS}
+  plain, got = decompose(obs, jax.random.key(1)), refined(obs, jax.random.key(1))
+  assert float(got.score) <= float(plain.score) + 1e-7
+  np.testing.assert_allclose(got.scores, plain.scores, rtol=1e-5)  # the same candidates
+  np.testing.assert_allclose(metrics.trajectory_distance(got.trajectories,
+                                                         obs["trajectories"]), got.score,
+                             rtol=1e-4)
+  d = np.asarray(got.primitives.density)[np.asarray(got.primitives.valid)]
+  assert np.all((d >= 100) & (d <= 10000))
 
 
 def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
@@ -138,8 +162,7 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   env = {**os.environ, "JAX_PLATFORMS": "cpu",
          "JAX_COMPILATION_CACHE_DIR": os.path.join(ROOT, ".jax_cache")}
   done = subprocess.run([sys.executable, "-m", "ppdjax.evaluate", f"--workdir={tiny_run[0]}",
-                         f"--data={tiny_dataset}", f"--samples={SAMPLES}",
-                         "--batch_size=8", f"--out={out}"],
+                         f"--data={tiny_dataset}", f"--out={out}"],  # the preset's eval
                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
   assert done.returncode == 0, done.stderr[-3000:]
   with open(os.path.join(out, "results.json")) as f:
@@ -153,29 +176,31 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   for r in results["table4"].values():  # best of more samples is never worse
     assert r[str(SAMPLES)] <= r["8"] <= r["1"] + 1e-9
   assert results["table4"]["PPD"]["1"] == pytest.approx(rows["PPD"]["mae"])
-  assert results["objects"] == len(data.open_dataset(tiny_dataset, "test"))
+  assert results["objects"] == len(storage.open_dataset(tiny_dataset, "test"))
+  assert results["samples"] == SAMPLES and results["batch_size" if "batch_size" in results
+                                                   else "samples"] is not None
   text = open(os.path.join(out, "results.md")).read()
   assert "Table 2" in text and "Table 4" in text and "| PPD+Sample |" in text
   assert os.path.exists(os.path.join(out, "confusion.png"))
 
 
 def test_evaluation_subsets():
-  np.testing.assert_array_equal(evaluate.evaluation_objects(10), np.arange(10))
-  np.testing.assert_array_equal(evaluate.evaluation_objects(10, 3), [0, 1, 2])
-  np.testing.assert_array_equal(evaluate.evaluation_objects(10, 3, "spread"), [0, 4, 9])
-  assert len(evaluate.evaluation_objects(4800, 128, "spread")) == 128
-  np.testing.assert_array_equal(evaluate.evaluation_objects(5, 9, "spread"), np.arange(5))
+  np.testing.assert_array_equal(evaluation.evaluation_objects(10), np.arange(10))
+  np.testing.assert_array_equal(evaluation.evaluation_objects(10, 3), [0, 1, 2])
+  np.testing.assert_array_equal(evaluation.evaluation_objects(10, 3, "spread"), [0, 4, 9])
+  assert len(evaluation.evaluation_objects(4800, 128, "spread")) == 128
+  np.testing.assert_array_equal(evaluation.evaluation_objects(5, 9, "spread"), np.arange(5))
   with pytest.raises(ValueError, match="subset"):
-    evaluate.evaluation_objects(10, 3, "random")
+    evaluation.evaluation_objects(10, 3, "random")
 
 
 def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
   with pytest.raises(checkpoints.CheckpointError, match="config.json"):
-    evaluate.evaluate(str(tmp_path), tiny_dataset)
+    evaluation.evaluate(str(tmp_path), tiny_dataset)
   empty = tmp_path / "empty"
   empty.mkdir()
-  with pytest.raises(data.DatasetError, match="no dataset|manifest"):
-    evaluate.evaluate(tiny_run[0], str(empty))
+  with pytest.raises(storage.DatasetError, match="no dataset|manifest"):
+    evaluation.evaluate(tiny_run[0], str(empty))
   done = subprocess.run([sys.executable, "-m", "ppdjax.evaluate", f"--workdir={tmp_path}",
                          f"--data={tiny_dataset}"], cwd=ROOT, capture_output=True, text=True,
                         env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)

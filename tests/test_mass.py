@@ -5,9 +5,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ppdjax import mass, physics, primitives, scene
+import ppdjax
+from ppdjax import primitives
+from ppdjax.dataset import towers
 from ppdjax.primitives import quat_to_mat
+from ppdjax.sim import mass, scene
 from conftest import index
+from mujoco_reference import reference_model
 
 
 def _random_object(rng, n):
@@ -27,8 +31,8 @@ def _rel(a, b):
 def test_matches_mujoco_compiler_rotated_boxes(rng, n):
   for _ in range(5):
     p = _random_object(rng, n)
-    ref = scene.reference_model(p)
-    props = physics.mass_properties(jax.tree.map(jnp.asarray, p))
+    ref = reference_model(p)
+    props = ppdjax.mass_properties(jax.tree.map(jnp.asarray, p))
     rot = np.asarray(quat_to_mat(jnp.asarray(ref.body_iquat[1])))
     inertia_ref = rot @ np.diag(ref.body_inertia[1]) @ rot.T
     assert _rel(props.mass, ref.body_mass[1]) < 1e-5
@@ -40,7 +44,7 @@ def test_derived_fields_match_set_const(rng):
   """invweight0 (which scales contact softness) as mj_setConst computes it."""
   for n in (2, 5):
     p = _random_object(rng, n)
-    ref = scene.reference_model(p)
+    ref = reference_model(p)
     fields = scene.object_fields(jax.tree.map(jnp.asarray, p))
     np.testing.assert_allclose(fields["body_invweight0"], ref.body_invweight0, rtol=1e-5)
     np.testing.assert_allclose(fields["dof_invweight0"], ref.dof_invweight0, rtol=1e-5)
@@ -57,7 +61,6 @@ def test_invalid_boxes_contribute_nothing(rng):
 
 
 def test_jit_vmap_grad_jacfwd():
-  from ppdjax import towers
   batch = jax.tree.map(jnp.asarray, towers.sample_towers(3, 4))
   props = jax.jit(mass.mass_properties)(batch)
   assert props.mass.shape == (4,) and props.inertia.shape == (4, 3, 3)

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from ppdjax import losses, metrics, model, primitives
+from ppdjax import metrics, primitives
 from ppdjax.configs import tiny
+from ppdjax.nn import losses, model
+from ppdjax.nn.resnet import ResNet18, load_torchvision_weights
 from ppdjax.primitives import Primitives
-from ppdjax.resnet import ResNet18, load_torchvision_weights
 
 
 def _obs(rng, b=3, t=24, hw=32):

@@ -5,12 +5,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ppdjax import physics, primitives, scene, towers
-from ppdjax.rollout_mujoco import reference_rollout
+import ppdjax
+from ppdjax import primitives
+from ppdjax.conventions import TIMESTEP
+from ppdjax.dataset import towers
+from ppdjax.sim import scene
+from ppdjax.sim.pushes import push_points
 from conftest import index
+from mujoco_reference import reference_rollout
 
 NUM_TOWERS = 16
-DT = scene.TIMESTEP
+DT = TIMESTEP
 
 
 @pytest.fixture(scope="module")
@@ -22,12 +27,12 @@ def prims():
 
 @pytest.fixture(scope="module")
 def c_traj(prims):
-  return physics.simulate(prims, backend="mujoco")
+  return ppdjax.simulate(prims, backend="mujoco")
 
 
 @pytest.fixture(scope="module")
 def mjx_traj(prims):
-  return np.asarray(physics.simulate(prims, backend="mjx"))
+  return np.asarray(ppdjax.simulate(prims, backend="mjx"))
 
 
 def _gap_mm(a, b):
@@ -35,7 +40,7 @@ def _gap_mm(a, b):
 
 
 def test_mujoco_backend_matches_plain_mj_step_loop(prims, c_traj):
-  pushes = physics.default_pushes()
+  pushes = ppdjax.default_pushes()
   for i in (0, 5, 11):
     ref = reference_rollout(index(prims, i), pushes)  # a model MuJoCo compiled from the boxes
     assert _gap_mm(c_traj[i], ref).max() < 0.5
@@ -75,13 +80,13 @@ def test_push_impulse(prims):
   direction /= np.linalg.norm(direction, axis=1, keepdims=True)
   for i in (0, 6, 12):
     one = index(prims, i)
-    com = np.asarray(physics.mass_properties(jax.tree.map(jnp.asarray, one)).com)
-    pushes = physics.Pushes(com - 2 * direction, np.tile(com, (4, 1)),
+    com = np.asarray(ppdjax.mass_properties(jax.tree.map(jnp.asarray, one)).com)
+    pushes = ppdjax.Pushes(com - 2 * direction, np.tile(com, (4, 1)),
                             np.full(4, 1e5, np.float32))
     for backend in ("mjx", "mujoco"):
-      first = np.asarray(physics.simulate(one, pushes, steps=2, backend=backend))[:, 0]
+      first = np.asarray(ppdjax.simulate(one, pushes, steps=2, backend=backend))[:, 0]
       rest = np.asarray(scene.rest_position(jax.tree.map(jnp.asarray, one)))
-      mass = float(physics.mass_properties(jax.tree.map(jnp.asarray, one)).mass)
+      mass = float(ppdjax.mass_properties(jax.tree.map(jnp.asarray, one)).mass)
       momentum = mass * (first[:, :3] - rest) / DT  # no torque: pure translation
       expected = 1e5 * direction * DT
       rel = np.linalg.norm(momentum[:, :2] - expected[:, :2], axis=-1) / np.linalg.norm(
@@ -91,10 +96,10 @@ def test_push_impulse(prims):
 
 
 def test_push_points_lie_on_the_surface(prims):
-  pushes = physics.default_pushes()
+  pushes = ppdjax.default_pushes()
   for i in range(4):
     one = jax.tree.map(jnp.asarray, index(prims, i))
-    pts = np.asarray(physics.push_points(one, pushes))
+    pts = np.asarray(push_points(one, pushes))
     rot = np.asarray(primitives.quat_to_mat(one.quat))
     local = np.einsum("kji,pkj->pki", rot, pts[:, None] - np.asarray(one.pos)[None])
     excess = np.abs(local) - np.asarray(one.half_size)[None]
@@ -105,15 +110,15 @@ def test_push_points_lie_on_the_surface(prims):
 def test_ray_that_misses_pushes_at_the_target():
   far = primitives.make([[0.05, 0.05, 0.05], [0.05, 0.05, 0.05]], [[0.4, 0.4, -0.4],
                                                                     [0.4, 0.4, -0.3]])
-  pushes = physics.Pushes(np.float32([[0, -1, 0]]), np.zeros((1, 3), np.float32),
+  pushes = ppdjax.Pushes(np.float32([[0, -1, 0]]), np.zeros((1, 3), np.float32),
                           np.float32([1e5]))
-  pts = physics.push_points(jax.tree.map(jnp.asarray, far), pushes)
+  pts = push_points(jax.tree.map(jnp.asarray, far), pushes)
   np.testing.assert_allclose(pts, 0.0)
 
 
 def test_one_compiled_function_ignores_padding(prims, mjx_traj):
   """Garbage in invalid slots changes nothing; the same compiled function is reused."""
-  from ppdjax import rollout_mjx
+  from ppdjax.sim import rollout_mjx
   valid = np.asarray(prims.valid)
   garbage = prims.replace(
       half_size=np.where(valid[..., None], prims.half_size, np.float32(0.45)),
@@ -121,21 +126,22 @@ def test_one_compiled_function_ignores_padding(prims, mjx_traj):
       density=np.where(valid, prims.density, np.float32(9999.0)))
   fn = rollout_mjx._batched_fn(256, rollout_mjx.DEFAULT_SETTINGS, 1)  # pylint: disable=protected-access
   before = fn._cache_size()  # pylint: disable=protected-access
-  out = np.asarray(physics.simulate(garbage, backend="mjx"))
+  out = np.asarray(ppdjax.simulate(garbage, backend="mjx"))
   assert fn._cache_size() == before  # pylint: disable=protected-access
   np.testing.assert_allclose(out, mjx_traj, atol=1e-5)
 
 
 def test_leading_batch_axes_and_jit(prims, mjx_traj):
   grid = jax.tree.map(lambda x: np.reshape(x, (2, NUM_TOWERS // 2) + np.shape(x)[1:]), prims)
-  out = physics.simulate(grid)
+  out = ppdjax.simulate(grid)
   assert out.shape == (2, NUM_TOWERS // 2, 4, 256, 7)
   np.testing.assert_allclose(np.reshape(out, mjx_traj.shape), mjx_traj, atol=1e-6)
-  short = jax.jit(lambda p: physics.simulate(p, steps=8))(jax.tree.map(jnp.asarray,
+  short = jax.jit(lambda p: ppdjax.simulate(p, steps=8))(jax.tree.map(jnp.asarray,
                                                                        index(prims, 0)))
   np.testing.assert_allclose(short, mjx_traj[0, :, :8], atol=1e-5)
 
 
+@pytest.mark.slow  # a cross-check of ~60 s on 2 cores (decompose(refine=True) runs jacfwd by default)
 def test_forward_mode_density_derivatives_vs_finite_differences(prims):
   """d(trajectory)/d(log density) by jacfwd through MJX against central differences.
 
@@ -149,7 +155,7 @@ def test_forward_mode_density_derivatives_vs_finite_differences(prims):
   steps, h = 30, 1e-2
 
   def traj(log_density):
-    return physics.simulate(one.replace(density=jnp.exp(log_density)), steps=steps)[..., :3]
+    return ppdjax.simulate(one.replace(density=jnp.exp(log_density)), steps=steps)[..., :3]
 
   log_d = jnp.log(jnp.where(one.valid, one.density, 1.0))
   jac = np.asarray(jax.jacfwd(traj)(log_d))  # (P, steps, 3, K)
@@ -164,12 +170,13 @@ def test_forward_mode_density_derivatives_vs_finite_differences(prims):
   assert err[:, :10].max() < 0.02
 
 
+@pytest.mark.slow  # a cross-check of ~50 s on 2 cores: `make test-all`
 def test_fixed_iteration_step_matches_mjx_step(prims):
   """ppdjax.mjx_step (no while_loop, unrolled Cholesky) computes what mjx.step computes."""
   from ppdjax.rollout_mjx import MjxSettings
   few = jax.tree.map(lambda x: x[:2], prims)
-  ours = np.asarray(physics.simulate(few, steps=30, settings=MjxSettings()))
-  theirs = np.asarray(physics.simulate(few, steps=30, settings=MjxSettings(
+  ours = np.asarray(ppdjax.simulate(few, steps=30, settings=MjxSettings()))
+  theirs = np.asarray(ppdjax.simulate(few, steps=30, settings=MjxSettings(
       fixed_iterations=False, unrolled_cholesky=False)))
   assert _gap_mm(ours, theirs).max() < 1e-3
 
@@ -177,18 +184,18 @@ def test_fixed_iteration_step_matches_mjx_step(prims):
 @pytest.mark.parametrize("kwargs,message", [
     (dict(backend="bullet"), "backend must be one of"),
     (dict(steps=0), "steps must be a positive int"),
-    (dict(pushes=physics.Pushes(np.zeros((4, 2)), np.zeros((4, 3)), np.ones(4))),
+    (dict(pushes=ppdjax.Pushes(np.zeros((4, 2)), np.zeros((4, 3)), np.ones(4))),
      r"Pushes.sources: expected shape \(P, 3\)"),
-    (dict(pushes=physics.Pushes(np.ones((1, 3)), np.zeros((1, 3)), np.float32([np.nan]))),
+    (dict(pushes=ppdjax.Pushes(np.ones((1, 3)), np.zeros((1, 3)), np.float32([np.nan]))),
      "Pushes.magnitudes: contains NaN"),
-    (dict(pushes=physics.Pushes(np.zeros((1, 3)), np.zeros((1, 3)), np.ones(1))),
+    (dict(pushes=ppdjax.Pushes(np.zeros((1, 3)), np.zeros((1, 3)), np.ones(1))),
      "coincides with its target"),
-    (dict(pushes=physics.Pushes(np.ones((1, 3)), np.zeros((1, 3)), np.ones(1), duration=0)),
+    (dict(pushes=ppdjax.Pushes(np.ones((1, 3)), np.zeros((1, 3)), np.ones(1), duration=0)),
      "Pushes.duration"),
 ])
 def test_bad_simulate_arguments(prims, kwargs, message):
   with pytest.raises(ValueError, match=message):
-    physics.simulate(index(prims, 0), **kwargs)
+    ppdjax.simulate(index(prims, 0), **kwargs)
 
 
 def test_bad_primitives_raise_before_simulating(prims):
@@ -196,9 +203,9 @@ def test_bad_primitives_raise_before_simulating(prims):
   bad = bad.replace(pos=np.asarray(bad.pos).copy())
   bad.pos[0, 0] = np.nan
   with pytest.raises(ValueError, match="Primitives.pos: contains NaN"):
-    physics.simulate(bad)
+    ppdjax.simulate(bad)
   with pytest.raises(ValueError, match="cannot be traced"):
-    jax.jit(lambda p: physics.simulate(p, backend="mujoco"))(
+    jax.jit(lambda p: ppdjax.simulate(p, backend="mujoco"))(
         jax.tree.map(jnp.asarray, index(prims, 0)))
 
 
@@ -209,7 +216,7 @@ def test_reverse_mode_matches_forward_mode(prims):
   log_d = jnp.log(jnp.where(one.valid, one.density, 1.0))
 
   def loss(ld):
-    return physics.simulate(one.replace(density=jnp.exp(ld)), steps=10)[..., :3].sum()
+    return ppdjax.simulate(one.replace(density=jnp.exp(ld)), steps=10)[..., :3].sum()
 
   grad = np.asarray(jax.grad(loss)(log_d))
   assert np.all(np.isfinite(grad))

@@ -4,7 +4,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ppdjax import Primitives, primitives, towers
+from ppdjax import Primitives, primitives
+from ppdjax.dataset import towers
 
 
 def _tower():

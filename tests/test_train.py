@@ -11,8 +11,12 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from ppdjax import checkpoints, data, load, metrics, train, trainer
+from ppdjax import load, metrics
 from ppdjax.configs import tiny
+from ppdjax.conventions import OBS_KEYS
+from ppdjax.dataset import storage
+from ppdjax.training import checkpoints, loader, loop
+from ppdjax.training import state as train_state
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -38,7 +42,7 @@ def _params(workdir):
 @pytest.fixture(scope="module")
 def straight_run(tiny_dataset, tmp_path_factory):
   workdir = str(tmp_path_factory.mktemp("straight"))
-  train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
   return workdir
 
 
@@ -64,12 +68,12 @@ def test_tiny_preset_trains_with_a_falling_loss(tiny_run):
 def test_load_returns_the_trained_model(tiny_run, tiny_dataset):
   workdir, final = tiny_run
   # a finished run, run again, trains nothing and reports its last validation
-  assert train.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir,
+  assert loop.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir,
                                   progress=False) == final
   model, config = load(workdir)
   assert config.train.batch_size == tiny.get_config().train.batch_size
-  sample = data.open_dataset(tiny_dataset, "test")[0]
-  obs = {k: jnp.asarray(sample[k])[None] for k in trainer.OBS_KEYS}
+  sample = storage.open_dataset(tiny_dataset, "test")[0]
+  obs = {k: jnp.asarray(sample[k])[None] for k in OBS_KEYS}
   prims, raw = nnx.jit(lambda m, o: m.decode(o))(model, obs)
   assert prims.density.shape == (1, 5) and bool(prims.valid[0, 0])
   with pytest.raises(checkpoints.CheckpointError, match="config.json is missing"):
@@ -82,11 +86,11 @@ def test_overfits_sixteen_samples(tiny_dataset):
   config = tiny.get_config()
   config.model.dropout = 0.0
   config.train.learning_rate = 3e-3
-  ds = data.open_dataset(tiny_dataset, "train")
-  batch = jax.tree.map(jnp.asarray, trainer.model_inputs(next(data.batches(ds, 16, seed=0))))
-  graphdef, state = nnx.split(trainer.build(config))
-  step = jax.jit(lambda s, b, i: trainer.train_step(graphdef, s, b, i, 0.5, 0))
-  evaluate = jax.jit(lambda s, b: trainer.eval_step(graphdef, s, b, 0.5))
+  ds = storage.open_dataset(tiny_dataset, "train")
+  batch = jax.tree.map(jnp.asarray, loader.model_inputs(next(storage.batches(ds, 16, seed=0))))
+  graphdef, state = nnx.split(train_state.build(config))
+  step = jax.jit(lambda s, b, i: train_state.train_step(graphdef, s, b, i, 0.5, 0))
+  evaluate = jax.jit(lambda s, b: train_state.eval_step(graphdef, s, b, 0.5))
   first, _ = evaluate(state, batch)
   for i in range(300):
     state, _ = step(state, batch, i)
@@ -102,19 +106,19 @@ def test_overfits_sixteen_samples(tiny_dataset):
 def test_resume_is_bitwise_equal(straight_run, tiny_dataset, tmp_path, monkeypatch):
   """Interrupted at step 4 (Ctrl-C: it saves), run again: identical losses and weights."""
   workdir = str(tmp_path / "resumed")
-  real = trainer.Trainer.train_step
+  real = train_state.Trainer.train_step
 
   def interrupt_at_4(self, batch, step, w):
     if step == 4:
       raise KeyboardInterrupt
     return real(self, batch, step, w)
 
-  monkeypatch.setattr(trainer.Trainer, "train_step", interrupt_at_4)
+  monkeypatch.setattr(train_state.Trainer, "train_step", interrupt_at_4)
   with pytest.raises(KeyboardInterrupt):
-    train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+    loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
   assert [r["step"] for r in _rows(workdir)] == [1, 2, 3, 4]
-  monkeypatch.setattr(trainer.Trainer, "train_step", real)
-  train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+  monkeypatch.setattr(train_state.Trainer, "train_step", real)
+  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
   key = lambda rows: [(r["step"], r["loss"], r["geometry_loss"], r["density_loss"])
                       for r in rows]
   assert key(_rows(workdir)) == key(_rows(straight_run))
@@ -122,11 +126,12 @@ def test_resume_is_bitwise_equal(straight_run, tiny_dataset, tmp_path, monkeypat
     np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow  # a cross-check of ~55 s on 2 cores (a second process compiles): `make test-all`
 def test_eight_fake_devices_match_one(straight_run, tiny_dataset, tmp_path):
   workdir = str(tmp_path / "eight")
-  code = ("import jax; from ppdjax import train; from tests.test_train import short_config; "
-          "assert jax.device_count() == 8; "
-          f"train.train_and_evaluate(short_config(), {tiny_dataset!r}, {workdir!r}, "
+  code = ("import jax; from ppdjax.training import loop; "
+          "from tests.test_train import short_config; assert jax.device_count() == 8; "
+          f"loop.train_and_evaluate(short_config(), {tiny_dataset!r}, {workdir!r}, "
           "progress=False)")
   env = dict(os.environ, JAX_PLATFORMS="cpu",
              XLA_FLAGS="--xla_force_host_platform_device_count=8",
@@ -147,43 +152,43 @@ def test_bad_configs_and_inputs_are_named(tiny_dataset, straight_run, tmp_path, 
     config = short_config()
     config[section][key] = value
     with pytest.raises(ValueError, match=match):
-      train.check_config(config)
+      loop.check_config(config)
   config = short_config()
   config.model.hidden = 32
   with pytest.raises(ValueError, match="model.hidden"):
-    train.train_and_evaluate(config, tiny_dataset, straight_run, progress=False)
-  with pytest.raises(data.DatasetError, match="no dataset"):
-    train.train_and_evaluate(short_config(), str(tmp_path / "none"), str(tmp_path / "w"))
+    loop.train_and_evaluate(config, tiny_dataset, straight_run, progress=False)
+  with pytest.raises(storage.DatasetError, match="no dataset"):
+    loop.train_and_evaluate(short_config(), str(tmp_path / "none"), str(tmp_path / "w"))
   monkeypatch.setattr(jax, "device_count", lambda: 3)
   with pytest.raises(ValueError, match="multiple of the 3 devices"):
-    train.train_and_evaluate(short_config(), tiny_dataset, str(tmp_path / "w3"))
+    loop.train_and_evaluate(short_config(), tiny_dataset, str(tmp_path / "w3"))
 
 
 def test_time_limit_stops_with_a_checkpoint_and_resumes(straight_run, tiny_dataset, tmp_path):
   """A call with no time left trains one step and saves it; the next call finishes the run
   exactly as an uninterrupted one."""
   workdir = str(tmp_path / "limited")
-  train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False,
+  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False,
                            time_limit_s=0.0)
-  assert train.trained_steps(workdir) == 1
-  train.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
-  assert train.trained_steps(workdir) == 6
+  assert loop.trained_steps(workdir) == 1
+  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+  assert loop.trained_steps(workdir) == 6
   key = lambda rows: [(r["step"], r["loss"]) for r in rows]
   assert key(_rows(workdir)) == key(_rows(straight_run))
 
 
 def test_cosine_schedule_and_bad_schedule():
   t = tiny.get_config().train
-  assert trainer.learning_rate(t) == t.learning_rate
+  assert train_state.learning_rate(t) == t.learning_rate
   t.schedule = "cosine"
-  rate = trainer.learning_rate(t)
+  rate = train_state.learning_rate(t)
   total = t.geometry_steps + t.joint_steps
   assert float(rate(0)) == pytest.approx(t.learning_rate)
   assert float(rate(total // 2)) == pytest.approx(t.learning_rate / 2, rel=1e-3)
   assert float(rate(total)) == pytest.approx(0.0, abs=1e-9)
   t.schedule = "linear"
   with pytest.raises(ValueError, match="schedule"):
-    trainer.learning_rate(t)
+    train_state.learning_rate(t)
 
 
 def test_export_round_trip_and_corruption(tiny_run, tiny_dataset, tmp_path):
@@ -201,8 +206,8 @@ def test_export_round_trip_and_corruption(tiny_run, tiny_dataset, tmp_path):
   for x, y in zip(jax.tree.leaves(nnx.state(a)), jax.tree.leaves(nnx.state(b)), strict=True):
     assert y.dtype == x.dtype
     np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=2e-3, atol=2e-4)
-  sample = data.open_dataset(tiny_dataset, "test")[0]
-  obs = {k: jnp.asarray(sample[k])[None] for k in trainer.OBS_KEYS}
+  sample = storage.open_dataset(tiny_dataset, "test")[0]
+  obs = {k: jnp.asarray(sample[k])[None] for k in OBS_KEYS}
   decode = nnx.jit(lambda m, o: m.decode(o)[1].density_logits)
   np.testing.assert_allclose(decode(b, obs), decode(a, obs), atol=0.05)
   path = os.path.join(out, record["files"][0]["name"])
@@ -214,3 +219,27 @@ def test_export_round_trip_and_corruption(tiny_run, tiny_dataset, tmp_path):
   os.remove(path)
   with pytest.raises(checkpoints.CheckpointError, match="missing"):
     load(out)
+
+
+def test_a_truncated_checkpoint_is_named_and_training_resumes_from_an_intact_one(
+    tiny_dataset, tmp_path, capsys):
+  config = short_config(joint_steps=5)
+  config.train.eval_every = 2  # checkpoints at steps 4, 6, 8 are kept
+  workdir = str(tmp_path / "run")
+  loop.train_and_evaluate(config, tiny_dataset, workdir, progress=False)
+  model_dir = os.path.join(workdir, checkpoints.LATEST, "8", "model")
+  files = [os.path.join(d, f) for d, _, fs in os.walk(model_dir) for f in fs]
+  victim = max(files, key=os.path.getsize)
+  with open(victim, "r+b") as f:  # a crash in the middle of writing the newest step
+    f.truncate(os.path.getsize(victim) // 2)
+  with pytest.raises(checkpoints.CheckpointError, match="checkpoint step 8 in .* is unreadable"):
+    load(workdir, "latest")
+  capsys.readouterr()
+  config.train.joint_steps = 7  # a resumable change: train on to step 10
+  loop.train_and_evaluate(config, tiny_dataset, workdir, progress=False)
+  out = capsys.readouterr().out
+  assert "step 8" in out and "resuming from step 6" in out, out
+  assert loop.trained_steps(workdir) == 10
+  assert os.path.isdir(os.path.join(workdir, checkpoints.UNREADABLE, "8"))
+  assert [r["step"] for r in _rows(workdir)] == list(range(1, 11))
+  load(workdir, "latest")

@@ -13,6 +13,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.demo.steps = 256
   config.demo.backend = "mjx"  # the engine whose trajectories are shown
   config.demo.reference_backend = "mujoco"  # compared against; "" to skip
+  config.demo.example_samples = 128  # density samples for the shipped example (paper: 512)
   # Block-tower dataset (python -m ppdjax.generate).
   config.data = ml_collections.ConfigDict()
   config.data.num_towers = 16

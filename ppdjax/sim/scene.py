@@ -13,19 +13,18 @@ import functools
 import jax
 import jax.numpy as jnp
 import mujoco
-import numpy as np
 
-from ppdjax import mass
-from ppdjax.primitives import NUM_SLOTS, Primitives, lowest_point, quat_to_mat
+from ppdjax.conventions import NUM_SLOTS, REST_DEPTH, TIMESTEP
+from ppdjax.primitives import Primitives, lowest_point, quat_to_mat
+from ppdjax.sim import mass
 
-TIMESTEP = 1.0 / 300.0
-REST_DEPTH = 1e-6  # the lowest point starts this far below the ground (DESIGN.md)
 OBJECT_BODY = 1  # body id of the object (0 is the world)
 FIRST_BOX_GEOM = 1  # geom 0 is the ground plane
 
 
 def scene_xml(boxes: list[dict] | None = None, num_slots: int = NUM_SLOTS) -> str:
-  """MJCF of the scene; `boxes` (size, pos, quat, density dicts) makes a compiled reference."""
+  """MJCF of the scene; `boxes` (size, pos, quat, density dicts) instead of placeholders
+  makes a model MuJoCo's compiler sets up for one object (the tests' reference)."""
   if boxes is None:  # template: placeholder boxes, replaced per object
     # Generic poses, so the compiler marks no geom or inertial frame as coinciding with the
     # body frame (MuJoCo C skips those transforms, which would ignore the fields we write).
@@ -57,14 +56,6 @@ def _v(x) -> str:
 def template_model(num_slots: int = NUM_SLOTS) -> mujoco.MjModel:
   """The compiled template (MuJoCo's default solver settings; callers may copy and tune)."""
   return mujoco.MjModel.from_xml_string(scene_xml(num_slots=num_slots))
-
-
-def reference_model(prims: Primitives) -> mujoco.MjModel:
-  """A model compiled by MuJoCo from one object's valid boxes: the reference for tests."""
-  p = jax.tree.map(np.asarray, prims)
-  boxes = [dict(size=p.half_size[k], pos=p.pos[k], quat=p.quat[k], density=float(p.density[k]))
-           for k in np.flatnonzero(p.valid)]
-  return mujoco.MjModel.from_xml_string(scene_xml(boxes))
 
 
 def rest_position(prims: Primitives) -> jax.Array:

@@ -1,13 +1,10 @@
-"""Materials and density slots (paper Table 1): slot k in 0..99 is density (k + 1) * 100 kg/m^3."""
+"""The paper's materials (Table 1) as density-slot ranges, and their procedural textures."""
 
 from __future__ import annotations
 
 import functools
 
 import numpy as np
-
-NUM_DENSITY_SLOTS = 100
-SLOT_DENSITY = 100.0  # kg/m^3 per slot
 
 # Inclusive slot ranges in units of 100 kg/m^3 (1-based, as in the paper's table).
 MATERIALS: dict[str, tuple[tuple[int, int], ...]] = {
@@ -25,17 +22,6 @@ def material_slots(name: str) -> np.ndarray:
   if name not in MATERIALS:
     raise ValueError(f"unknown material {name!r}; expected one of {MATERIAL_NAMES}")
   return np.concatenate([np.arange(lo - 1, hi) for lo, hi in MATERIALS[name]])
-
-
-def slot_to_density(slot):
-  """Density in kg/m^3 of a 0-based slot (array-friendly)."""
-  return (np.asarray(slot) + 1) * SLOT_DENSITY
-
-
-def density_to_slot(density):
-  """Nearest 0-based slot of a density in kg/m^3, clipped to the slot range."""
-  return np.clip(np.rint(np.asarray(density) / SLOT_DENSITY) - 1, 0,
-                 NUM_DENSITY_SLOTS - 1).astype(np.int32)
 
 
 # --- procedural textures -------------------------------------------------------------------

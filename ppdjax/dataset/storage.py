@@ -12,6 +12,12 @@ Layout of a dataset directory:
 Why `.npy`: numpy memory-maps them, so a sample is read without loading its shard, the
 bytes are a pure function of the arrays (byte-identical reruns), and nothing beyond numpy
 is needed to read a dataset.
+
+Integrity: opening a dataset checks that every file exists and has the manifest's row
+count; the first time a process reads from a shard, it checks the shard's SHA-256 sums
+against the manifest and that its voxels are 0/1 (`check=False` skips this; about 33 s
+once for the 31 GB paper set), so flipped bytes are named instead of trained on.
+`verify=True` checks every shard's sums when the dataset is opened.
 """
 
 from __future__ import annotations
@@ -19,17 +25,20 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
 from typing import Iterator
 
 import numpy as np
 
+from ppdjax.conventions import OBS_KEYS
+from ppdjax import primitives
 from ppdjax.primitives import Primitives
 
 FORMAT_VERSION = 1
-FIELDS = ("voxels", "image", "depth", "trajectories", "half_size", "pos", "quat", "density",
-          "valid", "materials", "tower_id", "split")
+# One .npy file per field: the observations, depth, the Primitives fields, and labels.
+FIELDS = OBS_KEYS + ("depth",) + primitives.FIELDS + ("materials", "tower_id", "split")
+SAMPLE_KEYS = OBS_KEYS + ("depth", "primitives", "materials", "tower_id")  # what a sample holds
 SPLITS = {"train": 0, "val": 1, "test": 2}
-_PRIM_FIELDS = ("half_size", "pos", "quat", "density", "valid")
 
 
 class DatasetError(ValueError):
@@ -89,13 +98,20 @@ def shard_complete(directory: str) -> dict[str, str] | None:
 class Dataset:
   """Random access to samples of a generated dataset (memory-mapped, nothing loaded).
 
-  `len(ds)` samples; `ds[i]` is a dict with the keys of DESIGN.md: "voxels" (32,32,32)
-  uint8, "image" (H,W,3) uint8, "depth" (H,W) float32, "trajectories" (P,256,7) float32,
+  `len(ds)` samples; `ds[i]` is a dict with the keys SAMPLE_KEYS: "voxels" (32,32,32)
+  uint8, "image" (H,W,3) uint8, "trajectories" (P,256,7) float32, "depth" (H,W) float32,
   "primitives" Primitives (K = 5, valid mask), "materials" (5,) int (-1 padding),
   "tower_id" int.
+
+  Args:
+    path: the dataset directory.
+    split: "train", "val", "test" or None (all samples).
+    verify: check every shard's checksums now.
+    check: check a shard's checksums and voxel values when this object first reads it.
   """
 
-  def __init__(self, path: str, split: str | None = None, verify: bool = False):
+  def __init__(self, path: str, split: str | None = None, verify: bool = False,
+               check: bool = True):
     manifest_path = os.path.join(path, "manifest.json")
     if not os.path.isdir(path):
       raise DatasetError(f"no dataset directory at {path}")
@@ -113,6 +129,8 @@ class Dataset:
     if split is not None and split not in SPLITS:
       raise ValueError(f"split must be one of {tuple(SPLITS)} or None, got {split!r}")
     self.path = path
+    self._checked = set() if check else set(range(len(self.manifest["shards"])))
+    self._lock = threading.Lock()
     self._shards, index = [], []
     for s, shard in enumerate(self.manifest["shards"]):
       directory = os.path.join(path, shard["name"])
@@ -121,8 +139,6 @@ class Dataset:
         file = os.path.join(directory, f"{name}.npy")
         if not os.path.exists(file):
           raise DatasetError(f"missing shard file {file}")
-        if verify and sha256(file) != shard["files"][f"{name}.npy"]:
-          raise DatasetError(f"corrupt shard file {file}: checksum mismatch")
         try:
           arrays[name] = np.load(file, mmap_mode="r")
         except (ValueError, OSError) as e:
@@ -131,6 +147,8 @@ class Dataset:
           raise DatasetError(f"corrupt shard file {file}: {len(arrays[name])} rows, "
                              f"manifest says {shard['samples']}")
       self._shards.append(arrays)
+      if verify:
+        self._check_shard(s, force=True)
       rows = np.arange(shard["samples"])
       if split is not None:
         rows = rows[np.asarray(arrays["split"]) == SPLITS[split]]
@@ -142,19 +160,33 @@ class Dataset:
   def __len__(self) -> int:
     return len(self._index)
 
+  def _check_shard(self, s: int, force: bool = False) -> None:
+    """Raises DatasetError naming the file unless shard s matches its checksums and its
+    voxels are 0/1; each shard is checked once per Dataset."""
+    with self._lock:
+      if s in self._checked and not force:
+        return
+      shard = self.manifest["shards"][s]
+      directory = os.path.join(self.path, shard["name"])
+      for name in FIELDS:
+        file = os.path.join(directory, f"{name}.npy")
+        if sha256(file) != shard["files"][f"{name}.npy"]:
+          raise DatasetError(f"corrupt shard file {file}: checksum mismatch (regenerate the "
+                             "shard: delete its folder and run `python -m ppdjax.generate` "
+                             "again)")
+      top = int(np.max(self._shards[s]["voxels"], initial=0))
+      if top > 1:
+        raise DatasetError(f"corrupt shard file {os.path.join(directory, 'voxels.npy')}: "
+                           f"occupancy values up to {top}, expected 0 or 1")
+      self._checked.add(s)
+
   def __getitem__(self, i: int) -> dict:
     if not -len(self) <= i < len(self):
       raise IndexError(f"sample {i} out of range for {len(self)} samples")
-    s, row = self._index[i]
-    a = self._shards[s]
-    return {
-        "voxels": np.asarray(a["voxels"][row]), "image": np.asarray(a["image"][row]),
-        "depth": np.asarray(a["depth"][row]),
-        "trajectories": np.asarray(a["trajectories"][row]),
-        "primitives": Primitives(*[np.asarray(a[f][row]) for f in _PRIM_FIELDS]),
-        "materials": np.asarray(a["materials"][row]), "tower_id": int(a["tower_id"][row]),
-    }
-
+    batch = self.take([i])
+    first = lambda v: (Primitives(*[getattr(v, f)[0] for f in primitives.FIELDS])
+                       if isinstance(v, Primitives) else v[0])
+    return {k: int(v[0]) if k == "tower_id" else first(v) for k, v in batch.items()}
 
   def take(self, indices, keys=None) -> dict:
     """A batch of samples as stacked arrays (Primitives fields stacked too).
@@ -166,12 +198,15 @@ class Dataset:
     indices = np.asarray(indices, np.int64)
     if indices.size and not (-len(self) <= indices.min() and indices.max() < len(self)):
       raise IndexError(f"sample indices out of range for {len(self)} samples")
-    keys = tuple(keys or ("voxels", "image", "depth", "trajectories", "primitives",
-                          "materials", "tower_id"))
-    names = [f for k in keys for f in (_PRIM_FIELDS if k == "primitives" else (k,))]
+    keys = tuple(keys or SAMPLE_KEYS)
+    unknown = sorted(set(keys) - set(SAMPLE_KEYS))
+    if unknown:
+      raise KeyError(f"unknown sample keys {unknown}; expected some of {SAMPLE_KEYS}")
+    names = [f for k in keys for f in (primitives.FIELDS if k == "primitives" else (k,))]
     where = self._index[indices]
     out = {n: None for n in names}
     for s in np.unique(where[:, 0]):
+      self._check_shard(int(s))
       pick = np.nonzero(where[:, 0] == s)[0]
       rows = where[pick, 1]
       order = np.argsort(rows)  # ascending rows: sequential reads of the memory map
@@ -182,13 +217,18 @@ class Dataset:
         out[n][pick[order]] = part
     batch = {k: out[k] for k in keys if k != "primitives"}
     if "primitives" in keys:
-      batch["primitives"] = Primitives(*[out[f] for f in _PRIM_FIELDS])
+      batch["primitives"] = Primitives(*[out[f] for f in primitives.FIELDS])
     return batch
 
 
-def open_dataset(path: str, split: str | None = None, verify: bool = False) -> Dataset:
-  """Opens a generated dataset; `split` in {"train", "val", "test"} or None for all."""
-  return Dataset(path, split, verify)
+def open_dataset(path: str, split: str | None = None, verify: bool = False,
+                 check: bool = True) -> Dataset:
+  """Opens a generated dataset; `split` in {"train", "val", "test"} or None for all.
+
+  `verify` checks every shard's checksums now; `check` (default) checks each shard when
+  it is first read. Raises DatasetError naming the missing or corrupt file.
+  """
+  return Dataset(path, split, verify, check)
 
 
 def batches(dataset: Dataset, batch_size: int, *, seed: int, epoch: int = 0,

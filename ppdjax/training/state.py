@@ -1,9 +1,6 @@
-"""The train state and its jitted steps: one split (model, optimizer) pytree on a device mesh."""
+"""The train state (model and optimizer), its jitted steps, and the `Trainer` that holds it."""
 
 from __future__ import annotations
-
-import queue
-import threading
 
 import jax
 import jax.numpy as jnp
@@ -11,21 +8,26 @@ import numpy as np
 import optax
 from flax import nnx
 
-from ppdjax import checkpoints, data, losses, metrics, sharding
-from ppdjax.materials import NUM_DENSITY_SLOTS
-from ppdjax.model import PPD
-from ppdjax.resnet import load_torchvision_weights
-
-OBS_KEYS = ("voxels", "image", "trajectories")
-BATCH_KEYS = OBS_KEYS + ("primitives",)  # what training reads from disk
-
-
-def model_inputs(batch: dict) -> dict:
-  """The arrays a step needs from a loader batch (observations and ground truth)."""
-  return {**{k: batch[k] for k in OBS_KEYS}, "primitives": batch["primitives"]}
+from ppdjax import metrics
+from ppdjax.conventions import NUM_DENSITY_SLOTS
+from ppdjax.dataset import storage
+from ppdjax.nn import losses
+from ppdjax.nn.model import PPD
+from ppdjax.nn.resnet import load_torchvision_weights
+from ppdjax.training import checkpoints, sharding
+from ppdjax.training.loader import BATCH_KEYS, model_inputs
 
 
-def build(config) -> tuple[PPD, nnx.Optimizer]:
+class TrainState(nnx.Module):
+  """What training updates: the model and its optimizer, split and merged as one pytree
+  (its State has the keys "model" and "optimizer", as the checkpoints do)."""
+
+  def __init__(self, model: PPD, optimizer: nnx.Optimizer):
+    self.model = model
+    self.optimizer = optimizer
+
+
+def build(config) -> TrainState:
   """A freshly initialised model (seeded by train.seed) and its Adam optimiser."""
   model = PPD(config.model, rngs=nnx.Rngs(params=config.train.seed))
   if config.model.image_weights:
@@ -33,7 +35,7 @@ def build(config) -> tuple[PPD, nnx.Optimizer]:
       raise ValueError("config.model.image_weights is set but use_image is False")
     load_torchvision_weights(model.image_encoder, config.model.image_weights)
   tx = optax.adam(learning_rate(config.train), b1=0.9, b2=0.999)
-  return model, nnx.Optimizer(model, tx, wrt=nnx.Param)
+  return TrainState(model, nnx.Optimizer(model, tx, wrt=nnx.Param))
 
 
 def learning_rate(t):
@@ -59,16 +61,16 @@ def _loss(model, batch, w, train, key):
 
 def train_step(graphdef, state, batch, step, w, seed):
   """One Adam step; pure in (state, batch, step): the dropout key is fold_in(seed, step)."""
-  model, optimizer = nnx.merge(graphdef, state)
+  ts = nnx.merge(graphdef, state)
   key = jax.random.fold_in(jax.random.key(seed), step)
-  grads, aux = nnx.grad(lambda m: _loss(m, batch, w, True, key), has_aux=True)(model)
-  optimizer.update(model, grads)
-  return nnx.state((model, optimizer)), aux
+  grads, aux = nnx.grad(lambda m: _loss(m, batch, w, True, key), has_aux=True)(ts.model)
+  ts.optimizer.update(ts.model, grads)
+  return nnx.state(ts), aux
 
 
 def eval_step(graphdef, state, batch, w):
   """Validation loss (teacher forced, eval mode) and metric counts of decoded predictions."""
-  model, _ = nnx.merge(graphdef, state)
+  model = nnx.merge(graphdef, state).model
   tgt = losses.targets(batch["primitives"])
   _, aux = losses.loss_fn(model(batch, tgt["prev"], train=False), tgt, w)
   pred, raw = model.decode(batch)
@@ -96,28 +98,46 @@ class Trainer:
                          out_shardings=self.replicated)
 
   def restore_latest(self) -> int:
-    """Restores the newest checkpoint if there is one; returns its step (0 if none)."""
-    step = self.latest.latest_step()
-    if step is None:
-      return 0
-    got = checkpoints.restore(self.latest, step, model=self.state[0], optimizer=self.state[1])
-    self.state = jax.device_put(nnx.State({0: got["model"], 1: got["optimizer"]}),
-                                self.replicated)
-    return int(step)
+    """Restores the newest intact checkpoint if there is one; returns its step (0 if none).
+
+    A checkpoint that cannot be read (a truncated file after a crash, say) is reported
+    and the next older one is tried; CheckpointError if none of them can be read.
+    """
+    steps = sorted(self.latest.all_steps(), reverse=True)
+    for n, step in enumerate(steps):
+      try:
+        got = checkpoints.restore(self.latest, step, model=self.state["model"],
+                                  optimizer=self.state["optimizer"])
+      except checkpoints.CheckpointError as e:
+        older = f"trying step {steps[n + 1]}" if n + 1 < len(steps) else "none older"
+        print(f"warning: {e}; {older}", flush=True)
+        continue
+      self.state = jax.device_put(nnx.State({"model": got["model"],
+                                             "optimizer": got["optimizer"]}), self.replicated)
+      if n:
+        moved = checkpoints.set_aside(self.latest, steps[:n], self.workdir)
+        print(f"resuming from step {step}, the newest intact checkpoint (unreadable steps "
+              f"{steps[:n]} moved to {moved})", flush=True)
+      return int(step)
+    if steps:
+      raise checkpoints.CheckpointError(
+          f"no checkpoint in {self.latest.directory} can be read (steps {steps}); move the "
+          "folder away to start again")
+    return 0
 
   def train_step(self, batch, step: int, w: float) -> dict:
     self.state, aux = self._train(self.state, batch, jnp.int32(step), jnp.float32(w))
     return aux
 
-  def evaluate(self, dataset: data.Dataset, num_batches: int) -> dict:
+  def evaluate(self, dataset: storage.Dataset, num_batches: int) -> dict:
     """Validation loss and metrics (density top-1/5/10 %, RMSE in slots, shape F1 %)."""
     devices = jax.device_count()
     bs = min(self.config.train.batch_size, len(dataset) // devices * devices)
     if bs == 0:
       raise ValueError(f"the validation split has {len(dataset)} samples, fewer than the "
                        f"{devices} devices")
-    sums, n = None, 0
-    batches = data.batches(dataset, bs, seed=0, part=(jax.process_index(), jax.process_count()),
+    sums, aux_sum, n = None, None, 0
+    batches = storage.batches(dataset, bs, seed=0, part=(jax.process_index(), jax.process_count()),
                            keys=BATCH_KEYS)
     for i, batch in enumerate(batches):
       if num_batches and i >= num_batches:
@@ -126,7 +146,7 @@ class Trainer:
       aux, counts = jax.device_get(self._eval(self.state, batch,
                                               jnp.float32(self.config.train.density_weight)))
       sums = counts if sums is None else jax.tree.map(np.add, sums, counts)
-      aux_sum = aux if n == 0 else jax.tree.map(np.add, aux_sum, aux)
+      aux_sum = aux if aux_sum is None else jax.tree.map(np.add, aux_sum, aux)
       n += 1
     out = {k: float(v) / n for k, v in aux_sum.items()}
     out.update({("density_" + k if k != "f1" else "shape_f1"): v
@@ -134,54 +154,11 @@ class Trainer:
     return out
 
   def save(self, step: int, val_loss: float | None) -> None:
-    checkpoints.save(self.latest, self.best, step, self.state[0], self.state[1], val_loss)
+    checkpoints.save(self.latest, self.best, step, self.state["model"],
+                     self.state["optimizer"], val_loss)
 
   def close(self) -> None:
     self.latest.wait_until_finished()
     self.best.wait_until_finished()
     self.latest.close()
     self.best.close()
-
-
-class Loader:
-  """Training batches for steps start_step, start_step + 1, ... read ahead in a thread.
-
-  Step s reads batch s mod E of epoch s // E (E full batches per epoch), each epoch
-  shuffled by (seed, epoch): the data position is a function of the step, so a resumed
-  run sees exactly the batches an uninterrupted one would.
-  """
-
-  def __init__(self, dataset, batch_size: int, *, seed: int, start_step: int, prefetch: int,
-               mesh):
-    self.dataset, self.batch_size, self.seed = dataset, batch_size, seed
-    self.part = (jax.process_index(), jax.process_count())
-    self.sharding = sharding.batch_sharded(mesh)
-    self.per_epoch = len(dataset) // batch_size
-    self._queue = queue.Queue(maxsize=max(prefetch, 1))
-    self._stop = threading.Event()
-    self._thread = threading.Thread(target=self._fill, args=(start_step,), daemon=True)
-    self._thread.start()
-
-  def _fill(self, step):
-    try:
-      while not self._stop.is_set():
-        epoch, index = divmod(step, self.per_epoch)
-        for batch in data.batches(self.dataset, self.batch_size, seed=self.seed, epoch=epoch,
-                                  start=index, part=self.part, keys=BATCH_KEYS):
-          if self._stop.is_set():
-            return
-          self._queue.put(model_inputs(batch))
-        step = (epoch + 1) * self.per_epoch
-    except Exception as e:  # handed to the consumer, which raises it
-      self._queue.put(e)
-
-  def __next__(self):
-    item = self._queue.get()
-    if isinstance(item, Exception):
-      raise item
-    return sharding.global_batch(item, self.sharding)
-
-  def close(self):
-    self._stop.set()
-    while not self._queue.empty():
-      self._queue.get_nowait()

@@ -6,24 +6,9 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from ppdjax.materials import NUM_DENSITY_SLOTS, SLOT_DENSITY
-from ppdjax.model import END, START, Prediction, primitive_vector
-from ppdjax.primitives import Primitives, canonical_boxes
-
-
-def density_slots(density: jax.Array) -> jax.Array:
-  """Nearest 0-based density slot of kg/m^3 values, in JAX."""
-  slot = jnp.rint(density / SLOT_DENSITY) - 1
-  return jnp.clip(slot, 0, NUM_DENSITY_SLOTS - 1).astype(jnp.int32)
-
-
-def bottom_to_top(prims: Primitives) -> Primitives:
-  """Reorders each object's boxes by the height of their centres; padding goes last."""
-  key = jnp.where(prims.valid, prims.pos[..., 2], jnp.inf)
-  order = jnp.argsort(key, axis=-1, stable=True)
-  take = lambda x: jnp.take_along_axis(x, order.reshape(order.shape + (1,) * (x.ndim - order.ndim)),
-                                       axis=order.ndim - 1)
-  return jax.tree.map(take, prims)
+from ppdjax.conventions import density_to_slot_jax
+from ppdjax.nn.model import END, START, Prediction, primitive_vector
+from ppdjax.primitives import Primitives, bottom_to_top, canonical_boxes
 
 
 def targets(prims: Primitives) -> dict:
@@ -42,7 +27,7 @@ def targets(prims: Primitives) -> dict:
   b, k = prims.density.shape
   n = prims.valid.sum(-1)
   steps = jnp.arange(k + 1)
-  slot = density_slots(prims.density)
+  slot = density_to_slot_jax(prims.density)
   pad = lambda x: jnp.concatenate([x, jnp.zeros_like(x[:, :1])], 1)
   token = jnp.where(steps < n[:, None], pad(slot), END)
   start = primitive_vector(jnp.full((b, 1), START), jnp.zeros((b, 1, 3)),

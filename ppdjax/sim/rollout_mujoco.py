@@ -6,13 +6,13 @@ import copy
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from mujoco import batch as mj_batch
 
-from ppdjax import scene
-from ppdjax.physics import Pushes, push_wrenches
-from ppdjax.primitives import Primitives
+from ppdjax.conventions import STEPS
+from ppdjax.primitives import Primitives, flatten
+from ppdjax.sim import scene
+from ppdjax.sim.pushes import Pushes, push_wrenches
 
 # Fields written per simulation; mj_setConst then derives invweight0, meaninertia etc.
 _WRITTEN = ("geom_size", "geom_pos", "geom_quat", "geom_rbound", "geom_aabb", "body_mass",
@@ -28,7 +28,7 @@ def _object_inputs(prims: Primitives, sources, targets, magnitudes):
   return jax.vmap(one)(prims)
 
 
-def simulate(prims: Primitives, pushes: Pushes, *, steps: int = 256, nthread: int = 0,
+def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS, nthread: int = 0,
              iterations: int | None = None, ls_iterations: int | None = None) -> np.ndarray:
   """(B..., P, steps, 7) float64 trajectories from MuJoCo C.
 
@@ -39,10 +39,8 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = 256, nthread: in
     nthread: threads for `mujoco.batch` (0: all CPUs).
     iterations, ls_iterations: solver overrides (None: MuJoCo's defaults, 100 and 50).
   """
-  batch = tuple(np.shape(prims.density)[:-1])
-  k = np.shape(prims.density)[-1]
-  flat = jax.tree.map(lambda x: np.reshape(np.asarray(x), (-1, k) + np.shape(x)[len(batch) + 1:]),
-                      prims)
+  flat, batch = flatten(jax.tree.map(np.asarray, prims))
+  k = flat.num_slots
   n, p = flat.density.shape[0], pushes.num
   fields, wrenches, rest = jax.tree.map(np.asarray, _object_inputs(
       jax.tree.map(jnp.asarray, flat), jnp.asarray(pushes.sources, jnp.float32),
@@ -78,21 +76,3 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = 256, nthread: in
     parts.append(sims.rollout(steps - first, record=("qpos",))["qpos"])
   traj = np.concatenate(parts, axis=1)[..., :7]
   return traj.reshape(batch + (p, steps, 7))
-
-
-def reference_rollout(prims: Primitives, pushes: Pushes, *, steps: int = 256) -> np.ndarray:
-  """(P, steps, 7) for ONE object from a model MuJoCo compiled from its boxes and a plain
-  mj_step loop: the independent reference the backends are tested against."""
-  model = scene.reference_model(prims)
-  data = mujoco.MjData(model)
-  wrenches = np.asarray(push_wrenches(jax.tree.map(jnp.asarray, prims), pushes), np.float64)
-  rest = np.asarray(scene.rest_position(jax.tree.map(jnp.asarray, prims)), np.float64)
-  out = np.zeros((pushes.num, steps, 7))
-  for i in range(pushes.num):
-    mujoco.mj_resetData(model, data)
-    data.qpos[:3], data.qpos[3:7] = rest, [1, 0, 0, 0]
-    for t in range(steps):
-      data.xfrc_applied[scene.OBJECT_BODY] = wrenches[i] if t < pushes.duration else 0.0
-      mujoco.mj_step(model, data)
-      out[i, t] = data.qpos[:7]
-  return out

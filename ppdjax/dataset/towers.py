@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ppdjax import materials
-from ppdjax.primitives import NUM_SLOTS, Primitives, corners, make
+from ppdjax.conventions import NUM_SLOTS, slot_to_density
+from ppdjax.dataset import materials
+from ppdjax.primitives import Primitives, corners, make, stack
 
 WIDTH_RANGE = (0.5, 1.5)
 HEIGHT_RANGE = (0.3, 1.0)
@@ -75,7 +76,7 @@ def sample_configuration(rng: np.random.Generator, num_blocks: int):
   """Material ids (n,) and densities (n,) kg/m^3 for one configuration."""
   ids = rng.integers(0, len(materials.MATERIAL_NAMES), num_blocks)
   slots = [rng.choice(materials.material_slots(materials.MATERIAL_NAMES[i])) for i in ids]
-  return ids.astype(np.int32), materials.slot_to_density(slots)
+  return ids.astype(np.int32), slot_to_density(slots)
 
 
 def sample_tower(rng: np.random.Generator, num_blocks: int | None = None, *,
@@ -104,12 +105,6 @@ def sample_configurations(rng: np.random.Generator, num_configs: int = CONFIGS_P
     ids[c, :n], density = sample_configuration(rng, n)
     prims.append(make(half_size, pos, quat, density, num_slots))
   return stack(prims), ids
-
-
-def stack(prims: list[Primitives]) -> Primitives:
-  """Stacks one-object Primitives (numpy) on a new leading axis."""
-  return Primitives(*[np.stack([np.asarray(getattr(p, f)) for p in prims]) for f in
-                      ("half_size", "pos", "quat", "density", "valid")])
 
 
 def sample_towers(seed: int, count: int, **kwargs) -> Primitives:

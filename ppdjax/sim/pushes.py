@@ -1,10 +1,6 @@
-"""Physics API: mass properties, the paper's pushes, and batched rollouts (MJX or MuJoCo C).
+"""The pushes that set objects moving: the paper's four, where each acts, and its wrench.
 
-Conventions (DESIGN.md): z up, SI units, dt = 1/300 s; the object rests on the ground with
-its lowest point 1 µm below z = 0; a trajectory is the object-frame pose after each step,
-(px, py, pz, qw, qx, qy, qz).
-
-Push convention: a push has a source point and a target point in the object frame at rest
+Push convention (docs/physics.md): a push has a source point and a target point in the object frame at rest
 (object axes = world axes, origin = object-frame origin). The force, of the given
 magnitude, points from source to target and acts, for `duration` steps, at the first
 point where the ray source -> target meets a valid box. If the ray misses every box (an
@@ -20,14 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from ppdjax.mass import MassProperties, mass_properties
-from ppdjax.primitives import Primitives, ray_box_hits, validate
-
-__all__ = ["MassProperties", "mass_properties", "Pushes", "default_pushes", "push_points",
-           "push_wrenches", "simulate", "BACKENDS"]
+from ppdjax.primitives import Primitives, ray_box_hits
+from ppdjax.sim.mass import MassProperties, mass_properties
 
 PAPER_FORCE = 1e5  # N, applied for one step of 1/300 s (impulse ~333 N s)
-BACKENDS = ("mjx", "mujoco")
 
 
 @struct.dataclass
@@ -99,42 +91,3 @@ def push_wrenches(prims: Primitives, pushes: Pushes,
   force = direction * jnp.asarray(pushes.magnitudes)[:, None]
   torque = jnp.cross(push_points(prims, pushes) - props.com, force)
   return jnp.concatenate([force, torque], -1)
-
-
-def _is_traced(prims: Primitives) -> bool:
-  return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(prims))
-
-
-def simulate(prims: Primitives, pushes: Pushes | None = None, *, steps: int = 256,
-             backend: str = "mjx", **options) -> jax.Array:
-  """Rolls out every object under every push from rest.
-
-  Args:
-    prims: Primitives with leading batch axes B... (fields (B..., K, ...)).
-    pushes: Pushes (P of them); None for the paper's four.
-    steps: recorded steps of 1/300 s.
-    backend: "mjx" (jitted, batched JAX; differentiable in forward mode) or "mujoco"
-      (MuJoCo's C engine on all CPU cores: the reference, and the fast path on a CPU).
-    **options: backend settings (see `ppdjax.rollout_mjx.MjxSettings` and
-      `ppdjax.rollout_mujoco.simulate`).
-
-  Returns:
-    (B..., P, steps, 7) object-frame poses after each step; float32 for "mjx",
-    float64 for "mujoco".
-  """
-  if backend not in BACKENDS:
-    raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-  if not isinstance(steps, (int, np.integer)) or steps < 1:
-    raise ValueError(f"steps must be a positive int, got {steps!r}")
-  pushes = default_pushes() if pushes is None else pushes
-  if not _is_traced(prims):
-    validate(prims)
-  if not _is_traced(pushes):
-    pushes.validate()
-  if backend == "mjx":
-    from ppdjax import rollout_mjx
-    return rollout_mjx.simulate(prims, pushes, steps=steps, **options)
-  if _is_traced(prims):
-    raise ValueError('backend="mujoco" runs on concrete arrays; it cannot be traced by jit')
-  from ppdjax import rollout_mujoco
-  return rollout_mujoco.simulate(prims, pushes, steps=steps, **options)

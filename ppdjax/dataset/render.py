@@ -17,8 +17,10 @@ import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ppdjax import materials, scene  # noqa: E402
-from ppdjax.primitives import NUM_SLOTS, Primitives  # noqa: E402
+from ppdjax.conventions import NUM_SLOTS  # noqa: E402
+from ppdjax.dataset import materials  # noqa: E402
+from ppdjax.primitives import Primitives  # noqa: E402
+from ppdjax.sim import scene  # noqa: E402
 
 CAMERA_POS = np.array([1.55, -1.9, 1.35])
 CAMERA_TARGET = np.array([0.0, 0.0, 0.45])

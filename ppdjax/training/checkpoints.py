@@ -11,12 +11,15 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 
 import jax
 import ml_collections
 import numpy as np
 import orbax.checkpoint as ocp
 from flax import nnx
+
+from ppdjax.nn.model import PPD
 
 LATEST, BEST = "checkpoints", "best"
 EXPORT = "export.json"
@@ -50,15 +53,52 @@ def save(latest, best, step: int, model_state, opt_state, val_loss: float | None
 
 
 def restore(manager, step: int, **abstract_states):
-  """Restores the named nnx States (given as abstract targets) from `step`."""
+  """Restores the named nnx States (given as abstract targets) from `step`.
+
+  Raises:
+    CheckpointError naming the step and, where the storage layer says, the file, for a
+    checkpoint that cannot be read (truncated or corrupt files).
+  """
   args = {k: ocp.args.StandardRestore(nnx.to_pure_dict(v)) for k, v in abstract_states.items()}
-  restored = manager.restore(step, args=ocp.args.Composite(**args))
+  try:
+    restored = manager.restore(step, args=ocp.args.Composite(**args))
+  except Exception as e:  # TensorStore, orbax and OS errors alike: say which step and file
+    raise CheckpointError(_unreadable(manager, step, e)) from e
   out = {}
   for k, v in abstract_states.items():
     state = jax.tree.map(lambda x: x, v)
     nnx.replace_by_pure_dict(state, restored[k])
     out[k] = state
   return out
+
+
+UNREADABLE = "unreadable_checkpoints"
+
+
+def set_aside(manager, steps, workdir: str) -> str:
+  """Moves unreadable steps out of the manager's folder (to WORKDIR/unreadable_checkpoints/),
+  so training can save those steps again; returns where they went."""
+  target = os.path.join(workdir, UNREADABLE)
+  os.makedirs(target, exist_ok=True)
+  for step in steps:
+    src = os.path.join(str(manager.directory), str(step))
+    dst = os.path.join(target, str(step))
+    n = 1
+    while os.path.exists(dst):
+      dst, n = os.path.join(target, f"{step}-{n}"), n + 1
+    os.replace(src, dst)
+  manager.reload()
+  return target
+
+
+def _unreadable(manager, step: int, error: Exception) -> str:
+  """'checkpoint step N in DIR is unreadable: FILE (first line of the error)'."""
+  text = str(error)
+  files = re.findall(r"(?:file://)?(/[^\s\"',\]]+)", text)
+  where = f"{files[-1]} " if files else ""
+  first = text.strip().splitlines()[0][:300] if text.strip() else type(error).__name__
+  return (f"checkpoint step {step} in {manager.directory} is unreadable: {where}"
+          f"({type(error).__name__}: {first})")
 
 
 def save_config(workdir: str, config: ml_collections.ConfigDict) -> None:
@@ -93,7 +133,7 @@ def load(workdir: str, which: str = "best"):
     which: "best" (lowest validation loss) or "latest".
 
   Returns:
-    (model, config): a `ppdjax.model.PPD` and the run's ConfigDict.
+    (model, config): a `ppdjax.nn.model.PPD` and the run's ConfigDict.
 
   Raises:
     CheckpointError naming what is missing.
@@ -109,18 +149,18 @@ def load(workdir: str, which: str = "best"):
   manager = ocp.CheckpointManager(folder, item_names=("model",) if which == BEST else
                                   ("model", "optimizer"),
                                   options=ocp.CheckpointManagerOptions(create=False))
-  step = manager.latest_step()
-  if step is None:
-    raise CheckpointError(f"{workdir} has no checkpoint: {folder} is empty")
-  graphdef, abstract = _abstract_model(config)
-  state = restore(manager, step, model=abstract)["model"]
-  model = nnx.merge(graphdef, state)
-  manager.close()
-  return model, config  # every call site passes train=False unless training
+  try:
+    step = manager.latest_step()
+    if step is None:
+      raise CheckpointError(f"{workdir} has no checkpoint: {folder} is empty")
+    graphdef, abstract = _abstract_model(config)
+    state = restore(manager, step, model=abstract)["model"]
+  finally:
+    manager.close()
+  return nnx.merge(graphdef, state), config  # call sites pass train=False unless training
 
 
 def _abstract_model(config):
-  from ppdjax.model import PPD
   return nnx.split(nnx.eval_shape(lambda: PPD(config.model, rngs=nnx.Rngs(0))))
 
 

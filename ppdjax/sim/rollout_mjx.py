@@ -4,20 +4,17 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import logging
 
 import jax
 import jax.numpy as jnp
 import mujoco
-import numpy as np
+from mujoco import mjx
 
-from ppdjax import mjx_step, scene
-from ppdjax.physics import Pushes, push_wrenches
-from ppdjax.mass import mass_properties
-from ppdjax.primitives import Primitives
-
-logging.getLogger("mujoco.mjx").setLevel(logging.ERROR)  # silences "Failed to import warp"
-from mujoco import mjx  # noqa: E402  pylint: disable=g-import-not-at-top
+from ppdjax.conventions import STEPS
+from ppdjax.primitives import Primitives, flatten, unflatten
+from ppdjax.sim import mjx_step, scene
+from ppdjax.sim.mass import mass_properties
+from ppdjax.sim.pushes import Pushes, push_wrenches
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,13 +126,10 @@ def _batched_fn(steps: int, settings: MjxSettings, duration: int):
   return jax.jit(run)
 
 
-def simulate(prims: Primitives, pushes: Pushes, *, steps: int = 256,
+def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS,
              settings: MjxSettings = DEFAULT_SETTINGS) -> jax.Array:
   """(B..., P, steps, 7) float32 trajectories; one jitted call for the whole batch."""
-  batch = tuple(np.shape(prims.density)[:-1])
-  k = np.shape(prims.density)[-1]
-  flat = jax.tree.map(lambda x: jnp.reshape(jnp.asarray(x), (-1, k) + jnp.shape(x)[len(batch) + 1:]),
-                      prims)
+  flat, batch = flatten(jax.tree.map(jnp.asarray, prims))
   flat = flat.replace(half_size=flat.half_size.astype(jnp.float32),
                       pos=flat.pos.astype(jnp.float32), quat=flat.quat.astype(jnp.float32),
                       density=flat.density.astype(jnp.float32),
@@ -143,4 +137,4 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = 256,
   fn = _batched_fn(steps, settings, int(pushes.duration))
   out = fn(flat, jnp.asarray(pushes.sources, jnp.float32), jnp.asarray(pushes.targets, jnp.float32),
            jnp.asarray(pushes.magnitudes, jnp.float32))
-  return out.reshape(batch + out.shape[1:])
+  return unflatten(out, batch)

@@ -12,10 +12,9 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx, struct
 
-from ppdjax import scene
-from ppdjax.materials import NUM_DENSITY_SLOTS, SLOT_DENSITY
+from ppdjax.conventions import NUM_DENSITY_SLOTS, TIMESTEP, slot_to_density_jax
+from ppdjax.nn.resnet import ResNet18
 from ppdjax.primitives import Primitives
-from ppdjax.resnet import ResNet18
 
 START, END = NUM_DENSITY_SLOTS, NUM_DENSITY_SLOTS + 1  # the density head's two tokens
 NUM_CLASSES = NUM_DENSITY_SLOTS + 2
@@ -43,7 +42,7 @@ def trajectory_features(traj_BPTx7: jax.Array) -> jax.Array:
   sign(v)·log(1 + |v| / 0.1 m/s). Quaternions are already in [−1, 1].
   """
   pos, quat = traj_BPTx7[..., :3], traj_BPTx7[..., 3:]
-  vel = jnp.diff(pos, axis=-2, prepend=pos[..., :1, :]) / scene.TIMESTEP
+  vel = jnp.diff(pos, axis=-2, prepend=pos[..., :1, :]) / TIMESTEP
   vel = jnp.sign(vel) * jnp.log1p(jnp.abs(vel) / SPEED_SCALE)
   return jnp.concatenate([pos - pos[..., :1, :], quat, vel], -1)
 
@@ -274,5 +273,5 @@ class PPD(nnx.Module):
     valid = (~ended).at[:, 0].set(True)
     slots = jnp.argmax(pred.density_logits[:, :k, :NUM_DENSITY_SLOTS], -1)
     prims = Primitives(pred.half_size[:, :k], pred.pos[:, :k], pred.quat[:, :k],
-                       (slots + 1.0) * SLOT_DENSITY, valid)
+                       slot_to_density_jax(slots), valid)
     return prims, pred

@@ -23,24 +23,19 @@ from __future__ import annotations
 import numpy as np
 from tqdm.auto import tqdm
 
-from ppdjax import data, towers
-from ppdjax.materials import MATERIAL_NAMES, NUM_DENSITY_SLOTS, density_to_slot, material_slots
-from ppdjax.metrics import ROTATION_LENGTH
-from ppdjax.primitives import NUM_SLOTS, Primitives
+from ppdjax.conventions import NUM_DENSITY_SLOTS, NUM_SLOTS, density_to_slot
+from ppdjax.dataset import storage, towers
+from ppdjax.dataset.materials import MATERIAL_NAMES, material_slots
+from ppdjax.metrics import ROTATION_LENGTH, rotation_vector
+from ppdjax.primitives import Primitives, bottom_to_top_order
 
 FEATURE_STRIDE = 8  # trajectory steps between retrieval features
 NEIGHBOURS = 10  # neighbours a Nearest ranking looks at
 
 
-def bottom_to_top_order(prims: Primitives) -> np.ndarray:
-  """(B, K) box indices ordered by centre height, padding last (as `losses.bottom_to_top`)."""
-  key = np.where(np.asarray(prims.valid), np.asarray(prims.pos)[..., 2], np.inf)
-  return np.argsort(key, axis=-1, kind="stable")
-
-
 def true_slots(prims: Primitives) -> np.ndarray:
   """(B, K) density slots bottom to top (-1 for padding)."""
-  order = bottom_to_top_order(prims)
+  order = np.asarray(bottom_to_top_order(prims))
   slot = np.take_along_axis(density_to_slot(np.asarray(prims.density)), order, -1)
   return np.where(np.take_along_axis(np.asarray(prims.valid), order, -1), slot, -1)
 
@@ -52,17 +47,14 @@ def trajectory_features(traj_BxPxTx7: np.ndarray) -> np.ndarray:
   that sampling minimises (`metrics.pose_residual`), at 1/FEATURE_STRIDE the cost.
   """
   t = np.asarray(traj_BxPxTx7, np.float32)[:, :, FEATURE_STRIDE - 1::FEATURE_STRIDE]
-  q = t[..., 3:] * np.where(t[..., 3:4] < 0, -1.0, 1.0)
-  n = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
-  angle = 2.0 * np.arctan2(n, q[..., :1])
-  rot = np.where(n > 1e-9, q[..., 1:] * angle / np.maximum(n, 1e-9), 0.0)
+  rot = np.asarray(rotation_vector(t[..., 3:]))
   return np.concatenate([t[..., :3], ROTATION_LENGTH * rot], -1).reshape(len(t), -1)
 
 
 class TrainingSet:
   """What the Frequent and Nearest baselines know: slot frequencies and trajectory features."""
 
-  def __init__(self, dataset: data.Dataset, *, max_samples: int = 0, chunk: int = 2048,
+  def __init__(self, dataset: storage.Dataset, *, max_samples: int = 0, chunk: int = 2048,
                progress: bool = True):
     n = len(dataset) if not max_samples else min(max_samples, len(dataset))
     feats, slots = [], []
@@ -125,7 +117,7 @@ def oracle_scores(train: TrainingSet, materials_BxK: np.ndarray, prims: Primitiv
     prims: the ground truth (to order boxes bottom to top).
     seed: the random guesses are a function of (seed, object, box).
   """
-  order = bottom_to_top_order(prims)
+  order = np.asarray(bottom_to_top_order(prims))
   mats = np.take_along_axis(np.asarray(materials_BxK), order, -1)
   b, k = mats.shape
   scores = frequent_scores(train, b, k)

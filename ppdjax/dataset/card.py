@@ -10,20 +10,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ppdjax import materials  # noqa: E402
+from ppdjax.conventions import TIMESTEP, density_to_slot  # noqa: E402
+from ppdjax.dataset import materials, storage  # noqa: E402
 
 
 def write_card(path: str, sheet_samples: int = 8) -> None:
   """Writes card.md, density_histogram.png and contact_sheet.png into dataset `path`."""
-  from ppdjax import data, scene  # pylint: disable=import-outside-toplevel
-
-  ds = data.open_dataset(path)
+  ds = storage.open_dataset(path)
   load = lambda f: np.concatenate([np.load(os.path.join(path, s["name"], f"{f}.npy"),
                                            mmap_mode="r") for s in ds.manifest["shards"]])
   valid, mats, density = load("valid"), load("materials"), load("density")
   traj = load("trajectories")
   blocks = valid.sum(1)
-  slots = materials.density_to_slot(density[valid])
+  slots = density_to_slot(density[valid])
 
   fig, ax = plt.subplots(figsize=(7, 3))
   ax.hist(slots + 1, bins=np.arange(0.5, 101.5, 1), color="tab:blue")
@@ -35,7 +34,7 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
   # displacement statistics per push (object-frame origin)
   start = traj[:, :, :1, :3]
   final = np.linalg.norm(traj[:, :, -1, :3] - start[:, :, 0], axis=-1)
-  first = np.linalg.norm(traj[:, :, 1, :3] - traj[:, :, 0, :3], axis=-1) / scene.TIMESTEP
+  first = np.linalg.norm(traj[:, :, 1, :3] - traj[:, :, 0, :3], axis=-1) / TIMESTEP
 
   idx = np.linspace(0, len(ds) - 1, min(sheet_samples, len(ds))).astype(int)
   fig, axes = plt.subplots(len(idx), 3, figsize=(7.5, 2.5 * len(idx)))

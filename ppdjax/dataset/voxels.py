@@ -14,9 +14,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ppdjax.primitives import Primitives, quat_to_mat
+from ppdjax.conventions import VOXEL_RESOLUTION as RESOLUTION
+from ppdjax.primitives import Primitives, flatten, quat_to_mat
 
-RESOLUTION = 32
 _TOUCH = 1e-7  # separations below this (metres) count as touching, not overlapping
 
 
@@ -58,8 +58,7 @@ def voxelize(prims: Primitives, resolution: int = RESOLUTION, chunk: int = 256) 
   """
   p = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32) if jnp.asarray(x).dtype != bool
                    else jnp.asarray(x), prims)
-  batch = p.density.shape[:-1]
-  flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), p)
+  flat, batch = flatten(p)
   n = flat.density.shape[0]
   out = [np.asarray(_batched(jax.tree.map(lambda x: x[i:i + chunk], flat), resolution))
          for i in range(0, n, chunk)]

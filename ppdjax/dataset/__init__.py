@@ -1,0 +1,1 @@
+"""Block-tower datasets: towers, materials, voxels, renders, shards on disk, the card."""

@@ -1,0 +1,1 @@
+"""Inference: density sampling and refinement through physics, decompose, evaluation."""

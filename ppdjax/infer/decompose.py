@@ -1,0 +1,130 @@
+"""`make_decompose_fn`: networks, density sampling, physics and refinement in one `jax.jit`."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx, struct
+
+from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS
+from ppdjax.infer.refine import refine_if_closer
+from ppdjax.infer.sampling import select_densities
+from ppdjax.primitives import Primitives
+from ppdjax.sim.pushes import Pushes, default_pushes
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
+from ppdjax.training import checkpoints
+
+
+@struct.dataclass
+class Decomposition:
+  """What `decompose` returns for a batch of B objects (K boxes, P pushes, T steps).
+
+  Attributes:
+    primitives: Primitives (B, K): predicted geometry with the selected (and refined)
+      densities; `valid` marks the boxes the generator emitted.
+    density_logits: (B, K, 100) the network's density scores per box.
+    score: (B,) trajectory distance (metres) of the returned densities.
+    scores: (B, S) every sampled candidate's distance (candidate 0: the arg-max).
+    trajectories: (B, P, T, 7) the returned object simulated under the pushes.
+  """
+
+  primitives: Primitives
+  density_logits: jax.Array
+  score: jax.Array
+  scores: jax.Array
+  trajectories: jax.Array
+
+
+def check_observation(obs: dict, config) -> bool:
+  """Raises ValueError naming a wrong key, shape, dtype or value; True if batched.
+
+  The image must be uint8 RGB (0..255), as datasets store it: a float image in [0, 1]
+  would reach the network scaled 255 times too small, so it is refused, not guessed at.
+  """
+  missing = [k for k in OBS_KEYS if k not in obs]
+  if missing:
+    raise ValueError(f"observation lacks {missing}; expected {', '.join(OBS_KEYS)}")
+  traj = obs["trajectories"]
+  p = config.model.num_pushes
+  batched = np.ndim(traj) == 4
+  lead = (np.shape(traj)[0],) if batched else ()
+  expected = {"trajectories": lead + (p, None, 7), "voxels": lead + (32, 32, 32),
+              "image": lead + (None, None, 3)}
+  for name, shape in expected.items():
+    got = np.shape(obs[name])
+    if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
+      want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"
+      raise ValueError(f"observation[{name!r}]: expected shape {want}, got {got}")
+  if not isinstance(traj, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(traj))):
+    raise ValueError("observation['trajectories'] contains NaN or inf")
+  image = obs["image"]
+  image_dtype = image.dtype if hasattr(image, "dtype") else np.asarray(image).dtype
+  if image_dtype != np.uint8:
+    raise ValueError(f"observation['image']: expected uint8 RGB in 0..255, got {image_dtype} "
+                     "(for a float image in [0, 1]: (image * 255).round().astype(np.uint8))")
+  voxels = obs["voxels"]
+  if not isinstance(voxels, jax.core.Tracer):
+    v = np.asarray(voxels)
+    if not (np.issubdtype(v.dtype, np.number) or v.dtype == bool) or np.any((v != 0) & (v != 1)):
+      raise ValueError("observation['voxels']: expected a 0/1 occupancy grid")
+  return batched
+
+
+def make_decompose_fn(trained, *, num_samples: int = 512, refine: bool = False,
+                      refine_steps: int = 12, prior_weight: float = 0.0,
+                      pushes: Pushes | None = None,
+                      settings: MjxSettings = DEFAULT_SETTINGS):
+  """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
+
+  Args:
+    trained: a training workdir, or the (model, config) pair `ppdjax.load` returns.
+    num_samples: density candidates per object (1: the network's arg-max only).
+    refine: fit the best candidate's densities by Levenberg–Marquardt through MJX.
+    refine_steps: LM iterations.
+    prior_weight: τ of `select_densities` (0: the closest trajectory wins).
+    pushes: the pushes the observations were recorded with (None: the paper's four).
+    settings: MJX settings the observations were simulated with (the dataset's).
+
+  Returns:
+    decompose(observation, key): observation is a dict with "voxels" (32,32,32),
+    "image" (H,W,3) uint8 and "trajectories" (P,T,7), or a batch of them (leading B);
+    the result has the same leading axes.
+  """
+  if isinstance(trained, str):
+    trained = checkpoints.load(trained)
+  model, config = trained
+  if num_samples < 1:
+    raise ValueError(f"num_samples must be >= 1, got {num_samples}")
+  pushes = default_pushes() if pushes is None else pushes
+  graphdef, state = nnx.split(model)
+
+  @jax.jit
+  def run(state, obs, key):
+    model = nnx.merge(graphdef, state)
+    prims, raw = model.decode(obs)
+    k = prims.num_slots
+    logits = raw.density_logits[:, :k, :NUM_DENSITY_SLOTS]
+    traj = obs["trajectories"].astype(jnp.float32)
+    keys = jax.random.split(key, traj.shape[0])
+    sel = jax.vmap(lambda p, l, o, kk: select_densities(
+        p, l, o, pushes, num_samples=num_samples, key=kk, prior_weight=prior_weight,
+        settings=settings))(prims, logits, traj, keys)
+    prims = prims.replace(density=sel.density)
+    score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
+    if refine:
+      ref = jax.vmap(lambda p, o, d: refine_if_closer(p, o, d, pushes, steps=refine_steps,
+                                                      settings=settings))(prims, traj, score)
+      closer = ref.closer[:, None, None, None]
+      prims, score, sim = ref.primitives, ref.distance, jnp.where(closer, ref.trajectories, sim)
+    return Decomposition(prims, logits, score, sel.scores, sim)
+
+  def decompose(observation: dict, key: jax.Array) -> Decomposition:
+    batched = check_observation(observation, config)
+    obs = {k: jnp.asarray(observation[k]) for k in OBS_KEYS}
+    if not batched:
+      obs = jax.tree.map(lambda x: x[None], obs)
+    out = run(state, obs, key)
+    return out if batched else jax.tree.map(lambda x: x[0], out)
+
+  return decompose

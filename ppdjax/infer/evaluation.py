@@ -1,0 +1,299 @@
+"""Evaluation on a dataset split: paper Tables 2, 4 and 5 for one trained model.
+
+Per batch, one jitted call decodes the objects and simulates, per object, in one batched
+MJX call: the network's S density samples (candidate 0 its arg-max), Table 4's sampling
+baselines (S uniform densities on the true shape; S random tower shapes with uniform
+densities) and Table 2's baselines' guesses on the true shape. With refinement, a second
+jitted call fits the best sample's densities by Levenberg–Marquardt through MJX.
+
+Rows (density metrics over true boxes, the k-th decoded box against the k-th true box
+from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
+  PPD             the network's per-box slot scores;
+  PPD+Sample      slots ranked by the best selection objective of a sample that has them
+                  (`sampling.selection_objective`; the paper: the trajectory distance);
+  PPD+Sample+Refine  slots ranked by closeness to the refined continuous density;
+  Frequent, Nearest, Oracle (`ppdjax.infer.baselines`), on the true shape.
+MAE is the paper's trajectory MAE in mm (`metrics.trajectory_mae`).
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+from tqdm.auto import tqdm
+
+from ppdjax import metrics
+from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, SLOT_DENSITY, slot_to_density,
+                                slot_to_density_jax)
+from ppdjax.dataset import storage
+from ppdjax.infer import baselines, sampling
+from ppdjax.infer.refine import refine_if_closer
+from ppdjax.infer.tables import BASELINES, PREFIXES, PRIOR_WEIGHTS, model_switches, summarize
+from ppdjax.primitives import bottom_to_top
+from ppdjax.sim.pushes import default_pushes
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
+from ppdjax.training import checkpoints
+
+
+def simultaneous_candidates() -> int:
+  """Candidates simulated at once (objects × candidates; × 4 pushes in rollouts): 16,384
+  on an accelerator (65,536 rollouts run at ~10× the rate of 2,048, benchmarks.md), 2,048
+  on a CPU."""
+  return 2048 if jax.default_backend() == "cpu" else 16384
+
+
+def _decode(graphdef, state, obs, true):
+  model = nnx.merge(graphdef, state)
+  pred, raw = model.decode(obs)
+  logits = raw.density_logits[:, :pred.num_slots, :NUM_DENSITY_SLOTS]
+  return pred, logits, metrics.shape_counts(pred, true)
+
+
+def _simulate(pred, logits, true, base_slots, pool, obs_traj, key, *, samples, with_baselines,
+              chunk, pushes, settings):
+  """Per object: (distance, MAE) of every candidate, and the network's candidate slots."""
+  b, k = pred.density.shape
+  keys = jax.random.split(key, (b, 3))
+
+  def one(args):
+    p, lg, t, bs, traj, kk = args
+    slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
+    cands = [sampling.with_slots(p, slots)]
+    if with_baselines:
+      uniform, _ = sampling.candidate_slots(jnp.zeros_like(lg), t.valid, samples, kk[1],
+                                            include_mode=False)
+      shape_slots = jax.random.randint(kk[2], (samples, k), 0, NUM_DENSITY_SLOTS)
+      cands += [sampling.with_slots(t, uniform),
+                pool.replace(density=slot_to_density_jax(shape_slots)),
+                sampling.with_slots(t, bs)]
+    cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
+    dist, mae = sampling.score_candidates(cands, traj, pushes, settings)
+    return dist, mae, slots
+
+  return jax.lax.map(one, (pred, logits, true, base_slots, obs_traj, keys), batch_size=chunk)
+
+
+def _refine(prims, obs_traj, sample_dist, sample_mae, *, steps, pushes, settings):
+  """Refined densities where they are closer (`refine_if_closer`, as `decompose`)."""
+  def one(p, traj, d0, m0):
+    r = refine_if_closer(p, traj, d0, pushes, steps=steps, settings=settings)
+    mae = jnp.where(r.closer, metrics.trajectory_mae(r.trajectories, traj), m0)
+    return {"density": r.primitives.density, "cost_start": r.cost_start, "cost": r.cost,
+            "dist": r.distance, "mae": mae}
+  return jax.vmap(one)(prims, obs_traj, sample_dist, sample_mae)
+
+
+def sample_scores(logits, slots, objective, valid):
+  """(B, K, 100) +Sample ranking: slots a sample has, by that sample's best objective first.
+
+  Slots no sample has follow in the network's order; boxes the network did not emit keep
+  the network's scores.
+  """
+  b, s, k = slots.shape
+  best = np.full((b, k, NUM_DENSITY_SLOTS), np.inf)
+  bi, _, ki = np.meshgrid(np.arange(b), np.arange(s), np.arange(k), indexing="ij")
+  np.minimum.at(best, (bi, ki, slots), np.broadcast_to(objective[:, :, None], slots.shape))
+  lsm = np.asarray(jax.nn.log_softmax(jnp.asarray(logits, jnp.float32)), np.float64)
+  out = np.where(np.isfinite(best), 1e6 - np.where(np.isfinite(best), best, 0.0), lsm - 1e6)
+  return np.where(valid[..., None], out, logits)
+
+
+def refine_scores(logits, density, valid):
+  """(B, K, 100) +Refine ranking: slots by distance to the refined (continuous) slot."""
+  cont = density / SLOT_DENSITY - 1.0
+  out = -np.abs(cont[..., None] - np.arange(NUM_DENSITY_SLOTS))
+  return np.where(valid[..., None], out, logits)
+
+
+class Evaluator:
+  """Compiles the per-batch calls once for a model, batch size and sample count."""
+
+  def __init__(self, model, config, *, samples: int, refine: bool, refine_steps: int = 12,
+               baselines_on: bool = True, prior_weight: float = 0.0, pushes=None,
+               settings=DEFAULT_SETTINGS):
+    if samples < 1:
+      raise ValueError(f"samples must be >= 1, got {samples}")
+    self.config, self.samples, self.refine = config, samples, refine
+    self.baselines_on, self.prior_weight = baselines_on, prior_weight
+    pushes = default_pushes() if pushes is None else pushes
+    per_object = samples * (3 if baselines_on else 1) + (3 if baselines_on else 0)
+    chunk = max(1, simultaneous_candidates() // per_object)
+    self.graphdef, self.state = nnx.split(model)
+    self._decode = jax.jit(functools.partial(_decode, self.graphdef))
+    self._simulate = jax.jit(functools.partial(
+        _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
+        settings=settings))
+    self._refine = jax.jit(functools.partial(
+        _refine, steps=refine_steps, pushes=pushes, settings=settings))
+
+  def batch(self, batch: dict, base_scores: np.ndarray | None, key) -> dict:
+    """Per-object arrays for one batch (see `evaluate` for what they become)."""
+    obs = {k: jnp.asarray(batch[k]) for k in OBS_KEYS}
+    true = bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
+    pred, logits, shape = self._decode(self.state, obs, true)
+    b, k = true.density.shape
+    base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
+                  else np.zeros((b, len(BASELINES), k), np.int32))
+    pool = baselines.random_shapes(int(jax.random.randint(key, (), 0, 2**31 - 1)),
+                                   self.samples, num_slots=k)
+    dist, mae, slots = self._simulate(pred, logits, true, jnp.asarray(base_slots),
+                                      jax.tree.map(jnp.asarray, pool), obs["trajectories"],
+                                      key)
+    out = jax.device_get({"pred": pred, "logits": logits, "shape": shape, "dist": dist,
+                          "mae": mae, "slots": slots})
+    out["logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, jnp.asarray(out["slots"]),
+                                                          pred.valid))
+    if self.refine:
+      objective = sampling.selection_objective(out["dist"][:, :self.samples], out["logp"],
+                                               self.prior_weight)
+      best = np.argmin(objective, -1)
+      start = np.take_along_axis(out["slots"], best[:, None, None], 1)[:, 0]
+      prims = pred.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
+      rows = np.arange(len(best))
+      out["refine"] = jax.device_get(self._refine(
+          prims, obs["trajectories"], out["dist"][rows, best], out["mae"][rows, best]))
+    return out
+
+
+def _row_counts(scores, slot, valid):
+  c = metrics.density_counts(jnp.asarray(scores, jnp.float32), jnp.asarray(np.maximum(slot, 0)),
+                             jnp.asarray(valid))
+  return {n: np.asarray(v) for n, v in c.items()}
+
+
+EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight")
+
+
+def eval_settings(config, **overrides) -> dict:
+  """`evaluate`'s settings from a preset's `eval` section; overrides that are not None win."""
+  out = {k: config.eval[k] for k in EVAL_SETTINGS}
+  unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
+  if unknown:
+    raise ValueError(f"unknown evaluation settings {unknown}; expected {EVAL_SETTINGS}")
+  out.update({k: v for k, v in overrides.items() if v is not None})
+  return out
+
+
+def evaluation_objects(total: int, max_objects: int = 0, subset: str = "first") -> np.ndarray:
+  """Indices of the objects to evaluate: all, the first N, or N spread evenly ("spread")."""
+  if subset not in ("first", "spread"):
+    raise ValueError(f"subset must be 'first' or 'spread', got {subset!r}")
+  if max_objects < 0:
+    raise ValueError(f"max_objects must be >= 0, got {max_objects}")
+  n = total if not max_objects else min(max_objects, total)
+  if subset == "first" or n == total:
+    return np.arange(n)
+  return np.unique(np.linspace(0, total - 1, n).round().astype(np.int64))
+
+
+def _batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: float,
+                   prefixes, with_baselines: bool, refine: bool) -> dict:
+  """Per-object records of one batch, keyed by (kind, row, name); `evaluate` concatenates
+  them and `tables.summarize` turns them into the tables."""
+  keep = len(slot)
+  rows = np.arange(keep)
+  pvalid = np.asarray(out["pred"].valid)
+  logits = out["logits"].astype(np.float64)
+  dist, omae, slots = out["dist"], out["mae"], out["slots"]
+  objective = lambda tau: sampling.selection_objective(dist[:, :samples], out["logp"], tau)
+  rec = {("blocks",): valid.sum(-1), ("true_slot",): slot, ("true_valid",): valid}
+  rec.update({("shape", k): np.asarray(v) for k, v in out["shape"].items()})
+  best = np.argmin(objective(prior_weight), -1)
+  scores = {"PPD": logits,
+            "PPD+Sample": sample_scores(logits, slots, objective(prior_weight), pvalid)}
+  mae = {"PPD": omae[:, 0], "PPD+Sample": omae[rows, best]}
+  for tau in PRIOR_WEIGHTS:
+    pick = np.argmin(objective(tau), -1)
+    counts = _row_counts(sample_scores(logits, slots, objective(tau), pvalid), slot, valid)
+    rec.update({("sweep", tau, k): v for k, v in counts.items()})
+    rec[("sweep", tau, "mae")] = omae[rows, pick]
+  for p in prefixes:
+    rec[("prefix", "PPD", p)] = omae[rows, np.argmin(dist[:, :p], -1)]
+  if with_baselines:
+    for j, name in enumerate(BASELINES):
+      scores[name] = base[:, j]
+      mae[name] = omae[:, 3 * samples + j]
+    for m, name in ((1, "Sample Phys."), (2, "Sample Phys.+Shape")):
+      d, e = dist[:, m * samples:(m + 1) * samples], omae[:, m * samples:(m + 1) * samples]
+      for p in prefixes:
+        rec[("prefix", name, p)] = e[rows, np.argmin(d[:, :p], -1)]
+  if refine:
+    r = out["refine"]
+    scores["PPD+Sample+Refine"] = refine_scores(logits, r["density"], pvalid)
+    mae["PPD+Sample+Refine"] = r["mae"]
+    rec.update({("refine", k): r[k] for k in ("cost_start", "cost", "dist")})
+    rec[("refine", "sample_dist")] = dist[rows, best]
+  for name, sc in scores.items():
+    rec.update({("counts", name, k): v for k, v in _row_counts(sc, slot, valid).items()})
+    rec[("guess", name)] = np.argmax(sc, -1)
+    rec[("mae", name)] = mae[name]
+  return rec
+
+
+def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
+             refine: bool = False, refine_steps: int = 12, batch_size: int = 16,
+             max_objects: int = 0, with_baselines: bool = True, seed: int = 0,
+             prior_weight: float = 0.0, subset: str = "first", progress: bool = True) -> dict:
+  """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
+
+  +Sample selects by `sampling.selection_objective` with τ = prior_weight;
+  `results["prior_sweep"]` also scores the selection for every τ in PRIOR_WEIGHTS (free:
+  the candidates are simulated once). Choose τ on the validation split. With
+  `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
+  split ("spread": many towers, since a tower's 8 configurations are stored together).
+
+  Raises:
+    CheckpointError for a workdir without a checkpoint, DatasetError for a dataset
+    without the split.
+  """
+  t_start = time.perf_counter()
+  model, config = checkpoints.load(trained) if isinstance(trained, str) else trained
+  test = storage.open_dataset(data_dir, split)
+  objects = evaluation_objects(len(test), max_objects, subset)
+  n = len(objects)
+  batch_size = max(1, min(batch_size, n))
+  train = baselines.TrainingSet(storage.open_dataset(data_dir, "train"),
+                                progress=progress) if with_baselines else None
+  ev = Evaluator(model, config, samples=samples, refine=refine, refine_steps=refine_steps,
+                 baselines_on=with_baselines, prior_weight=prior_weight)
+  prefixes = sorted({p for p in PREFIXES if p <= samples} | {samples})
+  records = collections.defaultdict(list)
+  key = jax.random.key(seed)
+  bar = tqdm(total=n, desc="evaluating", unit="object", disable=not progress)
+  for start in range(0, n, batch_size):
+    idx = objects[start:start + batch_size]
+    keep = len(idx)
+    idx = np.pad(idx, (0, batch_size - keep), mode="edge")  # one compiled shape
+    batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials"))
+    slot = baselines.true_slots(batch["primitives"])
+    base = None
+    if with_baselines:
+      nb = (slot >= 0).sum(-1)
+      base = np.stack([baselines.frequent_scores(train, batch_size, slot.shape[1]),
+                       baselines.nearest_scores(train, batch["trajectories"], nb),
+                       baselines.oracle_scores(train, batch["materials"], batch["primitives"],
+                                               seed * 1_000_003 + start)], 1)
+    out = ev.batch(batch, base, jax.random.fold_in(key, start))
+    out = jax.tree.map(lambda x: x[:keep], out)
+    rec = _batch_records(out, slot[:keep], slot[:keep] >= 0,
+                         None if base is None else base[:keep], samples=samples,
+                         prior_weight=prior_weight, prefixes=prefixes,
+                         with_baselines=with_baselines, refine=refine)
+    for k, v in rec.items():
+      records[k].append(np.asarray(v))
+    bar.update(keep)
+  bar.close()
+  results = summarize(model_switches(config), {k: np.concatenate(v) for k, v in records.items()})
+  results.update({
+      "workdir": trained if isinstance(trained, str) else None, "data": data_dir,
+      "split": split, "objects": int(n), "samples": samples, "refine": refine,
+      "refine_steps": refine_steps if refine else 0, "baselines": with_baselines,
+      "prior_weight": prior_weight, "subset": subset,
+      "seconds": round(time.perf_counter() - t_start, 1)})
+  return results

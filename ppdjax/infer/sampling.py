@@ -1,0 +1,144 @@
+"""+Sample (paper Sec. 4.3): draw joint density assignments, simulate them, keep the best.
+
+The network proposes boxes and, per box, a distribution over the 100 density slots.
+`select_densities` draws joint assignments from it, simulates each under the pushes and
+keeps the one that minimises `selection_objective` (the trajectory distance, optionally
+less τ · log prior). Distances and units: `ppdjax.metrics` (pose residual in metres,
+rotations at 0.5 m per radian).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from ppdjax import metrics
+from ppdjax.conventions import NUM_DENSITY_SLOTS, slot_to_density_jax
+from ppdjax.primitives import Primitives
+from ppdjax.sim.pushes import Pushes, default_pushes
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
+from ppdjax.sim.simulate import simulate
+
+
+@struct.dataclass
+class Selection:
+  """What sampling found for one object (S candidates, K boxes).
+
+  Attributes:
+    density: (K,) kg/m^3 of the best candidate.
+    score: trajectory distance of the best candidate (metres, `metrics.trajectory_distance`).
+    scores: (S,) every candidate's distance, in draw order (candidate 0 is the most likely).
+    slots: (S, K) the candidates' density slots (0 for padded boxes).
+    distinct: (S,) False for a candidate that repeats an earlier one (small supports).
+    mae: (S,) every candidate's trajectory MAE (mm, `metrics.trajectory_mae`).
+    trajectories: (P, T, 7) the best candidate simulated under the pushes.
+  """
+
+  density: jax.Array
+  score: jax.Array
+  scores: jax.Array
+  slots: jax.Array
+  distinct: jax.Array
+  mae: jax.Array
+  trajectories: jax.Array
+
+
+def candidate_slots(logits_Kx100: jax.Array, valid_K: jax.Array, num_samples: int,
+                    key: jax.Array, *, include_mode: bool = True,
+                    oversample: int = 2) -> tuple[jax.Array, jax.Array]:
+  """`num_samples` joint slot assignments drawn from independent per-box categoricals.
+
+  Candidate 0 is the arg-max of every box when `include_mode`. `oversample` × as many are
+  drawn; the first occurrence of each distinct assignment is kept in draw order, so the
+  result has no duplicates unless the distribution's support is smaller than asked for.
+
+  Returns:
+    (slots (S, K) int32 with 0 for padded boxes, distinct (S,) bool).
+  """
+  k = logits_Kx100.shape[0]
+  m = max(num_samples * oversample, num_samples)
+  draws = jax.random.categorical(key, logits_Kx100, shape=(m, k)).astype(jnp.int32)
+  if include_mode:
+    draws = draws.at[0].set(jnp.argmax(logits_Kx100, -1).astype(jnp.int32))
+  draws = jnp.where(valid_K, draws, 0)
+  # Lexicographic sort by slots (3 per int32 code), then draw index: the first of each run
+  # of equal assignments is the earliest drawn.
+  codes = [sum(draws[:, j] * 100 ** (j - c) for j in range(c, min(c + 3, k)))
+           for c in range(0, k, 3)]
+  index = jnp.arange(m)
+  order = jnp.lexsort([index] + codes[::-1])
+  sorted_codes = jnp.stack([c[order] for c in codes], -1)
+  repeat = jnp.concatenate([jnp.zeros(1, bool),
+                            jnp.all(sorted_codes[1:] == sorted_codes[:-1], -1)])
+  duplicate = jnp.zeros(m, bool).at[order].set(repeat)
+  take = jnp.argsort(jnp.where(duplicate, m + index, index))[:num_samples]
+  return draws[take], ~duplicate[take]
+
+
+def log_prior(logits_Kx100: jax.Array, slots_SxK: jax.Array, valid_K: jax.Array) -> jax.Array:
+  """(S,) log-probability of each joint assignment under the per-box categoricals."""
+  lp = jax.nn.log_softmax(logits_Kx100[:, :NUM_DENSITY_SLOTS], -1)
+  per_box = jnp.take_along_axis(lp[None], slots_SxK[..., None], -1)[..., 0]
+  return jnp.sum(jnp.where(valid_K, per_box, 0.0), -1)
+
+
+def with_slots(prims: Primitives, slots: jax.Array) -> Primitives:
+  """`prims` (K) with densities from slots (..., K); leading axes are broadcast."""
+  batch = slots.shape[:-1]
+  grow = lambda x: jnp.broadcast_to(x, batch + x.shape)
+  out = jax.tree.map(grow, prims)
+  return out.replace(density=slot_to_density_jax(slots))
+
+
+def score_candidates(candidates: Primitives, observed_PTx7: jax.Array, pushes: Pushes,
+                     settings: MjxSettings = DEFAULT_SETTINGS, *,
+                     keep_trajectories: bool = False):
+  """(distance (S,), MAE (S,)[, trajectories (S, P, T, 7)]) of candidates (S, K)."""
+  steps = observed_PTx7.shape[-2]
+
+  def one(p):
+    sim = simulate(p, pushes, steps=steps, settings=settings)
+    scores = (metrics.trajectory_distance(sim, observed_PTx7),
+              metrics.trajectory_mae(sim, observed_PTx7))
+    return scores + (sim,) if keep_trajectories else scores
+  return jax.vmap(one)(candidates)
+
+
+def selection_objective(distance: jax.Array, log_prior_: jax.Array,
+                        prior_weight: float) -> jax.Array:
+  """What +Sample minimises: distance (m) − τ · log prior (nats); τ = 0 is the paper's."""
+  return distance - prior_weight * log_prior_
+
+
+def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax.Array,
+                     pushes: Pushes | None = None, *, num_samples: int, key: jax.Array,
+                     include_mode: bool = True, prior_weight: float = 0.0,
+                     settings: MjxSettings = DEFAULT_SETTINGS) -> Selection:
+  """Samples joint density assignments and keeps the one that best explains the motion.
+
+  Args:
+    prims: predicted geometry of one object (K boxes; densities ignored).
+    density_logits: (K, 100) scores over density slots per box (the network's head).
+    observed: (P, T, 7) observed trajectories.
+    pushes: the P pushes (None: the paper's four).
+    num_samples: candidates S (all simulated in one batched call).
+    key: PRNG key.
+    include_mode: make candidate 0 the most likely assignment.
+    prior_weight: τ in metres per nat: the winner minimises distance − τ · log p(slots)
+      under the network's distribution (0: the paper's closest trajectory).
+    settings: MJX solver settings (those the dataset was simulated with).
+
+  Returns:
+    Selection: best densities, its score and every candidate's score and MAE.
+  """
+  pushes = default_pushes() if pushes is None else pushes
+  slots, distinct = candidate_slots(density_logits[:, :NUM_DENSITY_SLOTS], prims.valid,
+                                    num_samples, key, include_mode=include_mode)
+  scores, mae, sims = score_candidates(with_slots(prims, slots), observed, pushes, settings,
+                                       keep_trajectories=True)
+  best = jnp.argmin(selection_objective(
+      scores, log_prior(density_logits, slots, prims.valid), prior_weight))
+  return Selection(density=slot_to_density_jax(slots[best]), score=scores[best],
+                   scores=scores, slots=slots, distinct=distinct, mae=mae,
+                   trajectories=sims[best])

@@ -1,0 +1,185 @@
+"""The paper's published numbers (Tables 2, 4, 5, shape F1) and results laid out beside them."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from ppdjax import metrics
+from ppdjax.conventions import NUM_DENSITY_SLOTS
+from ppdjax.plots import plot_confusion
+
+# Row and column names of one model's evaluation.
+BASELINES = ("Frequent", "Nearest", "Oracle")
+PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine")
+PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
+PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)  # τ swept for +Sample (m/nat)
+
+# --- the paper's published numbers (block towers), the one copy every report reads -------
+
+# Table 2: top-1, top-5, top-10 (%), RMSE (slots), trajectory MAE, by row name.
+PAPER_TABLE2 = {
+    "Frequent": (2.0, 9.7, 13.4, 25.4, 74.4), "Nearest": (1.9, 7.9, 12.4, 41.1, 91.0),
+    "Oracle": (6.9, 35.7, 72.0, 18.5, 51.3),
+    "PPD (no trajectory)": (7.2, 35.2, 69.5, 19.0, 51.7),
+    "PPD (no image)": (7.1, 31.0, 50.8, 16.7, 36.4),
+    "PPD (no voxels)": (15.9, 56.3, 82.4, 10.3, 29.9),
+    "PPD (full)": (16.1, 56.4, 82.5, 9.9, 21.0),
+    "PPD (full)+Sample": (18.2, 59.7, 84.0, 8.8, 13.9)}
+# One model's evaluation names its rows without the variant: PPD, PPD+Sample, baselines.
+PAPER_TABLE2_ONE_MODEL = {
+    **{k: PAPER_TABLE2[k] for k in ("Frequent", "Nearest", "Oracle")},
+    "PPD": PAPER_TABLE2["PPD (full)"], "PPD+Sample": PAPER_TABLE2["PPD (full)+Sample"]}
+# Table 4: trajectory MAE of the best of 1, 8, 64, 512 samples.
+PAPER_TABLE4 = {"Sample Phys.+Shape": (142.2, 87.1, 70.8, 58.7),
+                "Sample Phys.": (89.7, 60.1, 38.7, 22.7), "PPD": (21.0, 15.1, 13.9, 13.2)}
+# Table 5: density RMSE (slots) for towers of 2, 3, 4, 5 blocks, and overall.
+PAPER_TABLE5 = {"Texture": (18.2, 18.5, 18.8, 19.7, 19.1),
+                "Physics": (3.6, 7.9, 15.8, 20.0, 14.7),
+                "Texture + Physics": (2.3, 4.9, 7.8, 10.9, 8.0)}
+PAPER_SHAPE_F1 = 97.5  # shape F1 (%) of the full model on block towers
+
+
+def model_switches(config) -> dict:
+  """Which encoders a model uses (what its Table 2 row observes)."""
+  return {k: bool(config.model[k]) for k in ("use_voxels", "use_image", "use_trajectory")}
+
+
+def summarize(switches: dict, rec: dict) -> dict:
+  """Tables 2, 4, 5, F1, the τ sweep, refinement statistics and confusion matrices from
+  the concatenated per-object records of `evaluation._batch_records`."""
+  group = lambda *prefix: {k[len(prefix)]: v for k, v in rec.items()
+                           if k[:len(prefix)] == prefix and len(k) == len(prefix) + 1}
+  nb = rec[("blocks",)]
+  results = {"model": switches, "mae_units": "mm", "table2": {}, "table4": {}, "table5": {},
+             "f1": metrics.f1_from_counts(*[rec[("shape", k)] for k in
+                                            ("matched", "predicted", "true")])}
+  names = {k[1] for k in rec if k[0] == "counts"}
+  for name in [r for r in BASELINES + PPD_ROWS if r in names]:
+    counts = group("counts", name)
+    row = metrics.summarize(counts)
+    row["mae"] = float(np.mean(rec[("mae", name)]))
+    results["table2"][name] = row
+    results["table5"][name] = {
+        str(b): metrics.summarize({k: v[nb == b] for k, v in counts.items()})["rmse"]
+        for b in range(2, nb.max() + 1) if np.any(nb == b)}
+    results["table5"][name]["overall"] = row["rmse"]
+  results["prior_sweep"] = {}
+  for tau in PRIOR_WEIGHTS:
+    counts = group("sweep", tau)
+    mae = counts.pop("mae")
+    results["prior_sweep"][str(tau)] = {**metrics.summarize(counts), "mae": float(np.mean(mae))}
+  for k, v in rec.items():
+    if k[0] == "prefix":
+      results["table4"].setdefault(k[1], {})[str(k[2])] = float(np.mean(v))
+  if ("refine", "cost") in rec:
+    r = group("refine")
+    d0, d1 = r["sample_dist"], r["dist"]
+    results["refine_stats"] = {
+        "improved_fraction": float(np.mean(d1 < d0 - 1e-9)),
+        "median_distance_ratio": float(np.median(d1 / np.maximum(d0, 1e-12))),
+        "mean_distance_sample_m": float(d0.mean()), "mean_distance_refined_m": float(d1.mean()),
+        "mean_cost_start": float(r["cost_start"].mean()), "mean_cost": float(r["cost"].mean())}
+  slot, valid = rec[("true_slot",)], rec[("true_valid",)]
+  results["confusion"] = {}
+  for name in [r for r in PPD_ROWS if r in names]:
+    matrix = np.zeros((NUM_DENSITY_SLOTS,) * 2, np.int64)
+    np.add.at(matrix, (slot[valid], rec[("guess", name)][valid]), 1)
+    results["confusion"][name] = matrix.tolist()
+  return results
+
+
+def paper_line(table: dict) -> str:
+  """'row a/b/c; row d/e/f' of a paper table, for the line under a measured one."""
+  return "; ".join(f"{k} {'/'.join(str(v) for v in vals)}" for k, vals in table.items())
+
+
+
+def _sign(on: bool) -> str:
+  return "+" if on else "–"
+
+
+def table2_md(rows: dict, observes: dict) -> list[str]:
+  """Markdown lines of Table 2; observes[row] = (texture, physics) booleans."""
+  lines = ["| Method | Texture | Physics | Top 1 | Top 5 | Top 10 | RMSE | MAE (mm) |",
+           "|---|:-:|:-:|--:|--:|--:|--:|--:|"]
+  for name, r in rows.items():
+    tex, phys = observes[name]
+    lines.append(f"| {name} | {_sign(tex)} | {_sign(phys)} | {r['top1']:.1f} | {r['top5']:.1f} "
+                 f"| {r['top10']:.1f} | {r['rmse']:.1f} | {r['mae']:.1f} |")
+  return lines
+
+
+def table4_md(table4: dict) -> list[str]:
+  ns = sorted({int(n) for r in table4.values() for n in r})
+  lines = ["| trajectory MAE (mm) | " + " | ".join(f"{n}×" for n in ns) + " |",
+           "|---|" + "--:|" * len(ns)]
+  for name in ("Sample Phys.+Shape", "Sample Phys.", "PPD"):
+    if name in table4:
+      lines.append(f"| {name} | " + " | ".join(f"{table4[name].get(str(n), float('nan')):.1f}"
+                                               for n in ns) + " |")
+  return lines
+
+
+def table5_md(table5: dict) -> list[str]:
+  cols = sorted({c for r in table5.values() for c in r if c != "overall"}, key=int)
+  lines = ["| density RMSE (slots) | " + " | ".join(f"{c} blocks" for c in cols)
+           + " | Overall |", "|---|" + "--:|" * (len(cols) + 1)]
+  for name, r in table5.items():
+    lines.append(f"| {name} | " + " | ".join(f"{r.get(c, float('nan')):.1f}" for c in cols)
+                 + f" | {r['overall']:.1f} |")
+  return lines
+
+
+def results_md(results: dict, command: str = "") -> str:
+  """A results.md laid out like the paper's tables, with the paper's numbers beside."""
+  m = results["model"]
+  observes = {name: (False, False) if name == "Frequent" else (False, True)
+              if name == "Nearest" else (True, False) if name == "Oracle"
+              else (m["use_image"], m["use_trajectory"]) for name in results["table2"]}
+  lines = [f"# Evaluation on `{results['split']}` ({results['objects']} objects)", ""]
+  if command:
+    lines += ["```", command, "```", ""]
+  lines += [f"{results['samples']} density samples per object"
+            + (f", refinement {results['refine_steps']} LM steps" if results["refine"] else "")
+            + f"; {results['seconds']:.0f} s in all. Shape F1: **{results['f1']:.1f}** "
+            f"(paper: {PAPER_SHAPE_F1}).", "", "## Table 2: density and trajectory", ""]
+  lines += table2_md(results["table2"], observes)
+  lines += ["", "Paper (block towers): " + paper_line(PAPER_TABLE2_ONE_MODEL) + ".", ""]
+  if results["table4"]:
+    lines += ["## Table 4: best of N samples, trajectory MAE (mm)", ""]
+    lines += table4_md(results["table4"])
+    lines += ["", "Paper (1×/8×/64×/512×): " + paper_line(PAPER_TABLE4) + ".", ""]
+  lines += ["## Table 5: density RMSE by number of blocks", ""]
+  lines += table5_md(results["table5"])
+  lines += ["", "Paper (2/3/4/5 blocks, overall): " + paper_line(PAPER_TABLE5) + ".", ""]
+  if results.get("prior_sweep"):
+    lines += ["## +Sample selection: distance − τ · log prior", "",
+              "| τ (m per nat) | Top 1 | Top 5 | Top 10 | RMSE | MAE (mm) |",
+              "|--:|--:|--:|--:|--:|--:|"]
+    lines += [f"| {t} | {r['top1']:.1f} | {r['top5']:.1f} | {r['top10']:.1f} | {r['rmse']:.1f} "
+              f"| {r['mae']:.1f} |" for t, r in results["prior_sweep"].items()]
+    lines += ["", f"Table 2's +Sample rows use τ = {results['prior_weight']}.", ""]
+  if "refine_stats" in results:
+    r = results["refine_stats"]
+    lines += ["## Refinement", "",
+              f"Lowered the trajectory distance of the best sample on "
+              f"{100 * r['improved_fraction']:.0f}% of objects; median ratio refined / sampled "
+              f"{r['median_distance_ratio']:.3f}; mean distance {r['mean_distance_sample_m']:.4f}"
+              f" → {r['mean_distance_refined_m']:.4f} m.", ""]
+  return "\n".join(lines)
+
+
+def write_results(results: dict, out_dir: str, command: str = "") -> tuple[str, str]:
+  """Writes results.json, results.md and confusion.png (when there is a confusion matrix)."""
+  os.makedirs(out_dir, exist_ok=True)
+  json_path, md_path = os.path.join(out_dir, "results.json"), os.path.join(out_dir, "results.md")
+  with open(json_path, "w") as f:
+    json.dump({**results, "command": command}, f, indent=1)
+  with open(md_path, "w") as f:
+    f.write(results_md(results, command))
+  if results.get("confusion"):
+    plot_confusion(results["confusion"], os.path.join(out_dir, "confusion.png"))
+  return json_path, md_path

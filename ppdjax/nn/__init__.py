@@ -1,0 +1,1 @@
+"""The PPD network (Flax NNX): encoders, the recurrent primitive generator, the loss."""

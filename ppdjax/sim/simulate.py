@@ -1,0 +1,50 @@
+"""`simulate`: every object under every push from rest, in MJX (jitted) or MuJoCo C."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from ppdjax.conventions import STEPS
+from ppdjax.primitives import Primitives, validate
+from ppdjax.sim import rollout_mjx, rollout_mujoco
+from ppdjax.sim.pushes import Pushes, default_pushes
+
+BACKENDS = ("mjx", "mujoco")
+
+
+def _is_traced(prims: Primitives) -> bool:
+  return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(prims))
+
+
+def simulate(prims: Primitives, pushes: Pushes | None = None, *, steps: int = STEPS,
+             backend: str = "mjx", **options) -> jax.Array:
+  """Rolls out every object under every push from rest.
+
+  Args:
+    prims: Primitives with leading batch axes B... (fields (B..., K, ...)).
+    pushes: Pushes (P of them); None for the paper's four.
+    steps: recorded steps of 1/300 s.
+    backend: "mjx" (jitted, batched JAX; differentiable in forward mode) or "mujoco"
+      (MuJoCo's C engine on all CPU cores: the reference, and the fast path on a CPU).
+    **options: backend settings (see `ppdjax.sim.rollout_mjx.MjxSettings` and
+      `ppdjax.sim.rollout_mujoco.simulate`).
+
+  Returns:
+    (B..., P, steps, 7) object-frame poses after each step; float32 for "mjx",
+    float64 for "mujoco".
+  """
+  if backend not in BACKENDS:
+    raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+  if not isinstance(steps, (int, np.integer)) or steps < 1:
+    raise ValueError(f"steps must be a positive int, got {steps!r}")
+  pushes = default_pushes() if pushes is None else pushes
+  if not _is_traced(prims):
+    validate(prims)
+  if not _is_traced(pushes):
+    pushes.validate()
+  if backend == "mjx":
+    return rollout_mjx.simulate(prims, pushes, steps=steps, **options)
+  if _is_traced(prims):
+    raise ValueError('backend="mujoco" runs on concrete arrays; it cannot be traced by jit')
+  return rollout_mujoco.simulate(prims, pushes, steps=steps, **options)

@@ -1,0 +1,1 @@
+"""Training: the train state, the loader, the loop, checkpoints and data parallelism."""

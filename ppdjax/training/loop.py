@@ -1,0 +1,199 @@
+"""The training loop: `train_and_evaluate(config, data_dir, workdir)`, resumable exactly.
+
+Two phases as in the paper's appendix (geometry only with w = 0, then everything), Adam,
+data parallel over all devices, orbax checkpoints with exact resume, metrics.jsonl,
+TensorBoard events and a learning-curve PNG. Rerun the same command to resume.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from ppdjax.dataset import storage
+from ppdjax.plots import plot_learning_curve
+from ppdjax.training import checkpoints, sharding
+from ppdjax.training.loader import Loader
+from ppdjax.training.state import Trainer
+
+
+# Keys added since runs were first saved, with the value that reproduces older runs.
+ADDED_KEYS = {"model.voxel_width": 1, "model.voxel_coords": False, "train.schedule": "constant"}
+# Keys a resumed run may change without invalidating its checkpoints.
+RESUMABLE_CHANGES = ("train.joint_steps", "train.log_every", "train.eval_every",
+                     "train.eval_batches", "train.prefetch", "train.keep_checkpoints")
+
+
+def check_config(config) -> None:
+  """Raises ValueError naming the first bad value of the model and train sections."""
+  t, m = config.train, config.model
+  positive = {"train.batch_size": t.batch_size, "train.learning_rate": t.learning_rate,
+              "train.log_every": t.log_every, "train.eval_every": t.eval_every,
+              "train.keep_checkpoints": t.keep_checkpoints, "model.feature": m.feature,
+              "model.hidden": m.hidden, "model.generator_layers": m.generator_layers,
+              "model.resnet_width": m.resnet_width, "model.num_pushes": m.num_pushes}
+  for name, value in positive.items():
+    if not value > 0:
+      raise ValueError(f"config.{name} must be > 0, got {value}")
+  for name in ("geometry_steps", "joint_steps", "eval_batches", "prefetch"):
+    if t[name] < 0:
+      raise ValueError(f"config.train.{name} must be >= 0, got {t[name]}")
+  if t.geometry_steps + t.joint_steps == 0:
+    raise ValueError("config.train.geometry_steps + joint_steps must be > 0")
+  if not 0 <= m.dropout < 1:
+    raise ValueError(f"config.model.dropout must be in [0, 1), got {m.dropout}")
+  if t.density_weight < 0:
+    raise ValueError(f"config.train.density_weight must be >= 0, got {t.density_weight}")
+  if m.max_primitives != 5:
+    raise ValueError("config.model.max_primitives must be 5 (datasets pad to 5 boxes)")
+  if not (m.use_voxels or m.use_image or m.use_trajectory):
+    raise ValueError("config.model: at least one of use_voxels, use_image, use_trajectory")
+
+
+def _flatten(d, prefix=""):
+  out = {}
+  for k, v in d.items():
+    out.update(_flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+  return out
+
+
+def _check_resume(workdir: str, config) -> None:
+  """Refuses to resume a run made with another model, data or optimiser setting."""
+  if not os.path.exists(os.path.join(workdir, "config.json")):
+    return
+  old = {**ADDED_KEYS, **_flatten(checkpoints.read_config(workdir).to_dict())}
+  new = _flatten(json.loads(config.to_json_best_effort()))
+  changed = sorted(k for k in set(old) | set(new)
+                   if k not in RESUMABLE_CHANGES and json.dumps(old.get(k)) != json.dumps(new.get(k)))
+  if changed:
+    raise ValueError(f"{workdir} holds a run made with another config ({', '.join(changed)} "
+                     "differ); use a new --workdir")
+
+
+def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = True,
+                       time_limit_s: float | None = None) -> dict:
+  """Trains (or resumes) a PPD model; returns the last validation metrics.
+
+  Args:
+    config: a preset with `model` and `train` sections.
+    data_dir: a generated dataset with train and val splits.
+    workdir: checkpoints, config.json, metrics.jsonl, tensorboard/ and learning_curve.png.
+    progress: show a progress bar.
+    time_limit_s: if set, stop after about this many seconds of steps with a checkpoint
+      (rerun to resume); `trained_steps(workdir)` then tells how far the run got.
+  """
+  check_config(config)
+  t = config.train
+  train_ds = storage.open_dataset(data_dir, "train")
+  val_ds = storage.open_dataset(data_dir, "val")
+  pushes = train_ds[0]["trajectories"].shape[0]
+  if pushes != config.model.num_pushes:
+    raise ValueError(f"{data_dir} has {pushes} pushes per sample; config.model.num_pushes "
+                     f"is {config.model.num_pushes}")
+  sharding.check_batch_size(t.batch_size)
+  steps_per_epoch = len(train_ds) // t.batch_size
+  if steps_per_epoch == 0:
+    raise ValueError(f"the train split has {len(train_ds)} samples, fewer than "
+                     f"train.batch_size={t.batch_size}")
+  _check_resume(workdir, config)
+  checkpoints.save_config(workdir, config)
+
+  trainer = Trainer(config, workdir)
+  start = trainer.restore_latest()
+  total = t.geometry_steps + t.joint_steps
+  log = MetricsLog(workdir, start, enabled=jax.process_index() == 0)
+  loader = Loader(train_ds, t.batch_size, seed=t.seed, start_step=start,
+                  prefetch=t.prefetch, mesh=trainer.mesh)
+  bar = tqdm(total=total, initial=start, desc="train", unit="step", disable=not progress,
+             dynamic_ncols=True)
+  pending, tick, step, last_val = [], time.perf_counter(), start, None
+  deadline = None if time_limit_s is None else time.perf_counter() + time_limit_s
+  try:
+    for step in range(start, total):
+      if deadline is not None and time.perf_counter() > deadline and step > start:
+        print(f"\ntime limit: stopping at step {step}; run again to resume", flush=True)
+        if step not in trainer.latest.all_steps():
+          trainer.save(step, None)
+        break
+      w = 0.0 if step < t.geometry_steps else t.density_weight
+      pending.append(trainer.train_step(next(loader), step, w))
+      done = step + 1
+      if done % t.log_every == 0 or done == total:
+        row = {k: float(np.mean([m[k] for m in jax.device_get(pending)])) for k in pending[0]}
+        now = time.perf_counter()
+        row.update(step=done, phase=1 if step < t.geometry_steps else 2,
+                   samples_per_s=round(len(pending) * t.batch_size / (now - tick), 2))
+        log.write(row)
+        bar.set_postfix(loss=f"{row['loss']:.3f}", phase=row["phase"])
+        pending, tick = [], now
+      if done % t.eval_every == 0 or done == total:
+        last_val = trainer.evaluate(val_ds, t.eval_batches)
+        log.write({"step": done, "split": "val", **last_val})
+        trainer.save(done, last_val["loss"])
+        tick = time.perf_counter()
+      bar.update(1)
+  except KeyboardInterrupt:
+    done = step  # the step in flight did not finish
+    if done > start:
+      print(f"\ninterrupted: saving step {done}; run the same command to resume", flush=True)
+      trainer.save(done, None)
+    raise
+  finally:
+    bar.close()
+    loader.close()
+    trainer.close()
+    log.close()
+  if last_val is None:  # nothing left to train: report the run's last validation
+    with open(log.path) as f:
+      rows = [json.loads(line) for line in f if '"val"' in line]
+    last_val = {k: v for k, v in rows[-1].items() if k not in ("step", "split")} if rows else {}
+  if jax.process_index() == 0:
+    plot_learning_curve(log.path, os.path.join(workdir, "learning_curve.png"))
+  return last_val
+
+
+def trained_steps(workdir: str) -> int:
+  """The step of a workdir's latest checkpoint (0 if it has none)."""
+  path = os.path.join(workdir, checkpoints.LATEST)
+  steps = [int(d) for d in os.listdir(path) if d.isdigit()] if os.path.isdir(path) else []
+  return max(steps, default=0)
+
+
+class MetricsLog:
+  """WORKDIR/metrics.jsonl (one JSON object per row) and TensorBoard events.
+
+  On resume, rows after the restored step are dropped, so the file reads as if the run
+  had never stopped.
+  """
+
+  def __init__(self, workdir: str, start_step: int, enabled: bool = True):
+    from tensorboardX import SummaryWriter
+    self.path, self.enabled = os.path.join(workdir, "metrics.jsonl"), enabled
+    if not enabled:
+      return
+    rows = []
+    if os.path.exists(self.path):
+      with open(self.path) as f:
+        rows = [line for line in f if line.strip() and json.loads(line)["step"] <= start_step]
+    with open(self.path, "w") as f:
+      f.writelines(rows)
+    self.writer = SummaryWriter(os.path.join(workdir, "tensorboard"), purge_step=start_step + 1)
+
+  def write(self, row: dict) -> None:
+    if not self.enabled:
+      return
+    with open(self.path, "a") as f:
+      f.write(json.dumps(row) + "\n")
+    prefix = row.get("split", "train")
+    for k, v in row.items():
+      if k not in ("step", "split") and isinstance(v, (int, float)):
+        self.writer.add_scalar(f"{prefix}/{k}", v, row["step"])
+
+  def close(self) -> None:
+    if self.enabled:
+      self.writer.close()
