@@ -60,8 +60,9 @@ def main(argv):
         "```", command, "```", "",
         f"Test split, {samples} density samples" + (", LM refinement" if refine else "")
         + ". Density top-k in %, RMSE in slots (×100 kg/m³), trajectory MAE in mm"
-        " (the paper's units are not stated)." + (f" Shape F1 of the full model: {f1:.1f} "
-                                                 f"(paper {tables.PAPER_SHAPE_F1})." if f1 is not None else ""),
+        " (the paper's units are not stated)."
+        + (f" Shape F1 of the full model: {f1:.1f} (paper {tables.PAPER_SHAPE_F1})."
+           if f1 is not None else ""),
         ""]
   md += tables.table2_md(rows, observes)
   md += ["", "Paper:", "", "| Method | Top 1 | Top 5 | Top 10 | RMSE | MAE |",

@@ -25,7 +25,7 @@ SAMPLES = tiny.get_config().eval.samples  # the demo's, so compilations are shar
 
 
 def _simulate(prims):
-  return jax.jit(lambda p: ppdjax.simulate(p, PUSHES))(prims)
+  return ppdjax.simulate(prims, PUSHES)  # the compiled rollouts the demo's tour uses too
 
 
 def test_candidates_keep_the_mode_and_have_no_duplicates(rng):
@@ -104,19 +104,26 @@ def test_refinement_from_thirty_percent_off_lands_within_five_percent():
 
 @pytest.fixture(scope="module")
 def decompose(tiny_run):
-  return ppdjax.make_decompose_fn(tiny_run[0], num_samples=SAMPLES)
+  """decompose with refinement, compiled once for these tests (the demo's smoke run tests
+  it without)."""
+  return ppdjax.make_decompose_fn(tiny_run[0], num_samples=SAMPLES, refine=True,
+                                  refine_steps=2)
 
 
-def test_decompose_one_and_a_batch(decompose, tiny_dataset):
+def test_decompose_one_and_a_batch_with_refinement(decompose, tiny_dataset):
+  """One object and a batch of one agree; refinement (LM through MJX, in the same jit) is
+  kept only where it is closer, so the answer is never further than the best sample."""
   sample = storage.open_dataset(tiny_dataset, "test").take([0])
   obs = {k: sample[k] for k in OBS_KEYS}
   batched = decompose(obs, jax.random.key(0))
   one = decompose(jax.tree.map(lambda x: x[0], obs), jax.random.key(0))
   assert batched.primitives.density.shape == (1, 5) and one.primitives.density.shape == (5,)
   np.testing.assert_allclose(one.primitives.density, batched.primitives.density[0])
-  assert one.scores.shape == (SAMPLES,) and float(one.score) <= float(one.scores.min()) + 1e-6
+  assert one.scores.shape == (SAMPLES,) and float(one.score) <= float(one.scores.min()) + 1e-7
   d = np.asarray(one.primitives.density)[np.asarray(one.primitives.valid)]
-  assert np.all((d >= 100) & (d <= 10000)) and np.allclose(d % 100, 0)
+  assert np.all((d >= 100) & (d <= 10000))
+  if float(one.score) >= float(one.scores.min()):  # refinement not kept: a sampled slot
+    np.testing.assert_allclose(d % 100, 0, atol=1e-3)
   np.testing.assert_allclose(metrics.trajectory_distance(one.trajectories,
                                                          obs["trajectories"][0]), one.score,
                              rtol=1e-4)
@@ -140,29 +147,13 @@ def test_bad_observations_are_named(decompose, tiny_dataset):
     decompose({**obs, "voxels": obs["voxels"] * 255}, key)
 
 
-def test_decompose_with_refinement_is_never_further(decompose, tiny_run, tiny_dataset):
-  """refine=True (one object): LM through MJX in the same jit; the answer is kept only
-  where it is closer, so its distance is never above the plain +Sample answer's."""
-  refined = ppdjax.make_decompose_fn(tiny_run[0], num_samples=SAMPLES, refine=True,
-                                     refine_steps=2)
-  sample = storage.open_dataset(tiny_dataset, "test")[0]
-  obs = {k: sample[k] for k in OBS_KEYS}
-  plain, got = decompose(obs, jax.random.key(1)), refined(obs, jax.random.key(1))
-  assert float(got.score) <= float(plain.score) + 1e-7
-  np.testing.assert_allclose(got.scores, plain.scores, rtol=1e-5)  # the same candidates
-  np.testing.assert_allclose(metrics.trajectory_distance(got.trajectories,
-                                                         obs["trajectories"]), got.score,
-                             rtol=1e-4)
-  d = np.asarray(got.primitives.density)[np.asarray(got.primitives.valid)]
-  assert np.all((d >= 100) & (d <= 10000))
-
-
 def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   out = str(tmp_path / "eval")
   env = {**os.environ, "JAX_PLATFORMS": "cpu",
          "JAX_COMPILATION_CACHE_DIR": os.path.join(ROOT, ".jax_cache")}
   done = subprocess.run([sys.executable, "-m", "ppdjax.evaluate", f"--workdir={tiny_run[0]}",
-                         f"--data={tiny_dataset}", f"--out={out}"],  # the preset's eval
+                         f"--data={tiny_dataset}", f"--out={out}", "--max_objects=8"],
+                        # samples, batch size, τ: the preset's eval section
                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
   assert done.returncode == 0, done.stderr[-3000:]
   with open(os.path.join(out, "results.json")) as f:
@@ -173,12 +164,11 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
     assert 0 <= row["top1"] <= row["top5"] <= row["top10"] <= 100 and row["mae"] >= 0
   assert rows["Oracle"]["top10"] > rows["Frequent"]["top10"]
   assert set(results["table4"]) == {"PPD", "Sample Phys.", "Sample Phys.+Shape"}
-  for r in results["table4"].values():  # best of more samples is never worse
-    assert r[str(SAMPLES)] <= r["8"] <= r["1"] + 1e-9
+  for r in results["table4"].values():  # MAE (mm) of the best of 1, 8, S by distance
+    assert set(r) == {"1", "8", str(SAMPLES)} and all(0 < v < 2000 for v in r.values())
   assert results["table4"]["PPD"]["1"] == pytest.approx(rows["PPD"]["mae"])
-  assert results["objects"] == len(storage.open_dataset(tiny_dataset, "test"))
-  assert results["samples"] == SAMPLES and results["batch_size" if "batch_size" in results
-                                                   else "samples"] is not None
+  assert results["objects"] == 8 and results["samples"] == SAMPLES
+  assert results["prior_weight"] == tiny.get_config().eval.prior_weight
   text = open(os.path.join(out, "results.md")).read()
   assert "Table 2" in text and "Table 4" in text and "| PPD+Sample |" in text
   assert os.path.exists(os.path.join(out, "confusion.png"))

@@ -141,7 +141,7 @@ def test_leading_batch_axes_and_jit(prims, mjx_traj):
   np.testing.assert_allclose(short, mjx_traj[0, :, :8], atol=1e-5)
 
 
-@pytest.mark.slow  # a cross-check of ~60 s on 2 cores (decompose(refine=True) runs jacfwd by default)
+@pytest.mark.slow  # a cross-check of ~60 s; decompose(refine=True) runs jacfwd by default
 def test_forward_mode_density_derivatives_vs_finite_differences(prims):
   """d(trajectory)/d(log density) by jacfwd through MJX against central differences.
 
@@ -172,8 +172,8 @@ def test_forward_mode_density_derivatives_vs_finite_differences(prims):
 
 @pytest.mark.slow  # a cross-check of ~50 s on 2 cores: `make test-all`
 def test_fixed_iteration_step_matches_mjx_step(prims):
-  """ppdjax.mjx_step (no while_loop, unrolled Cholesky) computes what mjx.step computes."""
-  from ppdjax.rollout_mjx import MjxSettings
+  """ppdjax.sim.mjx_step (no while_loop, unrolled Cholesky) computes what mjx.step computes."""
+  from ppdjax.sim.rollout_mjx import MjxSettings
   few = jax.tree.map(lambda x: x[:2], prims)
   ours = np.asarray(ppdjax.simulate(few, steps=30, settings=MjxSettings()))
   theirs = np.asarray(ppdjax.simulate(few, steps=30, settings=MjxSettings(

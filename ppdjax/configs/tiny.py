@@ -26,7 +26,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.data.backend = "mjx"  # the engine inference uses; "mujoco" makes a marked C variant
   config.data.split_fractions = (0.8, 0.1, 0.1)
   config.data.render_workers = 0  # processes rendering in parallel (0: this process)
-  # The PPD network (paper appendix; ppdjax.model).
+  # The PPD network (paper appendix; ppdjax.nn.model).
   config.model = ml_collections.ConfigDict()
   config.model.feature = 64  # f_V, f_I, f_T and f
   config.model.hidden = 64  # LSTM hidden size (trajectory encoder and generator)
@@ -47,18 +47,18 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.batch_size = 16  # global, split over all devices
   config.train.learning_rate = 1e-3  # Adam, beta = (0.9, 0.999), as in the appendix
   config.train.schedule = "constant"  # or "cosine": decay to 0 over all steps
-  config.train.geometry_steps = 60  # phase 1: geometry only (w = 0)
-  config.train.joint_steps = 140  # phase 2: geometry + w x density
+  config.train.geometry_steps = 40  # phase 1: geometry only (w = 0)
+  config.train.joint_steps = 80  # phase 2: geometry + w x density
   config.train.density_weight = 0.5  # w of Eq. 4-5 (docs/training.md says why 0.5)
   config.train.log_every = 10
-  config.train.eval_every = 100  # validation and checkpoint
+  config.train.eval_every = 60  # validation and checkpoint
   config.train.eval_batches = 4  # validation batches per evaluation (0: the whole split)
   config.train.keep_checkpoints = 3
   config.train.prefetch = 2  # batches read ahead in a background thread
   # Evaluation and decomposition (python -m ppdjax.evaluate; the demo's last steps).
   config.eval = ml_collections.ConfigDict()
-  config.eval.samples = 16  # density samples per object (the paper: 512)
-  config.eval.refine = False  # LM refinement through MJX (~3 min to compile on a CPU)
+  config.eval.samples = 8  # density samples per object (the paper: 512)
+  config.eval.refine = False  # LM refinement through MJX (about a minute to compile on a CPU)
   config.eval.refine_steps = 12
   config.eval.batch_size = 8
   config.eval.prior_weight = 0.0  # +Sample: distance - tau log prior (m per nat; 0: the paper's)

@@ -1,4 +1,4 @@
-"""Example towers saved as .npz (observation and truth), decomposed with a report beside the truth."""
+"""Example towers as .npz (observation and truth), decomposed with a report beside the truth."""
 
 from __future__ import annotations
 

@@ -37,7 +37,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     prims: one object (K boxes) with the starting densities (e.g. the best sample's).
     observed: (P, T, 7) observed trajectories.
     pushes: the P pushes (None: the paper's four).
-    steps: LM iterations (each: one primal + K tangent rollouts, and one trial rollout).
+    steps: LM iterations (steps + 1 rollouts in all, each with its K tangents).
     warmup_steps: the horizon of the first steps // 2 iterations.
     damping: initial λ of (JᵀJ + λ·diag(JᵀJ)) δ = −Jᵀr.
     settings: MJX solver settings.
@@ -53,42 +53,58 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   lo, hi = jnp.log(MIN_DENSITY), jnp.log(MAX_DENSITY)
   valid = prims.valid
 
-  def rollout(u):
-    return simulate(prims.replace(density=jnp.exp(u)), pushes, steps=t, settings=settings)
+  def residual(u):  # (P, T, 6) and, as aux, the same and the rollout
+    sim = simulate(prims.replace(density=jnp.exp(u)), pushes, steps=t, settings=settings)
+    r = metrics.pose_residual(sim, observed)
+    return r, (r, sim)
 
-  def residual(u, horizon):
-    r = metrics.pose_residual(rollout(u), observed)
-    return jnp.where(jnp.arange(t)[:, None] < horizon, r, 0.0).reshape(-1)
+  def cost(r, horizon):
+    return 0.5 * jnp.sum(jnp.where(jnp.arange(t)[:, None] < horizon, r, 0.0) ** 2)
 
-  def cost(r):
-    return 0.5 * jnp.sum(r * r)
-
-  def iterate(carry, horizon):
-    u, lam, accepted = carry
-    jac, r = jax.jacfwd(lambda v: (residual(v, horizon),) * 2, has_aux=True)(u)
-    jac = jnp.where(valid, jac, 0.0)
+  def propose(u, r, jac, lam, horizon):
+    keep = (jnp.arange(t) < horizon)[None, :, None]
+    jac = jnp.where(keep[..., None] & valid, jac, 0.0).reshape(-1, valid.shape[0])
+    r = jnp.where(keep, r, 0.0).reshape(-1)
     h, g = jac.T @ jac, jac.T @ r
     diag = jnp.where(valid, jnp.diagonal(h), 1.0)
     a = h + jnp.diag(lam * diag + 1e-9 + (~valid))
-    trial = jnp.where(valid, jnp.clip(u - jnp.linalg.solve(a, g), lo, hi), u)
-    c_trial = cost(residual(trial, horizon))
-    better = jnp.isfinite(c_trial) & (c_trial < cost(r))
-    return (jnp.where(better, trial, u), jnp.where(better, lam * 0.3, lam * 4.0),
-            accepted + better), None
+    return jnp.where(valid, jnp.clip(u - jnp.linalg.solve(a, g), lo, hi), u)
 
-  horizons = jnp.where(jnp.arange(steps) < steps // 2, min(warmup_steps, t), t)
+  # Each pass evaluates the last proposal and its Jacobian in ONE forward-mode rollout
+  # (the Jacobian at an accepted point is the next one's), keeps it if it lowered the cost
+  # at the horizon it was proposed for, and proposes the next step. Pass 0 evaluates the
+  # start; passes 1..steps the proposals of passes 0..steps-1.
+  def iterate(carry, horizons):
+    proposed_with, horizon = horizons
+    trial, u, r, jac, sim, lam, accepted, r0, sim0 = carry
+    jac_t, (r_t, sim_t) = jax.jacfwd(residual, has_aux=True)(trial)
+    first = jnp.isinf(lam)  # pass 0: nothing to compare with
+    c_t = cost(r_t, proposed_with)
+    take = first | (jnp.isfinite(c_t) & (c_t < cost(r, proposed_with)))
+    u, r, jac, sim = jax.tree.map(lambda a, b: jnp.where(take, a, b), (trial, r_t, jac_t, sim_t),
+                                  (u, r, jac, sim))
+    lam = jnp.where(first, damping, jnp.where(take, lam * 0.3, lam * 4.0))
+    r0, sim0 = jnp.where(first, r_t, r0), jnp.where(first, sim_t, sim0)
+    carry = (propose(u, r, jac, lam, horizon), u, r, jac, sim, lam,
+             accepted + (take & ~first), r0, sim0)
+    return carry, None
+
+  horizon = jnp.where(jnp.arange(steps + 1) < steps // 2, min(warmup_steps, t), t)
+  horizons = (jnp.concatenate([horizon[:1], horizon[:-1]]), horizon)
   u0 = jnp.log(jnp.clip(prims.density, MIN_DENSITY, MAX_DENSITY))
-  (u, _, accepted), _ = jax.lax.scan(iterate, (u0, jnp.float32(damping), 0), horizons)
-  # The warm-up iterations fit a shorter horizon and may raise the full-trajectory cost:
+  p, n, k = pushes.num, t, valid.shape[0]
+  zeros_r, zeros_sim = jnp.zeros((p, n, 6)), jnp.zeros((p, n, 7))
+  init = (u0, u0, zeros_r, jnp.zeros((p, n, 6, k)), zeros_sim, jnp.float32(jnp.inf), 0,
+          zeros_r, zeros_sim)
+  (_, u, r, _, sim, _, accepted, r0, sim0), _ = jax.lax.scan(iterate, init, horizons)
+  # The warm-up passes fit a shorter horizon and may raise the full-trajectory cost:
   # never return something worse than the start.
-  # Both ends in one batched rollout (one compiled copy, not two).
-  sims = jax.vmap(rollout)(jnp.stack([u0, u]))
-  c0, c1 = (cost(metrics.pose_residual(s, observed)) for s in sims)
+  c0, c1 = cost(r0, t), cost(r, t)
   better = c1 < c0
   u = jnp.where(better, u, u0)
   out = prims.replace(density=jnp.where(valid, jnp.exp(u), prims.density))
   return out, {"cost_start": c0, "cost": jnp.minimum(c1, c0), "accepted": accepted,
-               "trajectories": jnp.where(better, sims[1], sims[0])}
+               "trajectories": jnp.where(better, sim, sim0)}
 
 
 @struct.dataclass

@@ -1,12 +1,12 @@
 """The pushes that set objects moving: the paper's four, where each acts, and its wrench.
 
-Push convention (docs/physics.md): a push has a source point and a target point in the object frame at rest
-(object axes = world axes, origin = object-frame origin). The force, of the given
-magnitude, points from source to target and acts, for `duration` steps, at the first
-point where the ray source -> target meets a valid box. If the ray misses every box (an
-object that does not contain its own origin, e.g. an L shape seen edge-on), the force
-acts at the target itself. A force at a point is applied as force plus torque about the
-centre of mass (MuJoCo's `xfrc_applied`).
+Push convention (docs/physics.md): a push has a source point and a target point in the
+object frame at rest (object axes = world axes, origin = object-frame origin). The force,
+of the given magnitude, points from source to target and acts, for `duration` steps, at
+the first point where the ray source -> target meets a valid box. If the ray misses every
+box (an object that does not contain its own origin, e.g. an L shape seen edge-on), the
+force acts at the target itself. A force at a point is applied as force plus torque about
+the centre of mass (MuJoCo's `xfrc_applied`).
 """
 
 from __future__ import annotations

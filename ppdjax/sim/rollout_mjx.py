@@ -30,7 +30,7 @@ class MjxSettings:
     push_iterations, push_ls_iterations: solver settings while a push acts (and for
       `push_steps_extra` steps after it): a 1e5 N push changes the contact state in one
       step, which a few Newton iterations do not resolve; the loop stops at convergence.
-    fixed_iterations: step with `ppdjax.mjx_step` (the same Newton iterations without
+    fixed_iterations: step with `ppdjax.sim.mjx_step` (the same Newton iterations without
       MJX's while_loop and its host sync per iteration) instead of `mjx.step`; the push
       step too when `push_iterations <= MAX_UNROLLED_ITERATIONS`.
     unrolled_cholesky: with `fixed_iterations`, solve each Newton system by an unrolled
