@@ -13,10 +13,8 @@ from ppdjax.dataset import generation, storage
 
 def small_config(**overrides):
   config = tiny.get_config()
-  config.data.num_towers = 4
-  config.data.towers_per_shard = 2
-  config.data.image_size = 32
-  config.data.steps = 16
+  # two shards of the tiny preset's shape, so the tiny dataset's compiled programs serve
+  config.data.num_towers = 8
   for k, v in overrides.items():
     config.data[k] = v
   return config
@@ -41,17 +39,17 @@ def _files(path):
 
 def test_samples_have_the_design_keys_and_shapes(dataset_dir):
   ds = storage.open_dataset(dataset_dir)
-  assert len(ds) == 4 * 8
+  assert len(ds) == 8 * 8
   s = ds[3]
   assert s["voxels"].shape == (32, 32, 32) and s["voxels"].dtype == np.uint8
-  assert s["image"].shape == (32, 32, 3) and s["image"].dtype == np.uint8
-  assert s["depth"].shape == (32, 32) and s["depth"].dtype == np.float32
-  assert s["trajectories"].shape == (4, 16, 7) and s["trajectories"].dtype == np.float32
+  assert s["image"].shape == (64, 64, 3) and s["image"].dtype == np.uint8
+  assert s["depth"].shape == (64, 64) and s["depth"].dtype == np.float32
+  assert s["trajectories"].shape == (4, 256, 7) and s["trajectories"].dtype == np.float32
   assert s["primitives"].density.shape == (5,) and s["materials"].shape == (5,)
   s["primitives"].validate()
   assert isinstance(s["tower_id"], int)
   manifest = json.load(open(os.path.join(dataset_dir, "manifest.json")))
-  assert manifest["engine"]["backend"] == "mjx" and manifest["samples"] == 32
+  assert manifest["engine"]["backend"] == "mjx" and manifest["samples"] == 64
   for name in ("card.md", "contact_sheet.png", "density_histogram.png"):
     assert os.path.getsize(os.path.join(dataset_dir, name)) > 100
 
@@ -62,10 +60,10 @@ def test_splits_are_disjoint_by_tower(dataset_dir):
     try:
       ds = storage.open_dataset(dataset_dir, split)
     except storage.DatasetError:
-      continue  # 4 towers may leave a split empty
+      continue  # 8 towers may leave a split empty
     towers[split] = {ds[i]["tower_id"] for i in range(len(ds))}
   ids = [t for v in towers.values() for t in v]
-  assert len(ids) == len(set(ids)) == 4
+  assert len(ids) == len(set(ids)) == 8
   split = storage.split_of(np.arange(10000))
   assert abs((split == 0).mean() - 0.8) < 0.02 and abs((split == 2).mean() - 0.1) < 0.02
 
@@ -92,8 +90,7 @@ def test_resume_is_byte_identical(dataset_dir, tmp_path, monkeypatch):
 
 def test_refuses_another_config_and_bad_values(dataset_dir):
   with pytest.raises(ValueError, match="another config"):
-    generation.generate(small_config(image_size=48),
-                      dataset_dir, progress=False)
+    generation.generate(small_config(image_size=48), dataset_dir, progress=False)
   with pytest.raises(ValueError, match="config.data.image_size"):
     generation.check_config(small_config(image_size=4).data)
   with pytest.raises(ValueError, match="config.data.backend"):
@@ -159,7 +156,7 @@ def test_loader_is_deterministic_and_streams(dataset_dir):
   a = list(storage.batches(ds, 8, seed=3))
   b = list(storage.batches(ds, 8, seed=3))
   c = list(storage.batches(ds, 8, seed=3, epoch=1))
-  assert len(a) == 4 and a[0]["image"].shape == (8, 32, 32, 3)
+  assert len(a) == 8 and a[0]["image"].shape == (8, 64, 64, 3)
   assert a[0]["primitives"].density.shape == (8, 5)
   assert all(np.array_equal(x["tower_id"], y["tower_id"]) for x, y in zip(a, b))
   assert not all(np.array_equal(x["tower_id"], y["tower_id"]) for x, y in zip(a, c))
