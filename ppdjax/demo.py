@@ -27,6 +27,7 @@ def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
   from ppdjax import showcase
+  from ppdjax.infer import example
   config, out = _CONFIG.value, _OUT.value
   samples = config.demo.example_samples
   print(f"[1/3] the shipped model decomposes the example tower ({samples} density samples "
@@ -34,7 +35,8 @@ def main(argv):
   r = showcase.shipped_example(_MODEL.value, _EXAMPLE.value, out, samples)
   print(f"  {r['shape_matched']}/{len(r['true_densities'])} boxes found (IoU > 0.5); "
         f"densities {[round(d) for d in r['densities']]} kg/m³, true "
-        f"{[round(d) for d in r['true_densities']]} -> {out}/example.png, example.md", flush=True)
+        f"{[round(d) for d in r['true_densities']]}. {example.heaviest_line(r)} -> "
+        f"{out}/example.png, example.md", flush=True)
   print("[2/3] physics: one random tower under the paper's four pushes...", flush=True)
   summary = showcase.physics_tour(config, out)
   print(f"  speeds after the pushes {summary['speed_after_push_m_s']} m/s -> "

@@ -27,6 +27,7 @@ def test_shipped_example_report_puts_the_answer_beside_the_truth(tmp_path):
   assert os.path.getsize(tmp_path / "example.png") > 1000
   text = (tmp_path / "example.md").read_text()
   assert text.count("\n| ") == 1 + len(r["true_densities"])  # header + one row per box
+  assert "Heaviest 2 boxes (numbered from the bottom): recovered" in text
   for d in r["true_densities"]:
     assert f"| {d:.0f} |" in text
   assert len(r["densities"]) == len(r["true_densities"]) == 4

@@ -84,6 +84,14 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
           "samples": samples, "seconds": seconds, "path": out}
 
 
+def heaviest_line(r: dict, count: int = 2) -> str:
+  """'Heaviest 2 boxes: recovered 2 and 4, true 2 and 4.' (bottom-to-top numbers)."""
+  count = min(count, len(r["densities"]), len(r["true_densities"]))
+  top = lambda d: " and ".join(str(k + 1) for k in sorted(np.argsort(d)[::-1][:count]))
+  return (f"Heaviest {count} boxes (numbered from the bottom): recovered "
+          f"{top(r['densities'])}, true {top(r['true_densities'])}.")
+
+
 def report_md(r: dict, model_dir: str, example: str) -> str:
   """A short report: each box's recovered density and geometry beside the truth."""
   lines = [f"# `{os.path.basename(os.path.normpath(model_dir))}` on "
@@ -92,7 +100,7 @@ def report_md(r: dict, model_dir: str, example: str) -> str:
            f"{r['shape_matched']} match a true box at IoU > 0.5. {r['samples']} density "
            f"samples simulated in MJX; the closest trajectories are "
            f"{r['distance_m'] * 1e3:.1f} mm away on average (MAE {r['mae_mm']:.1f} mm). "
-           f"One warm call: {r['seconds'] * 1e3:.0f} ms.", "",
+           f"One warm call: {r['seconds'] * 1e3:.0f} ms. {heaviest_line(r)}", "",
            "| box (bottom to top) | density (kg/m³) | true | slot error | IoU with true box |",
            "|--:|--:|--:|--:|--:|"]
   n = max(len(r["densities"]), len(r["true_densities"]))
