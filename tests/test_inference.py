@@ -17,6 +17,7 @@ from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage, towers
 from ppdjax.infer import evaluation, refine, sampling
 from ppdjax.primitives import quat_mul
+from ppdjax.sim.rollout_mjx import MjxSettings
 from ppdjax.training import checkpoints
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -105,9 +106,11 @@ def test_refinement_from_thirty_percent_off_lands_within_five_percent():
 @pytest.fixture(scope="module")
 def decompose(tiny_run):
   """decompose with refinement, compiled once for these tests (the demo's smoke run tests
-  it without)."""
+  it without). Fewer solver iterations than the dataset's halve the compile time on a CPU;
+  the code path is the default one."""
+  cheap = MjxSettings(iterations=1, ls_iterations=1, push_iterations=2, push_ls_iterations=1)
   return ppdjax.make_decompose_fn(tiny_run[0], num_samples=SAMPLES, refine=True,
-                                  refine_steps=2)
+                                  refine_steps=2, settings=cheap)
 
 
 def test_decompose_one_and_a_batch_with_refinement(decompose, tiny_dataset):

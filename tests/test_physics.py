@@ -132,11 +132,15 @@ def test_one_compiled_function_ignores_padding(prims, mjx_traj):
   np.testing.assert_allclose(out, mjx_traj, atol=1e-5)
 
 
-def test_leading_batch_axes_and_jit(prims, mjx_traj):
+def test_leading_batch_axes(prims, mjx_traj):
   grid = jax.tree.map(lambda x: np.reshape(x, (2, NUM_TOWERS // 2) + np.shape(x)[1:]), prims)
   out = ppdjax.simulate(grid)
   assert out.shape == (2, NUM_TOWERS // 2, 4, 256, 7)
   np.testing.assert_allclose(np.reshape(out, mjx_traj.shape), mjx_traj, atol=1e-6)
+
+
+@pytest.mark.slow  # ~25 s to compile; sampling and refinement trace simulate under jit too
+def test_simulate_under_jit_with_fewer_steps(prims, mjx_traj):
   short = jax.jit(lambda p: ppdjax.simulate(p, steps=8))(jax.tree.map(jnp.asarray,
                                                                        index(prims, 0)))
   np.testing.assert_allclose(short, mjx_traj[0, :, :8], atol=1e-5)
