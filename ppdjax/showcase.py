@@ -65,7 +65,8 @@ def physics_tour(config, out_dir: str) -> dict:
   rest = np.asarray(rest_position(p))
   first_speed = np.linalg.norm(traj[:, 0, :3] - rest, axis=-1) / TIMESTEP
   summary = {
-      "config": config.name, "seed": config.seed, "backend": cfg.backend,
+      "config": config.name, "seed": config.seed, "backend": cfg.backend, "steps": cfg.steps,
+      "push_sources": np.asarray(pushes.sources).round(3).tolist(),
       "blocks": [{"material": n, "density": float(d), "half_size": hs.round(4).tolist(),
                   "pos": ps.round(4).tolist()}
                  for n, d, hs, ps in zip(names, np.asarray(prims.density), np.asarray(
@@ -98,13 +99,13 @@ def _markdown(s: dict) -> str:
            f"Engine: {s['backend']}.", "",
            "| block | material | density (kg/m³) |", "|---|---|---|"]
   lines += [f"| {i} | {b['material']} | {b['density']:.0f} |" for i, b in enumerate(s["blocks"])]
-  lines += ["", "| push | source | speed after push (m/s) | displacement after 256 steps (m) "
-            "| gap to reference, first 0.1 s / final (mm) |", "|---|---|---|---|---|"]
-  sources = ["(+1, -1, +1)", "(-1, -1, +1)", "(+1, -1, -1)", "(-1, -1, -1)"]
+  lines += ["", f"| push | source | speed after push (m/s) | displacement after {s['steps']} "
+            "steps (m) | gap to reference, first 0.1 s / final (mm) |", "|---|---|---|---|---|"]
+  sources = ["(" + ", ".join(f"{v:+g}" for v in src) + ")" for src in s["push_sources"]]
   for i in range(len(s["speed_after_push_m_s"])):
     gap = s.get("gap_to_reference_mm")
     gap_txt = f"{gap['first_0.1s_max'][i]:.3f} / {gap['final'][i]:.2f}" if gap else "-"
-    lines.append(f"| {i} | {sources[i] if i < 4 else '-'} | {s['speed_after_push_m_s'][i]:.2f} "
+    lines.append(f"| {i} | {sources[i]} | {s['speed_after_push_m_s'][i]:.2f} "
                  f"| {s['final_displacement_m'][i]:.3f} | {gap_txt} |")
   lines += ["", "![trajectories](trajectories.png)", ""]
   return "\n".join(lines)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS
+from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION
 from ppdjax.infer.refine import refine_if_closer
 from ppdjax.infer.sampling import select_densities
 from ppdjax.primitives import Primitives
@@ -49,7 +49,7 @@ def check_observation(obs: dict, config) -> bool:
   p = config.model.num_pushes
   batched = np.ndim(traj) == 4
   lead = (np.shape(traj)[0],) if batched else ()
-  expected = {"trajectories": lead + (p, None, 7), "voxels": lead + (32, 32, 32),
+  expected = {"trajectories": lead + (p, None, 7), "voxels": lead + (VOXEL_RESOLUTION,) * 3,
               "image": lead + (None, None, 3)}
   for name, shape in expected.items():
     got = np.shape(obs[name])
