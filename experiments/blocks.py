@@ -75,7 +75,7 @@ class Pipeline:
     t = self.config.train
     for v in ORDER:
       out.append((f"train:{v}", lambda v=v: loop.trained_steps(self.workdir(v))
-                  >= t.geometry_steps + t.joint_steps, lambda v=v: self.train(v)))
+                  >= total_steps(t), lambda v=v: self.train(v)))
     for v in ORDER:
       out.append((f"evaluate:{v}", lambda v=v: self.evaluated(v), lambda v=v: self.evaluate(v)))
     out.append(("report", lambda: False, self.report))

@@ -1,101 +1,149 @@
-"""How well the voxel encoder recovers tower geometry: shape F1 of voxel-only models.
+"""Shape from voxels alone: held-out shape F1 by voxel encoder and number of distinct geometries.
 
-Trains the generator's geometry (paper Eq. 4, w = 0) from voxels alone on freshly sampled
-towers (no simulation or rendering needed) and reports shape F1 on held-out towers, for
-each voxel-encoder width and feature size given. It isolates the shape half of PPD: the
-block pipeline's F1 target (the paper's) is reached or missed here.
+Trains the voxel encoder and generator on geometry (the L1 box loss and the end token,
+`losses.loss_fn` with w = 0) exactly as the training loop's geometry stream does
+(`training.state.train_step` with no dataset batch), from either the unlimited stream of
+fresh towers (`dataset.stream`) or a fixed pool of N towers drawn from it once (with or
+without the stream's symmetries of the square as augmentation). Scores shape F1 (IoU >
+0.5, the paper's) and the exact box count on towers of a seed no run trains on, drawn by
+the NumPy sampler (`ppdjax.sample_towers`) and voxelized by `ppdjax.voxelize`, with 95 %
+bootstrap intervals over towers.
 
-  python experiments/shape_study.py --widths=1,8 --steps=2000 --out=experiments/results/shape_study.json
+  python experiments/shape_study.py --runs=paper_encoder,keep4 --steps=3000
 """
 
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
-import optax
 from absl import app, flags
 from flax import nnx
 
 import ppdjax
 from ppdjax import metrics
-from ppdjax.configs import tiny
-from ppdjax.nn import losses
-from ppdjax.nn.model import PPD
-from ppdjax.training.state import learning_rate
+from ppdjax.configs import paper
+from ppdjax.dataset import stream
+from ppdjax.training import state
 
-_WIDTHS = flags.DEFINE_list("widths", ["1", "8"], "voxel encoder channel multipliers")
-_FEATURES = flags.DEFINE_integer("feature", 64, "feature and hidden size")
-_STEPS = flags.DEFINE_integer("steps", 2000, "Adam steps per model")
-_BATCH = flags.DEFINE_integer("batch", 64, "batch size")
-_LR = flags.DEFINE_float("lr", 1e-3, "Adam learning rate")
-_TRAIN = flags.DEFINE_integer("train_towers", 8000, "distinct training geometries")
-_TEST = flags.DEFINE_integer("test_towers", 512, "held-out geometries")
-_SCHEDULE = flags.DEFINE_enum("schedule", "constant", ["constant", "cosine"], "Adam's rate")
-_COORDS = flags.DEFINE_bool("coords", False, "coordinate channels in the voxel encoder")
-_OUT = flags.DEFINE_string("out", "", "JSON file for the results")
+# name -> (voxel_keep, feature and hidden size, distinct geometries (0: the stream), augment)
+RUNS = {
+    "paper_encoder": (1, 64, 0, True),
+    "keep4_f64": (4, 64, 0, True),
+    "keep4": (4, 256, 0, True),
+    "keep4_pool4800": (4, 256, 4_800, True),
+    "keep4_pool4800_noaug": (4, 256, 4_800, False),
+    "keep4_pool50k": (4, 256, 50_000, True),
+}
+_RUNS = flags.DEFINE_list("runs", list(RUNS), f"which of {', '.join(RUNS)}")
+_STEPS = flags.DEFINE_integer("steps", 3000, "Adam steps per model")
+_BATCH = flags.DEFINE_integer("batch", 256, "batch size")
+_LR = flags.DEFINE_float("lr", 4e-3, "Adam's rate, cosine-decayed to 0")
+_WIDTH = flags.DEFINE_integer("width", 8, "voxel encoder channel multiplier")
+_TEST = flags.DEFINE_integer("test_towers", 1000, "held-out towers")
+_TEST_SEED = flags.DEFINE_integer("test_seed", 20261123, "their seed (never trained on)")
+_CURVE = flags.DEFINE_integer("curve_points", 4, "held-out F1 evaluations per run")
+_OUT = flags.DEFINE_string("out", "experiments/results/shape_study.json", "results JSON")
 
 
-def tower_set(seed: int, count: int) -> tuple[np.ndarray, object]:
-  prims = ppdjax.sample_towers(seed, count)
-  return ppdjax.voxelize(prims), prims
+def study_config(keep: int, feature: int, augment: bool):
+  config = paper.get_config()
+  m, t = config.model, config.train
+  m.use_image = m.use_trajectory = False
+  m.voxel_width, m.voxel_keep, m.feature, m.hidden, m.dropout = _WIDTH.value, keep, feature, \
+      feature, 0.0
+  t.update(batch_size=_BATCH.value, learning_rate=_LR.value, schedule="cosine",
+           stream_steps=_STEPS.value, geometry_steps=0, joint_steps=0, augment=augment)
+  return config
 
 
-def run(width: int, train, test, steps: int) -> dict:
-  config = tiny.get_config().model
-  config.use_image = config.use_trajectory = False
-  config.voxel_width, config.feature, config.hidden, config.dropout = width, _FEATURES.value, \
-      _FEATURES.value, 0.0
-  config.voxel_coords = _COORDS.value
-  model = PPD(config, rngs=nnx.Rngs(params=0))
-  optimizer = nnx.Optimizer(model, optax.adam(learning_rate(ml_collections.ConfigDict(
-      {"learning_rate": _LR.value, "schedule": _SCHEDULE.value, "geometry_steps": steps,
-       "joint_steps": 0}))), wrt=nnx.Param)
-  obs = lambda v: {"voxels": v, "trajectories": jnp.zeros((v.shape[0], 1, 1, 7))}
+def held_out():
+  prims = ppdjax.sample_towers(_TEST_SEED.value, _TEST.value)
+  return jnp.asarray(ppdjax.voxelize(prims)), jax.tree.map(jnp.asarray, prims)
 
-  @nnx.jit
-  def step(model, optimizer, vox, prims):
-    tgt = losses.targets(prims)
-    def loss(m):
-      return losses.loss_fn(m(obs(vox), tgt["prev"], train=True), tgt, 0.0)[0]
-    value, grads = nnx.value_and_grad(loss)(model)
-    optimizer.update(model, grads)
-    return value
 
-  @nnx.jit
-  def counts(model, vox, prims):
-    pred, _ = model.decode(obs(vox))
-    return jax.tree.map(jnp.sum, metrics.shape_counts(pred, prims))
+def score(graphdef, st, voxels, prims) -> dict:
+  """Held-out F1 and exact box count, each with a 95 % bootstrap interval."""
+  @jax.jit
+  def counts(st, v, p):
+    pred, _ = nnx.merge(graphdef, st).model.decode({"voxels": v})
+    return metrics.shape_counts(pred, p)
+  parts = [counts(st, voxels[i:i + 250], jax.tree.map(lambda x: x[i:i + 250], prims))
+           for i in range(0, len(voxels), 250)]
+  c = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in parts[0]}
+  f1 = lambda i: metrics.f1_from_counts(c["matched"][i], c["predicted"][i], c["true"][i])
+  exact = lambda i: 100.0 * float(np.mean(c["predicted"][i] == c["true"][i]))
+  everything = np.arange(len(c["true"]))
+  return {"f1": f1(everything), "f1_ci95": metrics.bootstrap_interval(f1, len(everything)),
+          "count_exact": exact(everything),
+          "count_exact_ci95": metrics.bootstrap_interval(exact, len(everything)),
+          "objects": len(everything)}
 
-  vox, prims = train
-  rng, start, curve = np.random.default_rng(0), time.time(), []
-  for i in range(steps):
-    idx = rng.integers(0, len(vox), _BATCH.value)
-    value = step(model, optimizer, vox[idx], jax.tree.map(lambda x: x[idx], prims))
-    if (i + 1) % max(steps // 10, 1) == 0:
-      curve.append((i + 1, float(value)))
-      print(f"width {width}: step {i + 1} loss {float(value):.3f} ({time.time() - start:.0f} s)")
-  c = counts(model, test[0], test[1])
-  return {"width": width, "feature": _FEATURES.value, "steps": steps, "batch": _BATCH.value,
-          "lr": _LR.value, "schedule": _SCHEDULE.value,
-          "coords": _COORDS.value,
-          "f1": metrics.f1_from_counts(c["matched"], c["predicted"], c["true"]),
-          "train_loss": curve, "seconds": time.time() - start}
+
+def run(name: str, test) -> dict:
+  keep, feature, pool_size, augment = RUNS[name]
+  config = study_config(keep, feature, augment)
+  t = config.train
+  graphdef, st = nnx.split(state.build(config))
+  if pool_size:  # a fixed pool drawn once from the stream's sampler, then resampled
+    pool = stream.geometry_batch(jax.random.key(12345), pool_size, augmented=False)
+
+    def batch_at(i):
+      k_idx, k_aug = jax.random.split(jax.random.fold_in(jax.random.key(t.seed), i))
+      idx = jax.random.randint(k_idx, (t.batch_size,), 0, pool_size)
+      v, p = pool["voxels"][idx], jax.tree.map(lambda x: x[idx], pool["primitives"])
+      if augment:
+        v, p = stream.augment(k_aug, v, p)
+      return {"voxels": v, "primitives": p}
+  else:
+    batch_at = lambda i: None  # the stream: fresh towers made inside the step
+  step = jax.jit(lambda s, i: state.train_step(graphdef, s, batch_at(i), i, 0.0, t),
+                 donate_argnums=0)
+  curve, losses, start = [], [], time.time()
+  marks = {int(round(_STEPS.value * (j + 1) / _CURVE.value)) for j in range(_CURVE.value)}
+  for i in range(_STEPS.value):
+    st, aux = step(st, jnp.int32(i))
+    if (i + 1) % 100 == 0:
+      losses.append((i + 1, float(aux["geometry_loss"]), float(aux["end_loss"])))
+    if i + 1 in marks:
+      s = score(graphdef, st, *test)
+      curve.append({"step": i + 1, **s, "seconds": round(time.time() - start, 1)})
+      print(f"{name}: step {i + 1} F1 {s['f1']:.1f} [{s['f1_ci95'][0]:.1f}, "
+            f"{s['f1_ci95'][1]:.1f}] count exact {s['count_exact']:.1f} % "
+            f"({time.time() - start:.0f} s)", flush=True)
+  return {"name": name, "voxel_keep": keep, "feature": feature,
+          "geometries": pool_size or "unlimited", "augment": augment, "steps": _STEPS.value,
+          "batch": _BATCH.value, "lr": _LR.value, "width": _WIDTH.value, **curve[-1],
+          "curve": curve, "train_losses": losses}
 
 
 def main(_):
-  train, test = tower_set(1, _TRAIN.value), tower_set(2, _TEST.value)
-  results = [run(int(w), train, test, _STEPS.value) for w in _WIDTHS.value]
-  for r in results:
-    print(f"width {r['width']} feature {r['feature']} {r['schedule']} batch {r['batch']}: F1 {r['f1']:.1f} after {r['steps']} steps "
-          f"({r['seconds']:.0f} s)")
-  if _OUT.value:
+  unknown = set(_RUNS.value) - set(RUNS)
+  if unknown:
+    raise app.UsageError(f"unknown runs {sorted(unknown)}; choose from {list(RUNS)}")
+  test = held_out()
+  results = {"command": "python experiments/shape_study.py " + " ".join(
+                 f"--{k}={v}" for k, v in (("runs", ",".join(_RUNS.value)),
+                                           ("steps", _STEPS.value), ("batch", _BATCH.value))),
+             "device": f"{jax.device_count()} x {jax.devices()[0].device_kind}",
+             "test_seed": _TEST_SEED.value, "test_towers": _TEST.value, "rows": []}
+  if os.path.exists(_OUT.value):  # rows of other runs stay; a rerun replaces its own
+    with open(_OUT.value) as f:
+      old = json.load(f)
+    results["rows"] = [r for r in old.get("rows", []) if r.get("name") not in _RUNS.value
+                       and "curve" in r]
+  for name in _RUNS.value:
+    results["rows"].append(run(name, test))
+    os.makedirs(os.path.dirname(_OUT.value) or ".", exist_ok=True)
     with open(_OUT.value, "w") as f:
       json.dump(results, f, indent=1)
+  for r in results["rows"]:
+    print(f"{r['name']:24s} geometries {str(r['geometries']):>9s}: F1 {r['f1']:.1f} "
+          f"[{r['f1_ci95'][0]:.1f}, {r['f1_ci95'][1]:.1f}], count exact {r['count_exact']:.1f} %")
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ppdjax.primitives import Primitives, box_iou, quat_mul
 
@@ -119,3 +120,27 @@ def summarize(counts: dict) -> dict:
   if "matched" in counts:
     out["f1"] = f1_from_counts(counts["matched"], counts["predicted"], counts["true"])
   return out
+
+
+def bootstrap_interval(stat, num_objects: int, *, resamples: int = 1000, level: float = 0.95,
+                       seed: int = 0) -> tuple[float, float]:
+  """Percentile bootstrap interval of a dataset-level statistic over objects.
+
+  Args:
+    stat: maps an index array into the evaluated objects (with repeats) to a float, e.g.
+      F1 from the per-object counts it selects.
+    num_objects: how many objects were evaluated.
+    resamples: bootstrap resamples (objects drawn with replacement).
+    level: the interval's coverage.
+    seed: of the resampling.
+
+  Returns:
+    (low, high), the (1 − level)/2 and (1 + level)/2 quantiles of the resampled statistic.
+  """
+  if num_objects < 1:
+    raise ValueError(f"a bootstrap needs at least one object, got {num_objects}")
+  rng = np.random.default_rng(seed)
+  values = np.array([stat(rng.integers(0, num_objects, num_objects))
+                     for _ in range(resamples)], np.float64)
+  lo, hi = np.quantile(values, [(1 - level) / 2, (1 + level) / 2])
+  return float(lo), float(hi)

@@ -83,15 +83,20 @@ def plot_learning_curve(metrics_path: str, path: str = "learning_curve.png") -> 
   train = [r for r in rows if r.get("split", "train") == "train"]
   val = [r for r in rows if r.get("split") == "val"]
   fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
-  for key, style in (("loss", "-"), ("geometry_loss", "--"), ("density_loss", ":")):
-    axes[0].plot([r["step"] for r in train], [r[key] for r in train], style, label=f"train {key}")
+  for key, style in (("loss", "-"), ("geometry_loss", "--"), ("stream_geometry_loss", "-."),
+                     ("end_loss", (0, (1, 3))), ("density_loss", ":")):
+    rows_k = [r for r in train if key in r]  # the stream phase has no density loss
+    if rows_k:
+      axes[0].plot([r["step"] for r in rows_k], [r[key] for r in rows_k], linestyle=style,
+                   label=f"train {key}")
   axes[0].plot([r["step"] for r in val], [r["loss"] for r in val], "o-", label="val loss")
   axes[0].set_yscale("log")
-  axes[0].set_title("losses (phase 1: geometry only)")
-  phase2 = [r["step"] for r in train if r.get("phase") == 2]
+  axes[0].set_title("losses (grey lines: phase starts)")
+  phases = sorted({r.get("phase", 1) for r in train})
+  starts = [min(r["step"] for r in train if r.get("phase", 1) == p) for p in phases[1:]]
   for ax in axes:
-    if phase2:
-      ax.axvline(phase2[0], color="grey", lw=0.8)
+    for s in starts:
+      ax.axvline(s, color="grey", lw=0.8)
     ax.set_xlabel("step")
   for key in ("density_top1", "density_top5", "density_top10", "shape_f1"):
     axes[1].plot([r["step"] for r in val], [r[key] for r in val], "o-", label=key)
@@ -120,7 +125,8 @@ def plot_variant_curves(metrics_paths: dict, path: str = "learning_curves.png") 
     c = f"C{i}"
     axes[0].plot([r["step"] for r in train], [r["geometry_loss"] for r in train], color=c,
                  label=name)
-    axes[1].plot([r["step"] for r in train], [r["density_loss"] for r in train], color=c,
+    joint = [r for r in train if "density_loss" in r]
+    axes[1].plot([r["step"] for r in joint], [r["density_loss"] for r in joint], color=c,
                  alpha=0.6, label=f"{name} train")
     axes[1].plot([r["step"] for r in val], [r["density_loss"] for r in val], "o--", color=c,
                  label=f"{name} val")

@@ -34,6 +34,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.model.dropout = 0.5
   config.model.voxel_width = 1  # channel multiplier of the voxel encoder (1: the paper's)
   config.model.voxel_coords = False  # voxel centres as 3 extra input channels (CoordConv)
+  config.model.voxel_keep = 1  # pool the voxels down to keep^3 (1: the paper's; 4 keeps position)
   config.model.resnet_width = 16  # 64 is ResNet-18 proper (paper preset); 16 for CPUs
   config.model.image_weights = ""  # optional .npz of converted torchvision ResNet-18 weights
   config.model.num_pushes = 4
@@ -47,9 +48,15 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.batch_size = 16  # global, split over all devices
   config.train.learning_rate = 1e-3  # Adam, beta = (0.9, 0.999), as in the appendix
   config.train.schedule = "constant"  # or "cosine": decay to 0 over all steps
+  config.train.stream_steps = 0  # phase 0: voxels of fresh towers only (dataset.stream)
   config.train.geometry_steps = 40  # phase 1: geometry only (w = 0)
   config.train.joint_steps = 80  # phase 2: geometry + w x density
   config.train.density_weight = 0.5  # w of Eq. 4-5 (docs/training.md says why 0.5)
+  config.train.end_weight = 1.0  # the end token's loss, in every phase (losses.loss_fn)
+  config.train.geometry_weight = 1.0  # the dataset's geometry loss
+  config.train.stream_weight = 0.0  # > 0: phases 1-2 add a stream batch's geometry loss
+  config.train.augment = True  # stream batches under random symmetries of the square about z
+  config.train.init_from = ""  # a workdir whose matching parameters start this run
   config.train.log_every = 10
   config.train.eval_every = 60  # validation and checkpoint
   config.train.eval_batches = 4  # validation batches per evaluation (0: the whole split)

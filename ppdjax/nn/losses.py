@@ -1,4 +1,4 @@
-"""Training targets and the loss of paper Eq. 4–5: L1 geometry + w × density cross-entropy."""
+"""Training targets and the loss of paper Eq. 4–5: L1 geometry + the end token + w × density."""
 
 from __future__ import annotations
 
@@ -41,17 +41,29 @@ def targets(prims: Primitives) -> dict:
   }
 
 
-def loss_fn(pred: Prediction, tgt: dict, density_weight) -> tuple[jax.Array, dict]:
-  """L = L_G + w · L_P, summed over a sequence's steps and averaged over the batch.
+def loss_fn(pred: Prediction, tgt: dict, density_weight, *, end_weight=1.0,
+            geometry_weight=1.0) -> tuple[jax.Array, dict]:
+  """L = g · L_G + e · L_E + w · L_D, summed over a sequence's steps and averaged over the batch.
 
   L_G: L1 of size, translation and rotation (weights 1, as in the paper) over the true
-  boxes; L_P: cross-entropy of the 102-way density head over the boxes and the end token.
+  boxes. The paper's density loss, the 102-way cross-entropy over the boxes and the end
+  token, splits exactly into L_E + L_D: L_E = −log p(stop or go) (a binary cross-entropy,
+  "is this step the end token?") and L_D = −log p(slot | not the end) over the true boxes.
+  With e = w the sum is the paper's loss; with e > 0 the box count learns in every phase,
+  also while w = 0 (the paper's geometry phase, the geometry stream), where the
+  density slots must not learn.
   """
   l1 = lambda a, b: jnp.abs(a - b).sum(-1)
   geometry = (l1(pred.half_size, tgt["half_size"]) + l1(pred.pos, tgt["pos"])
               + l1(pred.quat, tgt["quat"]))
   geometry = jnp.where(tgt["geometry_mask"], geometry, 0.0).sum(-1).mean()
-  ce = optax.softmax_cross_entropy_with_integer_labels(pred.density_logits, tgt["token"])
-  density = jnp.where(tgt["density_mask"], ce, 0.0).sum(-1).mean()
-  loss = geometry + density_weight * density
-  return loss, {"loss": loss, "geometry_loss": geometry, "density_loss": density}
+  logp = jax.nn.log_softmax(pred.density_logits)
+  log_end = logp[..., END]
+  log_go = jnp.log(-jnp.expm1(jnp.minimum(log_end, -1e-7)))  # log(1 - p(end)), stable
+  is_end = tgt["token"] == END
+  end = jnp.where(tgt["density_mask"], -jnp.where(is_end, log_end, log_go), 0.0).sum(-1).mean()
+  own = jnp.take_along_axis(logp, tgt["token"][..., None], -1)[..., 0]
+  density = jnp.where(tgt["geometry_mask"], log_go - own, 0.0).sum(-1).mean()
+  loss = geometry_weight * geometry + end_weight * end + density_weight * density
+  return loss, {"loss": loss, "geometry_loss": geometry, "end_loss": end,
+                "density_loss": density}

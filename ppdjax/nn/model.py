@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx, struct
 
-from ppdjax.conventions import NUM_DENSITY_SLOTS, TIMESTEP, slot_to_density_jax
+from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, TIMESTEP, slot_to_density_jax
 from ppdjax.nn.resnet import ResNet18
 from ppdjax.primitives import Primitives
 
@@ -116,23 +116,35 @@ class Conv3x3x3(nnx.Module):
 
 
 class VoxelEncoder(nnx.Module):
-  """Five 3×3×3 convolutions (channels 1→2→4→8→16→32, times `width`), each with BatchNorm,
-  LeakyReLU(0.2) and 2×2×2 max-pooling (32³ → 1³), then two 1×1×1 convolutions → f_V.
+  """Five 3×3×3 convolutions (channels 1→2→4→8→16→32, times `width`), each with BatchNorm and
+  LeakyReLU(0.2), then → f_V.
+
+  `keep` = 1 is the appendix's encoder: 2×2×2 max-pooling after every convolution
+  (32³ → 1³), then two 1×1×1 convolutions. Pooled to 1³, a feature says what it saw but
+  hardly where, and where the boxes sit is what the generator must regress to a fraction
+  of a voxel. `keep` = 4 stops pooling at 4³ (the last two convolutions run there) and
+  flattens the 4³ grid of features into two fully connected layers, so position
+  survives (experiments/results/shape_study.md measures the choice).
 
   With `coords`, the occupancy is joined by three channels holding each voxel's centre in
-  [−0.5, 0.5] (CoordConv): convolutions and max-pooling see where a feature sits only
-  through the grid's borders, and where the boxes sit is what the generator must regress.
+  [−0.5, 0.5] (CoordConv).
   """
 
-  def __init__(self, out_features: int, width: int = 1, coords: bool = False, *,
-               rngs: nnx.Rngs):
-    self.coords = coords
+  def __init__(self, out_features: int, width: int = 1, coords: bool = False, keep: int = 1,
+               *, rngs: nnx.Rngs):
+    if keep not in (1, 2, 4, 8):
+      raise ValueError(f"config.model.voxel_keep must be 1, 2, 4 or 8, got {keep}")
+    self.coords, self.pools = coords, 5 - int(keep).bit_length() + 1
     chans = [4 if coords else 1] + [c * width for c in (2, 4, 8, 16, 32)]
     self.convs = nnx.List([Conv3x3x3(a, b, rngs=rngs)
                            for a, b in zip(chans[:-1], chans[1:])])
     self.norms = nnx.List([nnx.BatchNorm(b, momentum=0.9, rngs=rngs) for b in chans[1:]])
-    self.head1 = nnx.Conv(chans[-1], out_features, (1, 1, 1), rngs=rngs)
-    self.head2 = nnx.Conv(out_features, out_features, (1, 1, 1), rngs=rngs)
+    if keep == 1:  # the appendix's 1×1×1 convolutions (the parameters older runs saved)
+      self.head1 = nnx.Conv(chans[-1], out_features, (1, 1, 1), rngs=rngs)
+      self.head2 = nnx.Conv(out_features, out_features, (1, 1, 1), rngs=rngs)
+    else:
+      self.head1 = nnx.Linear(chans[-1] * keep ** 3, out_features, rngs=rngs)
+      self.head2 = nnx.Linear(out_features, out_features, rngs=rngs)
 
   def __call__(self, voxels_BxDxDxD: jax.Array, train: bool) -> jax.Array:
     x = voxels_BxDxDxD.astype(jnp.float32)[..., None]
@@ -141,9 +153,12 @@ class VoxelEncoder(nnx.Module):
       axis = (jnp.arange(d, dtype=jnp.float32) + 0.5) / d - 0.5
       grid = jnp.stack(jnp.meshgrid(axis, axis, axis, indexing="ij"), -1)
       x = jnp.concatenate([x, jnp.broadcast_to(grid, x.shape[:4] + (3,))], -1)
-    for conv, norm in zip(self.convs, self.norms):
+    for i, (conv, norm) in enumerate(zip(self.convs, self.norms)):
       x = nnx.leaky_relu(norm(conv(x), use_running_average=not train), 0.2)
-      x = _max_pool_2x(x)
+      if i < self.pools:
+        x = _max_pool_2x(x)
+    if self.pools < 5:
+      x = x.reshape(x.shape[0], -1)
     x = self.head2(nnx.leaky_relu(self.head1(x), 0.2))
     return x.reshape(x.shape[0], -1)
 
@@ -195,7 +210,7 @@ class PPD(nnx.Module):
     self.feature, self.hidden, self.max_primitives = c.feature, c.hidden, c.max_primitives
     f = c.feature
     self.voxel_encoder = (VoxelEncoder(f, c.get("voxel_width", 1), c.get("voxel_coords", False),
-                                       rngs=rngs)
+                                       c.get("voxel_keep", 1), rngs=rngs)
                           if c.use_voxels else None)
     self.image_encoder = ResNet18(f, c.resnet_width, rngs=rngs) if c.use_image else None
     self.trajectory_encoder = (TrajectoryEncoder(c.num_pushes, c.hidden, f, c.dropout,
@@ -211,14 +226,19 @@ class PPD(nnx.Module):
                                bias_init=lambda k, s, d=jnp.float32: jnp.array([1., 0, 0, 0], d))
 
   def encode(self, obs: dict, train: bool = False, rngs=None) -> jax.Array:
-    """f (B, feature): [f_V; f_I; f_T] through a fully connected layer; ablated parts are 0."""
-    b = obs["trajectories"].shape[0]
+    """f (B, feature): [f_V; f_I; f_T] through a fully connected layer.
+
+    An ablated encoder's part is 0, and so is the part of an observation `obs` lacks (the
+    geometry stream has voxels only).
+    """
+    b = next(obs[k].shape[0] for k in OBS_KEYS if k in obs)
     zero = jnp.zeros((b, self.feature))
+    use = lambda enc, key: enc is not None and key in obs
     parts = [
-        self.voxel_encoder(obs["voxels"], train) if self.voxel_encoder else zero,
-        self.image_encoder(obs["image"], train) if self.image_encoder else zero,
+        self.voxel_encoder(obs["voxels"], train) if use(self.voxel_encoder, "voxels") else zero,
+        self.image_encoder(obs["image"], train) if use(self.image_encoder, "image") else zero,
         (self.trajectory_encoder(obs["trajectories"], train, rngs)
-         if self.trajectory_encoder else zero),
+         if use(self.trajectory_encoder, "trajectories") else zero),
     ]
     return nnx.leaky_relu(self.fuse(jnp.concatenate(parts, -1)), 0.2)
 

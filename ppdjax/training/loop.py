@@ -1,6 +1,7 @@
 """The training loop: `train_and_evaluate(config, data_dir, workdir)`, resumable exactly.
 
-Two phases as in the paper's appendix (geometry only with w = 0, then everything), Adam,
+An optional geometry stream first (voxels of fresh towers; `dataset.stream`), then two
+phases as in the paper's appendix (geometry only with w = 0, then everything), Adam,
 data parallel over all devices, orbax checkpoints with exact resume, metrics.jsonl,
 TensorBoard events and a learning-curve PNG. Rerun the same command to resume.
 """
@@ -19,11 +20,14 @@ from ppdjax.dataset import storage
 from ppdjax.plots import plot_learning_curve
 from ppdjax.training import checkpoints, sharding
 from ppdjax.training.loader import Loader
-from ppdjax.training.state import Trainer
+from ppdjax.training.state import Trainer, phase, total_steps
 
 
 # Keys added since runs were first saved, with the value that reproduces older runs.
-ADDED_KEYS = {"model.voxel_width": 1, "model.voxel_coords": False, "train.schedule": "constant"}
+ADDED_KEYS = {"model.voxel_width": 1, "model.voxel_coords": False, "model.voxel_keep": 1,
+              "train.schedule": "constant", "train.end_weight": None,
+              "train.geometry_weight": 1.0, "train.stream_steps": 0, "train.stream_weight": 0.0,
+              "train.augment": True, "train.init_from": ""}
 # Keys a resumed run may change without invalidating its checkpoints.
 RESUMABLE_CHANGES = ("train.joint_steps", "train.log_every", "train.eval_every",
                      "train.eval_batches", "train.prefetch", "train.keep_checkpoints")
@@ -40,11 +44,17 @@ def check_config(config) -> None:
   for name, value in positive.items():
     if not value > 0:
       raise ValueError(f"config.{name} must be > 0, got {value}")
-  for name in ("geometry_steps", "joint_steps", "eval_batches", "prefetch"):
-    if t[name] < 0:
+  for name in ("stream_steps", "geometry_steps", "joint_steps", "eval_batches", "prefetch",
+               "end_weight", "geometry_weight", "stream_weight"):
+    if t.get(name) is not None and t.get(name, 0) < 0:
       raise ValueError(f"config.train.{name} must be >= 0, got {t[name]}")
-  if t.geometry_steps + t.joint_steps == 0:
-    raise ValueError("config.train.geometry_steps + joint_steps must be > 0")
+  if total_steps(t) == 0:
+    raise ValueError("config.train.stream_steps + geometry_steps + joint_steps must be > 0")
+  if (t.get("stream_steps", 0) or t.get("stream_weight", 0)) and not m.use_voxels:
+    raise ValueError("config.train.stream_steps / stream_weight train the voxel pathway; "
+                     "this model has use_voxels=False: set them to 0")
+  if t.get("init_from", "") and not os.path.isdir(t.init_from):
+    raise ValueError(f"config.train.init_from={t.init_from!r} is not a directory")
   if not 0 <= m.dropout < 1:
     raise ValueError(f"config.model.dropout must be in [0, 1), got {m.dropout}")
   if t.density_weight < 0:
@@ -105,9 +115,10 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
 
   trainer = Trainer(config, workdir)
   start = trainer.restore_latest()
-  total = t.geometry_steps + t.joint_steps
+  total = total_steps(t)
   log = MetricsLog(workdir, start, enabled=jax.process_index() == 0)
-  loader = Loader(train_ds, t.batch_size, seed=t.seed, start_step=start,
+  stream_steps = t.get("stream_steps", 0)  # the loader's step counts dataset steps only
+  loader = Loader(train_ds, t.batch_size, seed=t.seed, start_step=max(start - stream_steps, 0),
                   prefetch=t.prefetch, mesh=trainer.mesh)
   bar = tqdm(total=total, initial=start, desc="train", unit="step", disable=not progress,
              dynamic_ncols=True)
@@ -120,13 +131,15 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
         if step not in trainer.latest.all_steps():
           trainer.save(step, None)
         break
-      w = 0.0 if step < t.geometry_steps else t.density_weight
-      pending.append(trainer.train_step(next(loader), step, w))
+      now_phase = phase(t, step)
+      w = t.density_weight if now_phase == 2 else 0.0
+      pending.append(trainer.train_step(next(loader) if now_phase else None, step, w))
       done = step + 1
-      if done % t.log_every == 0 or done == total:
+      if (done % t.log_every == 0 or done == total
+          or phase(t, min(done, total - 1)) != now_phase):  # a row never spans two phases
         row = {k: float(np.mean([m[k] for m in jax.device_get(pending)])) for k in pending[0]}
         now = time.perf_counter()
-        row.update(step=done, phase=1 if step < t.geometry_steps else 2,
+        row.update(step=done, phase=now_phase,
                    samples_per_s=round(len(pending) * t.batch_size / (now - tick), 2))
         log.write(row)
         bar.set_postfix(loss=f"{row['loss']:.3f}", phase=row["phase"])

@@ -10,12 +10,14 @@ from flax import nnx
 
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
-from ppdjax.dataset import storage
+from ppdjax.dataset import storage, stream
 from ppdjax.nn import losses
 from ppdjax.nn.model import PPD
 from ppdjax.nn.resnet import load_torchvision_weights
 from ppdjax.training import checkpoints, sharding
 from ppdjax.training.loader import BATCH_KEYS, model_inputs
+
+STREAM_SEED = 7_919  # offsets the stream's key from the dropout key of the same seed
 
 
 class TrainState(nnx.Module):
@@ -49,36 +51,119 @@ def learning_rate(t):
     return t.learning_rate
   if t.schedule != "cosine":
     raise ValueError(f"config.train.schedule must be 'constant' or 'cosine', got {t.schedule!r}")
-  return optax.cosine_decay_schedule(t.learning_rate, t.geometry_steps + t.joint_steps)
+  return optax.cosine_decay_schedule(t.learning_rate, total_steps(t))
 
 
-def _loss(model, batch, w, train, key):
+def total_steps(t) -> int:
+  """All of a run's steps: geometry stream, geometry phase, joint phase."""
+  return t.get("stream_steps", 0) + t.geometry_steps + t.joint_steps
+
+
+def phase(t, step: int) -> int:
+  """0: the geometry stream (voxels of fresh towers), 1: geometry on the dataset (w = 0),
+  2: joint (w > 0)."""
+  s = t.get("stream_steps", 0)
+  return 0 if step < s else 1 if step < s + t.geometry_steps else 2
+
+
+def loss_weights(t) -> dict:
+  """The loss terms' weights from a preset's `train` section (see `losses.loss_fn`).
+
+  A run saved before `end_weight` existed weighted the end token with w, as the paper.
+  """
+  return {"end_weight": t.get("end_weight", None), "geometry_weight": t.get("geometry_weight", 1.0)}
+
+
+def _loss(model, batch, w, train, key, weights):
   rngs = nnx.Rngs(dropout=key) if key is not None else None
   tgt = losses.targets(batch["primitives"])
   pred = model(batch, tgt["prev"], train=train, rngs=rngs)
-  return losses.loss_fn(pred, tgt, w)
+  end = w if weights["end_weight"] is None else weights["end_weight"]
+  return losses.loss_fn(pred, tgt, w, end_weight=end,
+                        geometry_weight=weights["geometry_weight"])
 
 
-def train_step(graphdef, state, batch, step, w, seed):
-  """One Adam step; pure in (state, batch, step): the dropout key is fold_in(seed, step)."""
+def stream_batch(t, step, sharding=None) -> dict:
+  """The geometry stream's batch for `step` (fresh towers; a function of seed and step)."""
+  key = jax.random.fold_in(jax.random.key(t.seed + STREAM_SEED), step)
+  batch = stream.geometry_batch(key, t.batch_size, t.get("augment", True))
+  return batch if sharding is None else jax.lax.with_sharding_constraint(batch, sharding)
+
+
+def train_step(graphdef, state, batch, step, w, t, sharding=None):
+  """One Adam step; pure in (state, batch, step): the dropout key is fold_in(seed, step).
+
+  `batch` None is a step of the geometry stream alone (voxels of fresh towers, w = 0);
+  otherwise, with `train.stream_weight` > 0, a stream batch's geometry and end-token
+  loss joins the dataset's, so the voxel pathway keeps seeing unlimited geometries.
+  """
   ts = nnx.merge(graphdef, state)
-  key = jax.random.fold_in(jax.random.key(seed), step)
-  grads, aux = nnx.grad(lambda m: _loss(m, batch, w, True, key), has_aux=True)(ts.model)
+  key = jax.random.fold_in(jax.random.key(t.seed), step)
+  weights, stream_weight = loss_weights(t), t.get("stream_weight", 0.0)
+
+  def total(m):
+    if batch is None:
+      return _loss(m, stream_batch(t, step, sharding), 0.0, True, key, weights)
+    loss, aux = _loss(m, batch, w, True, key, weights)
+    if stream_weight > 0:
+      s_loss, s_aux = _loss(m, stream_batch(t, step, sharding), 0.0, True,
+                            jax.random.fold_in(key, 1), weights)
+      loss = loss + stream_weight * s_loss
+      aux = {**aux, "loss": loss, "stream_geometry_loss": s_aux["geometry_loss"]}
+    return loss, aux
+
+  grads, aux = nnx.grad(total, has_aux=True)(ts.model)
   ts.optimizer.update(ts.model, grads)
+  if batch is None:
+    aux = {k: v for k, v in aux.items() if k != "density_loss"}  # placeholder densities
   return nnx.state(ts), aux
 
 
-def eval_step(graphdef, state, batch, w):
+def eval_step(graphdef, state, batch, w, weights):
   """Validation loss (teacher forced, eval mode) and metric counts of decoded predictions."""
   model = nnx.merge(graphdef, state).model
   tgt = losses.targets(batch["primitives"])
-  _, aux = losses.loss_fn(model(batch, tgt["prev"], train=False), tgt, w)
+  end = w if weights["end_weight"] is None else weights["end_weight"]
+  _, aux = losses.loss_fn(model(batch, tgt["prev"], train=False), tgt, w, end_weight=end,
+                          geometry_weight=weights["geometry_weight"])
   pred, raw = model.decode(batch)
   k = pred.num_slots  # density: k-th step vs k-th true box (bottom to top); F1 is order-free
   counts = metrics.density_counts(raw.density_logits[:, :k, :NUM_DENSITY_SLOTS],
                                   tgt["slot"], tgt["geometry_mask"][:, :k])
   counts.update(metrics.shape_counts(pred, batch["primitives"]))
   return aux, jax.tree.map(jnp.sum, counts)
+
+
+def init_from(model: PPD, workdir: str) -> list[str]:
+  """Copies into `model` every parameter and batch statistic of another run's latest model
+  whose path and shape match (the voxel encoder and generator of a geometry-stage run,
+  say); returns the paths copied. Raises ValueError if nothing matches."""
+  source, _ = checkpoints.load(workdir, which="latest")
+  src = _flat(nnx.to_pure_dict(nnx.state(source)))
+  dst = nnx.to_pure_dict(nnx.state(model))
+  copied = [p for p, v in _flat(dst).items() if p in src and np.shape(src[p]) == np.shape(v)]
+  if not copied:
+    raise ValueError(f"train.init_from={workdir}: no parameter matches this model")
+  _assign(dst, {p: src[p] for p in copied})
+  state = nnx.state(model)
+  nnx.replace_by_pure_dict(state, dst)
+  nnx.update(model, state)
+  return ["/".join(map(str, p)) for p in copied]
+
+
+def _flat(d, prefix=()):
+  out = {}
+  for k, v in d.items():
+    out.update(_flat(v, prefix + (k,)) if isinstance(v, dict) else {prefix + (k,): v})
+  return out
+
+
+def _assign(d, values):
+  for path, v in values.items():
+    node = d
+    for k in path[:-1]:
+      node = node[k]
+    node[path[-1]] = jnp.asarray(v)
 
 
 class Trainer:
@@ -91,10 +176,12 @@ class Trainer:
     self.graphdef, state = nnx.split(build(config))
     self.state = jax.device_put(state, self.replicated)
     self.latest, self.best = checkpoints.managers(workdir, config.train.keep_checkpoints)
-    seed = config.train.seed
-    self._train = jax.jit(lambda s, b, i, w: train_step(self.graphdef, s, b, i, w, seed),
+    t, batch_sharding = config.train, sharding.batch_sharded(self.mesh)
+    self._train = jax.jit(lambda s, b, i, w: train_step(self.graphdef, s, b, i, w, t,
+                                                        batch_sharding),
                           out_shardings=(self.replicated, self.replicated), donate_argnums=0)
-    self._eval = jax.jit(lambda s, b, w: eval_step(self.graphdef, s, b, w),
+    weights = loss_weights(t)
+    self._eval = jax.jit(lambda s, b, w: eval_step(self.graphdef, s, b, w, weights),
                          out_shardings=self.replicated)
 
   def restore_latest(self) -> int:
@@ -123,9 +210,15 @@ class Trainer:
       raise checkpoints.CheckpointError(
           f"no checkpoint in {self.latest.directory} can be read (steps {steps}); move the "
           "folder away to start again")
+    if self.config.train.get("init_from", ""):
+      ts = nnx.merge(self.graphdef, self.state)
+      copied = init_from(ts.model, self.config.train.init_from)
+      self.state = jax.device_put(nnx.state(ts), self.replicated)
+      print(f"initialised {len(copied)} arrays from {self.config.train.init_from}", flush=True)
     return 0
 
   def train_step(self, batch, step: int, w: float) -> dict:
+    """One step on `batch` (None: a geometry-stream step)."""
     self.state, aux = self._train(self.state, batch, jnp.int32(step), jnp.float32(w))
     return aux
 
