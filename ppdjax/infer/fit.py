@@ -96,13 +96,14 @@ def _center(i):
   return (i + 0.5) * VOXEL - 0.5
 
 
-def _read_one(vox_XYZ: jax.Array, num_slots: int) -> Primitives:
-  """`read_tower` for one (R, R, R) bool grid."""
+def _read_one(vox_XYZ: jax.Array, num_slots: int, tol: float = 0.0) -> Primitives:
+  """`read_tower` for one (R, R, R) bool grid; masks count as equal at IoU >= 1 - tol."""
   s = jnp.moveaxis(vox_XYZ, -1, 0)  # (Z, X, Y) slices
   z = jnp.arange(R)
   none = jnp.zeros((1, R, R), bool)
   below, above = jnp.concatenate([none, s[:-1]]), jnp.concatenate([s[1:], none])
-  same = lambda a, b: jnp.all(a == b, axis=(-2, -1))
+  inter = lambda a, b: jnp.sum(a & b, axis=(-2, -1))
+  same = lambda a, b: inter(a, b) >= (1 - tol) * jnp.maximum(jnp.sum(a | b, axis=(-2, -1)), 1)
   subset = lambda a, b: jnp.all(~a | b, axis=(-2, -1))  # a within b
   occ = s.any((-2, -1))
   occ_below = jnp.concatenate([jnp.zeros(1, bool), occ[:-1]])
@@ -216,11 +217,6 @@ def _to_prims(params: dict, valid: jax.Array) -> Primitives:
   return _finish(half, params["pos"] * VOXEL, jax.vmap(mat_to_quat)(rot), valid)
 
 
-def _log1mexp(x):
-  """log(1 - exp(x)) for x <= 0, stable (x -> 0 is handled by the callers' fallbacks)."""
-  return jnp.log(-jnp.expm1(jnp.minimum(x, -1e-7)))
-
-
 def _soft_logs(params: dict, valid: jax.Array, pts_Px3: jax.Array, temp):
   """(log u, log(1 - u)) of the soft union u at points (voxel units), each (P,)."""
   rot = _rotation(params["rot"])  # (K, 3, 3)
@@ -229,24 +225,19 @@ def _soft_logs(params: dict, valid: jax.Array, pts_Px3: jax.Array, temp):
   local = jnp.einsum("pkj,kji->pki", d, rot)
   a_box = (h + 0.5 * jnp.abs(rot).sum(1) - jnp.abs(local)) / temp  # box axes
   a_world = (jnp.einsum("kji,ki->kj", jnp.abs(rot), h) + 0.5 - jnp.abs(d)) / temp  # world axes
-  a = jnp.concatenate([a_box, a_world], -1)  # (P, K, 6)
-  log_occ = jax.nn.log_sigmoid(a).sum(-1)  # (P, K)
-  deep = log_occ > -1e-4  # well inside: 1 - occ ~ sum of the outside tails
-  log_out = jnp.where(deep, jax.nn.logsumexp(jax.nn.log_sigmoid(-a), -1), _log1mexp(log_occ))
-  log_occ = jnp.where(valid, log_occ, -1e4)
-  log_none = jnp.where(valid, log_out, 0.0).sum(-1)  # log prod_k (1 - occ_k)
-  shallow = log_none > -1e-4  # u small: log u ~ log sum_k occ_k
-  log_u = jnp.where(shallow, jax.nn.logsumexp(log_occ, -1), _log1mexp(log_none))
+  occ = jnp.prod(jax.nn.sigmoid(jnp.concatenate([a_box, a_world], -1)), -1)  # (P, K)
+  log_none = jnp.where(valid, jnp.log1p(-jnp.minimum(occ, 1 - 1e-6)), 0.0).sum(-1)
+  log_u = jnp.log(jnp.maximum(-jnp.expm1(log_none), 1e-30))
   return log_u, log_none
 
 
-def _soft_loss(params, valid, pts_Px3, filled_P, temp, weight_P=None):
+def _soft_loss(params, valid, pts_Px3, filled_P, temp):
   """Class-balanced binary cross-entropy of the soft union against labels at points."""
   log_u, log_none = _soft_logs(params, valid, pts_Px3, temp)
-  w = jnp.ones_like(log_u) if weight_P is None else weight_P
-  f, e = w * filled_P, w * ~filled_P
-  return (-(f * log_u).sum() / jnp.maximum(f.sum(), 1e-6)
-          - (e * log_none).sum() / jnp.maximum(e.sum(), 1e-6))
+  n_filled = jnp.maximum(filled_P.sum(), 1)
+  n_empty = jnp.maximum((~filled_P).sum(), 1)
+  return (-jnp.where(filled_P, log_u, 0.0).sum() / n_filled
+          - jnp.where(filled_P, 0.0, log_none).sum() / n_empty)
 
 
 def _grid_points() -> np.ndarray:
@@ -300,16 +291,70 @@ def _jitter(params: dict, key, scale: float, angle: float) -> dict:
                    "rot": _ROT_SCALE * jnp.swapaxes(rot[:, :, :2], 1, 2)})
 
 
-def _disagreement(prims: Primitives, vox_XYZ) -> jax.Array:
-  """Voxels where the exact voxelization of `prims` (one object) differs from the input."""
-  return jnp.sum(voxelizer._occupancy(prims, R) != vox_XYZ)  # pylint: disable=protected-access
+def _box_occupancy(prims: Primitives) -> jax.Array:
+  """(V, K) whether each voxel shares volume with each box of one object.
+
+  The voxelizer's rule (`ppdjax.dataset.voxels`: separating axes, 3 voxel, 3 box and 9
+  cross products), per box; projections of the grid are sums of per-axis terms.
+  """
+  c = jnp.asarray(voxelizer.voxel_centers(R)[:, 0, 0, 0])  # (R,) centres along an axis
+  rot = quat_to_mat(prims.quat)  # (K, 3, 3)
+  world = jnp.broadcast_to(jnp.eye(3), rot.shape)
+  box = jnp.swapaxes(rot, 1, 2)
+  cross = jnp.cross(world[:, :, None, :], box[:, None, :, :]).reshape(-1, 9, 3)
+  axes = jnp.concatenate([world, box, cross], 1)  # (K, 15, 3)
+  norm = jnp.linalg.norm(axes, axis=-1, keepdims=True)
+  axes = jnp.where(norm > 1e-6, axes / jnp.maximum(norm, 1e-6), 0.0)
+  r_box = (jnp.abs(jnp.einsum("kai,kij->kaj", axes, rot)) * prims.half_size[:, None]).sum(-1)
+  lim = 0.5 * VOXEL * jnp.abs(axes).sum(-1) + r_box - voxelizer._TOUCH  # pylint: disable=protected-access
+  lim = jnp.where(norm[..., 0] > 1e-6, lim, jnp.inf)  # parallel edges give no axis
+  p = axes[..., None] * (c - prims.pos[:, None, :, None])  # (K, 15, 3, R)
+  d = p[..., 0, :, None, None] + p[..., 1, None, :, None] + p[..., 2, None, None, :]
+  inside = jnp.all(jnp.abs(d) < lim[..., None, None, None], axis=1)  # (K, R, R, R)
+  return inside.reshape(-1, R ** 3).T & prims.valid
+
+
+def _drop_sets(k: int) -> np.ndarray:
+  """(1 + k + k(k-1)/2, k) 0/1 rows: drop nothing, each box, each pair of boxes."""
+  rows = [np.zeros(k)] + [np.eye(k)[i] for i in range(k)]
+  rows += [np.eye(k)[i] + np.eye(k)[j] for i in range(k) for j in range(i + 1, k)]
+  return np.array(rows, np.int32)
+
+
+def _select(cands: Primitives, soft_C, vox_XYZ, box_cost: float) -> Primitives:
+  """The candidate (C, K), or it less one or two boxes, that best explains the voxels.
+
+  Score: voxels where the exact voxelization disagrees with the input, plus `box_cost`
+  times the filled-voxel count per box; 0 for an exact explanation, whatever its box count
+  (ties: the lower soft loss, the exact reading first).
+  """
+  k = cands.valid.shape[-1]
+  filled = vox_XYZ.reshape(-1)
+  drop = jnp.asarray(_drop_sets(k))  # (D, K)
+  # voxels by the set of boxes covering them (a bit mask); dropping the set d uncovers
+  # exactly the voxels whose mask is a non-empty subset of d
+  bits = jax.vmap(_box_occupancy)(cands).astype(jnp.int32) @ (2 ** jnp.arange(k))  # (C, V)
+  sign = jnp.where(filled, 1, -1)
+  gain = jax.vmap(lambda b: jnp.zeros(2 ** k, jnp.int32).at[b].add(sign))(bits)  # (C, 2^K)
+  masks, d_bits = np.arange(2 ** k), _drop_sets(k) @ (2 ** np.arange(k))
+  subset = jnp.asarray((masks[None] & ~d_bits[:, None]) == 0) & (masks[None] > 0)  # (D, 2^K)
+  miss = jnp.sum((bits > 0) != filled, -1)[:, None] + gain @ subset.T.astype(jnp.int32)
+  n = cands.valid.sum(-1)[:, None] - drop.sum(-1)  # boxes left, (C, D)
+  ok = ~jnp.any(drop.astype(bool) & ~cands.valid[:, None], -1) & (n > 0)
+  score = jnp.where(miss == 0, 0.0, miss + box_cost * filled.sum() * n)  # exact wins
+  score = jnp.where(ok, score, jnp.inf)
+  flat = jnp.lexsort((jnp.broadcast_to(soft_C[:, None], score.shape).reshape(-1),
+                      score.reshape(-1)))[0]
+  c, d = flat // score.shape[1], flat % score.shape[1]
+  best = jax.tree.map(lambda x: x[c], cands)
+  return _finish(best.half_size, best.pos, best.quat, best.valid & (drop[d] == 0))
 
 
 def _fit_one(vox_XYZ, init: Primitives | None, key, *, steps, points, lr, jitter_starts, jitter,
-             jitter_angle):
+             jitter_angle, loose, box_cost):
   """Best of the starts for one (R, R, R) bool grid; Primitives (K,)."""
   reading = _read_one(vox_XYZ, NUM_SLOTS)
-  bases = [reading] + ([] if init is None else [init])
+  bases = [_read_one(vox_XYZ, NUM_SLOTS, loose)] + ([] if init is None else [init])
   starts, valids = [], []
   for b, base in enumerate(bases):
     p = _to_params(base)
@@ -321,44 +366,52 @@ def _fit_one(vox_XYZ, init: Primitives | None, key, *, steps, points, lr, jitter
   starts = jax.tree.map(lambda *x: jnp.stack(x), *starts)
   valids = jnp.stack(valids)
   cdf = _sampler(vox_XYZ)
-  keys = jax.random.split(key, valids.shape[0])
+  keys = jax.random.split(key, valids.shape[0] + 1)
   refined = jax.vmap(lambda p, v, k: _refine(p, v, vox_XYZ, cdf, k, steps=steps, points=points,
-                                             lr=lr))(starts, valids, keys)
+                                             lr=lr))(starts, valids, keys[1:])
   cands = jax.vmap(_to_prims)(refined, valids)
   cands = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), reading, cands)
-  miss = jax.vmap(_disagreement, (0, None))(cands, vox_XYZ)
-  grid, labels = jnp.asarray(_grid_points()), vox_XYZ.reshape(-1)
-  soft = jax.vmap(lambda c: _soft_loss(_to_params(c), c.valid, grid, labels, 0.05))(cands)
-  best = jnp.lexsort((soft, miss))[0]
-  return jax.tree.map(lambda x: x[best], cands)
+  idx = jnp.searchsorted(cdf, jax.random.uniform(keys[0], (4 * points,)) * cdf[-1])
+  idx = jnp.minimum(idx, R ** 3 - 1)
+  pts, labels = jnp.asarray(_grid_points())[idx], vox_XYZ.reshape(-1)[idx]
+  soft = jax.vmap(lambda c: _soft_loss(_to_params(c), c.valid, pts, labels, 0.05))(cands)
+  soft = soft.at[0].set(-jnp.inf)  # the exact reading wins ties (refined boxes may overlap)
+  return _select(cands, soft, vox_XYZ, box_cost)
 
 
-def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, points: int = 512,
-              lr: float = 0.1, jitter_starts: int = 1, jitter: float = 1.0,
-              jitter_angle: float = 0.1, seed: int = 0) -> Primitives:
+def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, points: int = 256,
+              lr: float = 0.1, jitter_starts: int = 0, jitter: float = 1.0,
+              jitter_angle: float = 0.1, loose: float = 0.25, box_cost: float = 0.01,
+              seed: int = 0) -> Primitives:
   """Fits up to K = 5 oriented boxes to (B..., 32, 32, 32) voxel grids; jittable, batched.
 
-  Candidates per object: the `read_tower` reading as is; the reading and `init` (if given),
-  each refined by `steps` Adam steps, plus `jitter_starts` jittered copies of each refined
-  the same way. The candidate whose exact voxelization disagrees with the input on the
-  fewest voxels wins (ties: the lower soft loss). Value checks (binary values, no empty
-  grid) run only on concrete arrays; under jit an empty grid gives no valid box.
+  Starts per object: a loose tower reading (slices alike at IoU >= 1 - `loose` form one
+  run) and `init` if given, plus `jitter_starts` jittered copies of each, all refined by
+  `steps` Adam steps. Candidates: the exact `read_tower` reading and the refined starts,
+  each also with any one or two of its boxes dropped. The winner has the fewest voxels
+  where its exact voxelization disagrees with the input, plus `box_cost` x (filled voxels)
+  per box, an exact explanation winning outright (ties: the exact reading first, then the
+  lower soft loss). Value checks (0/1 values, no empty grid) run on concrete arrays only;
+  under jit an empty grid gives no valid box. Options are Python values: under `jax.jit`
+  bind them with `functools.partial` (or `static_argnames`).
 
   Args:
     voxels: (B..., 32, 32, 32) occupancy indexed [x, y, z]; bool, integer or 0/1 float.
     init: optional Primitives (B..., K) starting boxes (e.g. a network's prediction), any
       number 1..K of valid boxes per object; densities are ignored.
     steps: Adam steps per start (the temperature anneals from 1 to 0.05 voxel over them).
-    points: voxels sampled per step (3/4 near the input's surface).
-    lr: Adam's initial rate, in voxels per step for centres (cosine decay to 5 %).
+    points: voxels sampled per step (3/4 from the input's surface band).
+    lr: Adam's initial rate, about voxels per step (cosine decay to 5 %).
     jitter_starts: jittered copies of each start (0: none).
     jitter: standard deviation (voxels) of the jitter on centres and half sizes.
     jitter_angle: standard deviation (radians) of the jitter rotation, per axis.
+    loose: IoU tolerance of the loose reading that seeds the refinement.
+    box_cost: price of a box, as a fraction of the filled voxels (inexact candidates).
     seed: random seed for point sampling and jitter.
 
   Returns:
-    Primitives (B..., K): boxes bottom to top with unit quats, density 1000 (placeholder),
-    padding last (half size 0, pos 0, identity quat).
+    Primitives (B..., K): boxes bottom to top, canonical unit quats, density 1000
+    (placeholder), padding last (half size 0, pos 0, identity quat, density 0).
   """
   batch = check_voxels(voxels, init)
   v = _as_bool(voxels).reshape((-1, R, R, R))
@@ -367,7 +420,8 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
     raise ValueError(f"init: expected {NUM_SLOTS} slots, got {flat_init.num_slots}")
   keys = jax.random.split(jax.random.key(seed), v.shape[0])
   one = functools.partial(_fit_one, steps=steps, points=points, lr=lr,
-                          jitter_starts=jitter_starts, jitter=jitter, jitter_angle=jitter_angle)
+                          jitter_starts=jitter_starts, jitter=jitter, jitter_angle=jitter_angle,
+                          loose=loose, box_cost=box_cost)
   if flat_init is None:
     out = jax.vmap(lambda x, k: one(x, None, k))(v, keys)
   else:

@@ -22,6 +22,7 @@ PRIM_DIM = NUM_CLASSES + 3 + 3 + 4  # a primitive fed back to the generator
 SIZE_SCALE = TRANS_SCALE = 0.5  # C_S and C_T of Eq. 3
 TRAJ_FEATURES = 10
 SPEED_SCALE = 0.1  # m/s; see trajectory_features
+REDUCED = 16  # channels per cell of a position-keeping voxel encoder before flattening
 
 
 @struct.dataclass
@@ -124,7 +125,10 @@ class VoxelEncoder(nnx.Module):
   hardly where, and where the boxes sit is what the generator must regress to a fraction
   of a voxel. `keep` = 4 stops pooling at 4³ (the last two convolutions run there) and
   flattens the 4³ grid of features into two fully connected layers, so position
-  survives (experiments/results/shape_study.md measures the choice).
+  survives (experiments/results/shape_study.md measures the choice). A 1×1×1 convolution
+  first brings the channels down to REDUCED: flattening 4³ × 256 channels (width 8) into
+  one layer gave a fan-in of 16,384 that Adam at 4e-3 saturated within the first steps
+  (the encoder then told towers apart no better than chance).
 
   With `coords`, the occupancy is joined by three channels holding each voxel's centre in
   [−0.5, 0.5] (CoordConv).
@@ -142,8 +146,9 @@ class VoxelEncoder(nnx.Module):
     if keep == 1:  # the appendix's 1×1×1 convolutions (the parameters older runs saved)
       self.head1 = nnx.Conv(chans[-1], out_features, (1, 1, 1), rngs=rngs)
       self.head2 = nnx.Conv(out_features, out_features, (1, 1, 1), rngs=rngs)
-    else:
-      self.head1 = nnx.Linear(chans[-1] * keep ** 3, out_features, rngs=rngs)
+    else:  # 1×1×1 down to REDUCED channels, then the keep³ grid flattened
+      self.reduce = nnx.Conv(chans[-1], REDUCED, (1, 1, 1), rngs=rngs)
+      self.head1 = nnx.Linear(REDUCED * keep ** 3, out_features, rngs=rngs)
       self.head2 = nnx.Linear(out_features, out_features, rngs=rngs)
 
   def __call__(self, voxels_BxDxDxD: jax.Array, train: bool) -> jax.Array:
@@ -158,7 +163,7 @@ class VoxelEncoder(nnx.Module):
       if i < self.pools:
         x = _max_pool_2x(x)
     if self.pools < 5:
-      x = x.reshape(x.shape[0], -1)
+      x = nnx.leaky_relu(self.reduce(x), 0.2).reshape(x.shape[0], -1)
     x = self.head2(nnx.leaky_relu(self.head1(x), 0.2))
     return x.reshape(x.shape[0], -1)
 
