@@ -33,6 +33,7 @@ from ppdjax.training import state
 # name -> (voxel_keep, feature and hidden size, distinct geometries (0: the stream), augment)
 RUNS = {
     "paper_encoder": (1, 64, 0, True),
+    "paper_encoder_f256": (1, 256, 0, True),
     "keep4_f64": (4, 64, 0, True),
     "keep4": (4, 256, 0, True),
     "keep4_pool4800": (4, 256, 4_800, True),
