@@ -4,10 +4,12 @@
   python experiments/blocks.py --step=next         # only the next step, then exit
   python experiments/blocks.py --list              # what is done and what is left
 
-Steps: generate the `paper` dataset; train the full model and the no-trajectory,
-no-image and no-voxels ablations; evaluate them on --max_objects test objects spread over
-the split (the full model with +Sample, +Sample+Refine and the baselines; the ablations
-plain); then `report`: experiments/results/blocks.{json,md} and PNGs, the full model
+Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder and
+generator on the stream of fresh towers, `train.stream_steps`), then the full model and
+the no-trajectory and no-image ablations starting from it, and the no-voxels ablation
+from scratch; evaluate the full model on --max_objects test objects spread over the split
+(+Sample, the +Fit rows, +Fit+Sample+Refine and the baselines) and the ablations on the
+whole split (plain); then `report`: experiments/results/blocks.{json,md} and PNGs, the full model
 exported to assets/blocks_model and a decomposed example tower. Every step resumes:
 generation by shard, training from its last checkpoint (a training step stops itself
 after --step_seconds and the next call goes on); evaluations are skipped once written.
@@ -34,6 +36,7 @@ import blocks_report  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
 from ppdjax.infer import evaluation, tables  # noqa: E402
 from ppdjax.training import loop  # noqa: E402
+from ppdjax.training.state import total_steps  # noqa: E402
 
 config_flags.DEFINE_config_file("config", "ppdjax/configs/paper.py", "Preset file.")
 flags.DEFINE_string("root", "out/blocks_paper", "Dataset, runs and evaluations go here.")
@@ -41,12 +44,14 @@ flags.DEFINE_string("results", "experiments/results", "Where blocks.json/md and 
 flags.DEFINE_string("assets", "assets", "Where the exported model and example tower go.")
 flags.DEFINE_string("step", "all", "'all' (every step left), 'next', or a step name.")
 flags.DEFINE_bool("list", False, "Print the steps and their state, then exit.")
-flags.DEFINE_integer("max_objects", 128, "Evaluate on N test objects (0: all).")
+flags.DEFINE_integer("max_objects", 1024, "Evaluate the full model on N test objects (0: all; "
+                     "the ablations always on all).")
 flags.DEFINE_enum("subset", "spread", ["first", "spread"],
                   "The first N test objects, or N spread over the split (many towers).")
 flags.DEFINE_integer("step_seconds", 540, "A training call stops after this long.")
 FLAGS = flags.FLAGS
 ORDER = ("full", "no_image", "no_trajectory", "no_voxels")
+GEOMETRY = "geometry"  # the voxel-only geometry stage the voxel-using variants start from
 
 
 class Pipeline:
@@ -63,8 +68,29 @@ class Pipeline:
     e = self.config.eval
     if variant == "full":
       return {"samples": e.samples, "refine": e.refine, "with_baselines": True,
-              "prior_weight": e.prior_weight}
-    return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0}
+              "prior_weight": e.prior_weight, "fit": e.fit, "refine_prior": e.refine_prior}
+    return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0,
+            "fit": False, "refine_prior": 0.0}
+
+  def max_objects(self, variant: str) -> int:
+    """The full model's evaluation (sampling, baselines, fit, refinement) covers
+    --max_objects test objects; the ablations' (the network alone) the whole split."""
+    return FLAGS.max_objects if variant == "full" else 0
+
+  def train_config(self, variant: str):
+    """The geometry stage: the voxel pathway alone on the stream (train.stream_steps);
+    the voxel-using variants start from it and keep the stream's loss beside theirs."""
+    config = common.variant_config(self.config, "full" if variant == GEOMETRY else variant)
+    t = config.train
+    if variant == GEOMETRY:
+      config.model.use_image = config.model.use_trajectory = False
+      config.model.image_weights = ""
+      t.geometry_steps = t.joint_steps = 0
+    elif config.model.use_voxels and t.stream_steps:
+      t.init_from, t.stream_steps = self.workdir(GEOMETRY), 0
+    else:  # no voxels: nothing to take from the geometry stage
+      t.stream_steps, t.stream_weight = 0, 0.0
+    return config
 
   def eval_path(self, variant: str) -> str:
     return os.path.join(self.workdir(variant), "eval", "results.json")
@@ -72,18 +98,19 @@ class Pipeline:
   def steps(self) -> list[tuple[str, callable, callable]]:
     out = [("generate", lambda: os.path.exists(os.path.join(self.data, "manifest.json")),
             lambda: generation.generate(self.config, self.data))]
-    t = self.config.train
-    for v in ORDER:
+    variants = ((GEOMETRY,) if self.config.train.stream_steps else ()) + ORDER
+    for v in variants:  # each model is evaluated as soon as it is trained
       out.append((f"train:{v}", lambda v=v: loop.trained_steps(self.workdir(v))
-                  >= total_steps(t), lambda v=v: self.train(v)))
-    for v in ORDER:
-      out.append((f"evaluate:{v}", lambda v=v: self.evaluated(v), lambda v=v: self.evaluate(v)))
+                  >= total_steps(self.train_config(v).train), lambda v=v: self.train(v)))
+      if v != GEOMETRY:
+        out.append((f"evaluate:{v}", lambda v=v: self.evaluated(v),
+                    lambda v=v: self.evaluate(v)))
     out.append(("report", lambda: False, self.report))
     return out
 
   def train(self, variant: str) -> None:
-    loop.train_and_evaluate(common.variant_config(self.config, variant), self.data,
-                             self.workdir(variant), time_limit_s=FLAGS.step_seconds)
+    loop.train_and_evaluate(self.train_config(variant), self.data, self.workdir(variant),
+                             time_limit_s=FLAGS.step_seconds)
 
   def evaluated(self, variant: str) -> bool:
     if not os.path.exists(self.eval_path(variant)):
@@ -92,22 +119,24 @@ class Pipeline:
       r = json.load(f)
     s = self.eval_settings(variant)
     return ((r["samples"], r["refine"], r.get("max_objects", 0), r.get("prior_weight", 0.0),
-             r.get("subset", "first")) ==
-            (s["samples"], s["refine"], FLAGS.max_objects, s["prior_weight"], FLAGS.subset))
+             r.get("subset", "first"), r.get("fit", False)) ==
+            (s["samples"], s["refine"], self.max_objects(variant), s["prior_weight"],
+             FLAGS.subset, s["fit"]))
 
   def evaluate(self, variant: str) -> None:
     s, e = self.eval_settings(variant), self.config.eval
+    n = self.max_objects(variant)
     results = evaluation.evaluate(self.workdir(variant), self.data,
                                   refine_steps=e.refine_steps, batch_size=e.batch_size,
-                                  max_objects=FLAGS.max_objects, subset=FLAGS.subset, **s)
-    results["max_objects"] = FLAGS.max_objects
+                                  max_objects=n, subset=FLAGS.subset, **s)
+    results["max_objects"] = n
     tables.write_results(
         results, os.path.dirname(self.eval_path(variant)),
         f"python -m ppdjax.evaluate --workdir={variant} --data=data --samples={s['samples']}"
         + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"
         + ("" if s["with_baselines"] else " --nobaselines")
-        + (f" --max_objects={FLAGS.max_objects} --subset={FLAGS.subset}"
-           if FLAGS.max_objects else ""))
+        + (" --fit" if s["fit"] else "")
+        + (f" --max_objects={n} --subset={FLAGS.subset}" if n else ""))
 
   def report(self) -> None:
     blocks_report.write_all(self, FLAGS.results, FLAGS.assets,

@@ -24,7 +24,10 @@ ABLATIONS = {"no_trajectory": "PPD (no trajectory)", "no_image": "PPD (no image)
 TABLE5_ROWS = (("Texture", "no_trajectory", "PPD"), ("Physics", "no_image", "PPD"),
                ("Texture + Physics", "full", "PPD"),
                ("Texture + Physics (+Sample)", "full", "PPD+Sample"),
-               ("Texture + Physics (+Sample+Refine)", "full", "PPD+Sample+Refine"))
+               ("Texture + Physics (+Sample+Refine)", "full", "PPD+Sample+Refine"),
+               ("Texture + Physics (+Fit+Sample)", "full", "PPD+Fit+Sample"),
+               ("Texture + Physics (+Fit+Sample+Refine)", "full", "PPD+Fit+Sample+Refine"))
+SUFFIXES = ("", "+Sample", "+Sample+Refine", "+Fit", "+Fit+Sample", "+Fit+Sample+Refine")
 KEYS = ("top1", "top5", "top10", "rmse", "mae")
 BEST_ROW = "PPD (full)+Sample"
 
@@ -33,18 +36,24 @@ def collect(pipe) -> dict:
   """blocks.json's content from the four evaluations and ROOT/steps.jsonl."""
   res = {}
   for v in ("full",) + tuple(ABLATIONS):
-    with open(pipe.eval_path(v)) as f:
-      res[v] = json.load(f)
+    if os.path.exists(pipe.eval_path(v)) or v == "full":  # a report may come before the
+      with open(pipe.eval_path(v)) as f:                   # ablations are done
+        res[v] = json.load(f)
+  ablations = {v: name for v, name in ABLATIONS.items() if v in res}
   full = res["full"]
   table2 = {b: full["table2"][b] for b in tables.BASELINES}
-  table2.update({name: res[v]["table2"]["PPD"] for v, name in ABLATIONS.items()})
-  for suffix, row in (("", "PPD"), ("+Sample", "PPD+Sample"),
-                      ("+Sample+Refine", "PPD+Sample+Refine")):
-    if row in full["table2"]:
-      table2["PPD (full)" + suffix] = full["table2"][row]
-  table2 = {k: {m: float(r[m]) for m in KEYS} for k, r in table2.items()}
+  table2.update({name: res[v]["table2"]["PPD"] for v, name in ablations.items()})
+  for suffix in SUFFIXES:
+    if "PPD" + suffix in full["table2"]:
+      table2["PPD (full)" + suffix] = full["table2"]["PPD" + suffix]
+  objects = {k: full["objects"] for k in table2}
+  objects.update({name: res[v]["objects"] for v, name in ablations.items()})
+  table2 = {k: {**{m: float(r[m]) for m in KEYS}, "ci95": r.get("ci95"), "objects": objects[k]}
+            for k, r in table2.items()}
   table5 = {name: res[v]["table5"][row] for name, v, row in TABLE5_ROWS
-            if row in res[v]["table5"]}
+            if v in res and row in res[v]["table5"]}
+  table5_ci95 = {name: res[v].get("table5_ci95", {}).get(row) for name, v, row in TABLE5_ROWS
+                 if v in res and row in res[v]["table5"]}
   steps = {}
   with open(os.path.join(pipe.root, "steps.jsonl")) as f:
     for line in f:
@@ -53,9 +62,10 @@ def collect(pipe) -> dict:
       s["seconds"] = round(s["seconds"] + r["seconds"], 1)
       s["calls"] += 1
   return {
-      "table2": table2, "f1": full["f1"],
-      "f1_ablations": {name: res[v]["f1"] for v, name in ABLATIONS.items()},
-      "table4": full["table4"], "table5": table5,
+      "table2": table2, "f1": full["f1"], "shape": full.get("shape"),
+      "shape_fit": full.get("shape_fit"),
+      "f1_ablations": {name: res[v]["f1"] for v, name in ablations.items()},
+      "table4": full["table4"], "table5": table5, "table5_ci95": table5_ci95,
       "mae_units": full["mae_units"], "objects": full["objects"], "split": full["split"],
       "subset": full.get("subset", "first"), "samples": full["samples"],
       "refine": full["refine"],
@@ -79,10 +89,24 @@ def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
   out.append((f"{BEST_ROW} MAE / Frequent MAE", ratio, "≤", round(goal, 2), ratio <= goal))
   f1 = tables.PAPER_SHAPE_F1
   out.append(("shape F1 (%)", r["f1"], "≥", f1, r["f1"] >= f1))
-  tp = r["table5"].get("Texture + Physics (+Sample)", {})
-  for n, t in zip("2345", tables.PAPER_TABLE5["Texture + Physics"]):
-    if n in tp:
-      out.append((f"Table 5 Texture + Physics (+Sample), {n} blocks", tp[n], "≤", t, tp[n] <= t))
+  fit = r.get("shape_fit")
+  if fit:
+    out.append(("shape F1 with the fit (%)", fit["f1"], "≥", 99.5, fit["f1"] >= 99.5))
+    out.append(("box count exact with the fit (%)", fit["count_exact"], "≥", 99,
+                fit["count_exact"] >= 99))
+  fs = r["table2"].get("PPD (full)+Fit+Sample")
+  if fs:
+    for k, t in ((1, top1), (5, top5), (10, top10)):
+      out.append((f"PPD (full)+Fit+Sample top-{k}", fs[f"top{k}"], "≥", t, fs[f"top{k}"] >= t))
+    out.append(("PPD (full)+Fit+Sample RMSE (slots)", fs["rmse"], "≤", rmse, fs["rmse"] <= rmse))
+    ratio = fs["mae"] / r["table2"]["Frequent"]["mae"]
+    out.append(("PPD (full)+Fit+Sample MAE / Frequent MAE", ratio, "≤", round(goal, 2),
+                ratio <= goal))
+  for label in ("Texture + Physics (+Sample)", "Texture + Physics (+Fit+Sample)"):
+    tp = r["table5"].get(label, {})
+    for n, t in zip("2345", tables.PAPER_TABLE5["Texture + Physics"]):
+      if n in tp:
+        out.append((f"Table 5 {label}, {n} blocks", tp[n], "≤", t, tp[n] <= t))
   return out
 
 
@@ -103,9 +127,13 @@ def markdown(r: dict, command: str) -> str:
             "|---|--:|--:|--:|--:|--:|---|"]
   for name, row in r["table2"].items():
     paper = tables.PAPER_TABLE2.get(name)
-    lines.append(f"| {name} | " + " | ".join(f"{row[k]:.1f}" for k in KEYS) + " | "
+    lines.append(f"| {name} ({row.get('objects', r['objects'])}) | "
+                 + " | ".join(tables.with_ci(row, k) for k in KEYS) + " | "
                  + (" / ".join(str(x) for x in paper) if paper else "–") + " |")
-  lines += ["", f"Shape F1 of the full model: **{r['f1']:.1f}** (paper {tables.PAPER_SHAPE_F1}); ablations: "
+  lines += ["", "Objects evaluated in parentheses; 95 % bootstrap intervals over objects in "
+            "brackets.", "",
+            f"Shape F1 of the full model: **{r['f1']:.1f}** (paper {tables.PAPER_SHAPE_F1})"
+            + tables.shape_line(r) + "; ablations: "
             + ", ".join(f"{k} {v:.1f}" for k, v in r["f1_ablations"].items()) + ".", "",
             "## Table 4: best of N samples, trajectory MAE (mm)", ""]
   lines += tables.table4_md(r["table4"])
@@ -132,7 +160,7 @@ def save_logs(pipe, out_dir: str) -> None:
   steps' wall times and the dataset card."""
   os.makedirs(out_dir, exist_ok=True)
   copies = {os.path.join(pipe.workdir(v), "metrics.jsonl"): f"{v}.metrics.jsonl"
-            for v in ("full",) + tuple(ABLATIONS)}
+            for v in ("geometry", "full") + tuple(ABLATIONS)}
   copies[os.path.join(pipe.root, "steps.jsonl")] = "steps.jsonl"
   copies[os.path.join(pipe.data, "card.md")] = "data_card.md"
   for src, name in copies.items():
@@ -151,7 +179,8 @@ def write_all(pipe, results_dir: str, assets_dir: str, command: str,
   r = collect(pipe)
   path = lambda name: os.path.join(results_dir, name)
   plot_variant_curves({v: os.path.join(pipe.workdir(v), "metrics.jsonl")
-                       for v in ("full",) + tuple(ABLATIONS)}, path("blocks_learning_curves.png"))
+                       for v in ("geometry", "full") + tuple(ABLATIONS)},
+                      path("blocks_learning_curves.png"))
   with open(pipe.eval_path("full")) as f:
     plot_confusion(json.load(f)["confusion"], path("blocks_confusion.png"))
   model_dir = os.path.join(assets_dir, "blocks_model")

@@ -25,6 +25,11 @@ def get_config():
   config.train.schedule = "cosine"
   # 3k steps (768k samples, 20 epochs) per model: the four models of Table 2 train in
   # ~11 minutes of one H100, inside experiments/blocks.py's 25-minute budget.
+  # Geometry from the stream of fresh towers first (dataset.stream; 10k steps, 2.6M towers,
+  # ~3 min on one H100), kept on beside the dataset's loss afterwards (stream_weight):
+  # experiments/results/shape_study.md. The paper's encoder (voxel_keep = 1) and sizes.
+  config.train.stream_steps = 10_000
+  config.train.stream_weight = 1.0
   config.train.geometry_steps = 750
   config.train.joint_steps = 2_250
   config.train.log_every = 100
@@ -37,4 +42,6 @@ def get_config():
   # chosen on the validation split of a reduced paper-scale run (lowest +Sample RMSE;
   # experiments/results/paper_small/README.md)
   config.eval.prior_weight = 0.05
+  config.eval.fit = True  # the +Fit rows (boxes fitted to the voxels, infer.fit)
+  config.eval.refine_prior = 1e-5  # +Fit+Sample+Refine: MAP under the network's prior
   return config

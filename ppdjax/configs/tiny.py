@@ -69,4 +69,6 @@ def get_config() -> ml_collections.ConfigDict:
   config.eval.refine_steps = 12
   config.eval.batch_size = 8
   config.eval.prior_weight = 0.0  # +Sample: distance - tau log prior (m per nat; 0: the paper's)
+  config.eval.fit = False  # also the +Fit rows: boxes fitted to the voxels (infer.fit)
+  config.eval.refine_prior = 1e-5  # with a fit, +Refine is a MAP step (refine.refine_densities)
   return config

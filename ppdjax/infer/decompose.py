@@ -8,7 +8,8 @@ import numpy as np
 from flax import nnx, struct
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION
-from ppdjax.infer.refine import refine_if_closer
+from ppdjax.infer.fit import fit_boxes
+from ppdjax.infer.refine import density_prior, refine_if_closer
 from ppdjax.infer.sampling import select_densities
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
@@ -21,8 +22,8 @@ class Decomposition:
   """What `decompose` returns for a batch of B objects (K boxes, P pushes, T steps).
 
   Attributes:
-    primitives: Primitives (B, K): predicted geometry with the selected (and refined)
-      densities; `valid` marks the boxes the generator emitted.
+    primitives: Primitives (B, K): the boxes (fitted to the voxels with `fit`, else the
+      network's) with the selected (and refined) densities; `valid` marks the boxes.
     density_logits: (B, K, 100) the network's density scores per box.
     score: (B,) trajectory distance (metres) of the returned densities.
     scores: (B, S) every sampled candidate's distance (candidate 0: the arg-max).
@@ -71,18 +72,24 @@ def check_observation(obs: dict, config) -> bool:
   return batched
 
 
-def make_decompose_fn(trained, *, num_samples: int = 512, refine: bool = False,
-                      refine_steps: int = 12, prior_weight: float = 0.0,
-                      pushes: Pushes | None = None,
+def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
+                      refine: bool = False, refine_steps: int = 12, prior_weight: float = 0.0,
+                      refine_prior: float = 0.0, pushes: Pushes | None = None,
                       settings: MjxSettings = DEFAULT_SETTINGS):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
 
   Args:
     trained: a training workdir, or the (model, config) pair `ppdjax.load` returns.
     num_samples: density candidates per object (1: the network's arg-max only).
+    fit: replace the network's boxes by boxes fitted to the voxels (`ppdjax.fit_boxes`,
+      started from the network's); the network's k-th density scores go to the k-th
+      fitted box from the bottom. False: the network's boxes, as the paper.
     refine: fit the best candidate's densities by Levenberg–Marquardt through MJX.
     refine_steps: LM iterations.
     prior_weight: τ of `select_densities` (0: the closest trajectory wins).
+    refine_prior: > 0 makes refinement a MAP step under the network's density scores
+      (`refine.refine_densities`'s prior_weight; 1e-5: a one-σ move costs about 3 mm of
+      trajectory residual); 0 is plain least squares.
     pushes: the pushes the observations were recorded with (None: the paper's four).
     settings: MJX settings the observations were simulated with (the dataset's).
 
@@ -105,6 +112,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, refine: bool = False,
     prims, raw = model.decode(obs)
     k = prims.num_slots
     logits = raw.density_logits[:, :k, :NUM_DENSITY_SLOTS]
+    if fit:
+      prims = fit_boxes(obs["voxels"], init=prims).replace(density=prims.density)
     traj = obs["trajectories"].astype(jnp.float32)
     keys = jax.random.split(key, traj.shape[0])
     sel = jax.vmap(lambda p, l, o, kk: select_densities(
@@ -113,8 +122,10 @@ def make_decompose_fn(trained, *, num_samples: int = 512, refine: bool = False,
     prims = prims.replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
     if refine:
-      ref = jax.vmap(lambda p, o, d: refine_if_closer(p, o, d, pushes, steps=refine_steps,
-                                                      settings=settings))(prims, traj, score)
+      ref = jax.vmap(lambda p, lg, o, d: refine_if_closer(
+          p, o, d, pushes, steps=refine_steps,
+          prior=density_prior(lg) if refine_prior > 0 else None, prior_weight=refine_prior,
+          settings=settings))(prims, logits, traj, score)
       closer = ref.closer[:, None, None, None]
       prims, score, sim = ref.primitives, ref.distance, jnp.where(closer, ref.trajectories, sim)
     return Decomposition(prims, logits, score, sel.scores, sim)

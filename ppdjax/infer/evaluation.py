@@ -33,7 +33,8 @@ from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, SLOT_DENSITY, slot_
                                 slot_to_density_jax)
 from ppdjax.dataset import storage
 from ppdjax.infer import baselines, sampling
-from ppdjax.infer.refine import refine_if_closer
+from ppdjax.infer.fit import fit_boxes
+from ppdjax.infer.refine import density_prior, refine_if_closer
 from ppdjax.infer.tables import BASELINES, PREFIXES, PRIOR_WEIGHTS, model_switches, summarize
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
@@ -48,23 +49,54 @@ def simultaneous_candidates() -> int:
   return 2048 if jax.default_backend() == "cpu" else 16384
 
 
-def _decode(graphdef, state, obs, true):
+def _decode(graphdef, state, obs, true, *, fit):
+  """The network's boxes and slot logits, and with `fit` the boxes fitted to the voxels
+  (`fit.fit_boxes` from the network's; the k-th logits go to the k-th fitted box from
+  the bottom); shape counts of each."""
   model = nnx.merge(graphdef, state)
   pred, raw = model.decode(obs)
   logits = raw.density_logits[:, :pred.num_slots, :NUM_DENSITY_SLOTS]
-  return pred, logits, metrics.shape_counts(pred, true)
+  out = {"pred": pred, "logits": logits, "shape": metrics.shape_counts(pred, true)}
+  if fit:
+    fitted = fit_boxes(obs["voxels"], init=pred)
+    out["fitted"] = fitted.replace(density=pred.density)
+    out["shape_fit"] = metrics.shape_counts(fitted, true)
+  return out
 
 
-def _simulate(pred, logits, true, base_slots, pool, obs_traj, key, *, samples, with_baselines,
-              chunk, pushes, settings):
-  """Per object: (distance, MAE) of every candidate, and the network's candidate slots."""
+def candidate_layout(samples: int, fit: bool, with_baselines: bool) -> dict:
+  """Where each group of candidates sits along an object's candidate axis: name -> slice.
+
+  "ppd": the network's samples on its boxes; "fit": the network's samples on the fitted
+  boxes; "uniform" / "shapes": Table 4's sampling baselines; "baselines": Table 2's three.
+  """
+  sizes = [("ppd", samples)] + ([("fit", samples)] if fit else [])
+  if with_baselines:
+    sizes += [("uniform", samples), ("shapes", samples), ("baselines", len(BASELINES))]
+  out, start = {}, 0
+  for name, n in sizes:
+    out[name] = slice(start, start + n)
+    start += n
+  return out
+
+
+def _simulate(pred, fitted, logits, true, base_slots, pool, obs_traj, key, *, samples,
+              with_baselines, chunk, pushes, settings):
+  """Per object: (distance, MAE) of every candidate (`candidate_layout`), and the
+  network's candidate slots on its boxes and on the fitted ones (None without a fit)."""
   b, k = pred.density.shape
-  keys = jax.random.split(key, (b, 3))
+  keys = jax.random.split(key, (b, 4))
+  fit = fitted is not None
+  fitted = pred if fitted is None else fitted
 
   def one(args):
-    p, lg, t, bs, traj, kk = args
+    p, f, lg, t, bs, traj, kk = args
     slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
     cands = [sampling.with_slots(p, slots)]
+    fit_slots = slots
+    if fit:
+      fit_slots, _ = sampling.candidate_slots(lg, f.valid, samples, kk[3])
+      cands.append(sampling.with_slots(f, fit_slots))
     if with_baselines:
       uniform, _ = sampling.candidate_slots(jnp.zeros_like(lg), t.valid, samples, kk[1],
                                             include_mode=False)
@@ -74,19 +106,24 @@ def _simulate(pred, logits, true, base_slots, pool, obs_traj, key, *, samples, w
                 sampling.with_slots(t, bs)]
     cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
     dist, mae = sampling.score_candidates(cands, traj, pushes, settings)
-    return dist, mae, slots
+    return dist, mae, slots, fit_slots
 
-  return jax.lax.map(one, (pred, logits, true, base_slots, obs_traj, keys), batch_size=chunk)
+  return jax.lax.map(one, (pred, fitted, logits, true, base_slots, obs_traj, keys),
+                     batch_size=chunk)
 
 
-def _refine(prims, obs_traj, sample_dist, sample_mae, *, steps, pushes, settings):
-  """Refined densities where they are closer (`refine_if_closer`, as `decompose`)."""
-  def one(p, traj, d0, m0):
-    r = refine_if_closer(p, traj, d0, pushes, steps=steps, settings=settings)
+def _refine(prims, logits, obs_traj, sample_dist, sample_mae, *, steps, prior_weight, pushes,
+            settings):
+  """Refined densities where kept (`refine_if_closer`, as `decompose`); a MAP step under
+  the network's prior when prior_weight > 0."""
+  def one(p, lg, traj, d0, m0):
+    prior = density_prior(lg) if prior_weight > 0 else None
+    r = refine_if_closer(p, traj, d0, pushes, steps=steps, prior=prior,
+                         prior_weight=prior_weight, settings=settings)
     mae = jnp.where(r.closer, metrics.trajectory_mae(r.trajectories, traj), m0)
     return {"density": r.primitives.density, "cost_start": r.cost_start, "cost": r.cost,
             "dist": r.distance, "mae": mae}
-  return jax.vmap(one)(prims, obs_traj, sample_dist, sample_mae)
+  return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae)
 
 
 def sample_scores(logits, slots, objective, valid):
@@ -115,49 +152,59 @@ class Evaluator:
   """Compiles the per-batch calls once for a model, batch size and sample count."""
 
   def __init__(self, model, config, *, samples: int, refine: bool, refine_steps: int = 12,
-               baselines_on: bool = True, prior_weight: float = 0.0, pushes=None,
-               settings=DEFAULT_SETTINGS):
+               baselines_on: bool = True, prior_weight: float = 0.0, fit: bool = False,
+               refine_prior: float = 0.0, pushes=None, settings=DEFAULT_SETTINGS):
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
-    self.config, self.samples, self.refine = config, samples, refine
+    self.config, self.samples, self.refine, self.fit = config, samples, refine, fit
     self.baselines_on, self.prior_weight = baselines_on, prior_weight
     pushes = default_pushes() if pushes is None else pushes
-    per_object = samples * (3 if baselines_on else 1) + (3 if baselines_on else 0)
+    self.layout = candidate_layout(samples, fit, baselines_on)
+    per_object = max(s.stop for s in self.layout.values())
     chunk = max(1, simultaneous_candidates() // per_object)
     self.graphdef, self.state = nnx.split(model)
-    self._decode = jax.jit(functools.partial(_decode, self.graphdef))
+    self._decode = jax.jit(functools.partial(_decode, self.graphdef, fit=fit))
     self._simulate = jax.jit(functools.partial(
         _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
         settings=settings))
+    # without a fit, the network's boxes are refined as the paper's least squares; with a
+    # fit, the fitted boxes by the MAP step (refine_prior)
     self._refine = jax.jit(functools.partial(
-        _refine, steps=refine_steps, pushes=pushes, settings=settings))
+        _refine, steps=refine_steps, prior_weight=refine_prior if fit else 0.0,
+        pushes=pushes, settings=settings))
 
   def batch(self, batch: dict, base_scores: np.ndarray | None, key) -> dict:
     """Per-object arrays for one batch (see `evaluate` for what they become)."""
     obs = {k: jnp.asarray(batch[k]) for k in OBS_KEYS}
     true = bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
-    pred, logits, shape = self._decode(self.state, obs, true)
+    decoded = self._decode(self.state, obs, true)
+    pred, logits, fitted = decoded["pred"], decoded["logits"], decoded.get("fitted")
     b, k = true.density.shape
     base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
                   else np.zeros((b, len(BASELINES), k), np.int32))
     pool = baselines.random_shapes(int(jax.random.randint(key, (), 0, 2**31 - 1)),
                                    self.samples, num_slots=k)
-    dist, mae, slots = self._simulate(pred, logits, true, jnp.asarray(base_slots),
-                                      jax.tree.map(jnp.asarray, pool), obs["trajectories"],
-                                      key)
-    out = jax.device_get({"pred": pred, "logits": logits, "shape": shape, "dist": dist,
-                          "mae": mae, "slots": slots})
+    dist, mae, slots, fit_slots = self._simulate(
+        pred, fitted, logits, true, jnp.asarray(base_slots), jax.tree.map(jnp.asarray, pool),
+        obs["trajectories"], key)
+    out = jax.device_get({**decoded, "dist": dist, "mae": mae, "slots": slots})
     out["logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, jnp.asarray(out["slots"]),
                                                           pred.valid))
-    if self.refine:
-      objective = sampling.selection_objective(out["dist"][:, :self.samples], out["logp"],
-                                               self.prior_weight)
-      best = np.argmin(objective, -1)
-      start = np.take_along_axis(out["slots"], best[:, None, None], 1)[:, 0]
-      prims = pred.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
+    if self.fit:
+      out["fit_slots"] = np.asarray(fit_slots)
+      out["fit_logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, fit_slots,
+                                                                fitted.valid))
+    if self.refine:  # from the best sample: on the fitted boxes when there is a fit
+      group, boxes = ("fit", fitted) if self.fit else ("ppd", pred)
+      cand_slots = out["fit_slots"] if self.fit else out["slots"]
+      d, m = out["dist"][:, self.layout[group]], out["mae"][:, self.layout[group]]
+      logp = out["fit_logp"] if self.fit else out["logp"]
+      best = np.argmin(sampling.selection_objective(d, logp, self.prior_weight), -1)
+      start = np.take_along_axis(cand_slots, best[:, None, None], 1)[:, 0]
+      prims = boxes.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
       rows = np.arange(len(best))
       out["refine"] = jax.device_get(self._refine(
-          prims, obs["trajectories"], out["dist"][rows, best], out["mae"][rows, best]))
+          prims, logits, obs["trajectories"], d[rows, best], m[rows, best]))
     return out
 
 
@@ -167,12 +214,14 @@ def _row_counts(scores, slot, valid):
   return {n: np.asarray(v) for n, v in c.items()}
 
 
-EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight")
+EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
+                 "refine_prior")
 
 
 def eval_settings(config, **overrides) -> dict:
   """`evaluate`'s settings from a preset's `eval` section; overrides that are not None win."""
-  out = {k: config.eval[k] for k in EVAL_SETTINGS}
+  defaults = {"fit": False, "refine_prior": 0.0}  # presets saved before the fit existed
+  out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
     raise ValueError(f"unknown evaluation settings {unknown}; expected {EVAL_SETTINGS}")
@@ -193,15 +242,16 @@ def evaluation_objects(total: int, max_objects: int = 0, subset: str = "first") 
 
 
 def _batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: float,
-                   prefixes, with_baselines: bool, refine: bool) -> dict:
+                   prefixes, with_baselines: bool, refine: bool, layout: dict) -> dict:
   """Per-object records of one batch, keyed by (kind, row, name); `evaluate` concatenates
   them and `tables.summarize` turns them into the tables."""
   keep = len(slot)
   rows = np.arange(keep)
   pvalid = np.asarray(out["pred"].valid)
   logits = out["logits"].astype(np.float64)
-  dist, omae, slots = out["dist"], out["mae"], out["slots"]
-  objective = lambda tau: sampling.selection_objective(dist[:, :samples], out["logp"], tau)
+  slots = out["slots"]
+  dist, omae = out["dist"][:, layout["ppd"]], out["mae"][:, layout["ppd"]]
+  objective = lambda tau: sampling.selection_objective(dist, out["logp"], tau)
   rec = {("blocks",): valid.sum(-1), ("true_slot",): slot, ("true_valid",): valid}
   rec.update({("shape", k): np.asarray(v) for k, v in out["shape"].items()})
   best = np.argmin(objective(prior_weight), -1)
@@ -216,19 +266,34 @@ def _batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: 
   for p in prefixes:
     rec[("prefix", "PPD", p)] = omae[rows, np.argmin(dist[:, :p], -1)]
   if with_baselines:
+    base_mae = out["mae"][:, layout["baselines"]]
     for j, name in enumerate(BASELINES):
       scores[name] = base[:, j]
-      mae[name] = omae[:, 3 * samples + j]
-    for m, name in ((1, "Sample Phys."), (2, "Sample Phys.+Shape")):
-      d, e = dist[:, m * samples:(m + 1) * samples], omae[:, m * samples:(m + 1) * samples]
+      mae[name] = base_mae[:, j]
+    for group, name in (("uniform", "Sample Phys."), ("shapes", "Sample Phys.+Shape")):
+      d, e = out["dist"][:, layout[group]], out["mae"][:, layout[group]]
       for p in prefixes:
         rec[("prefix", name, p)] = e[rows, np.argmin(d[:, :p], -1)]
+  sample_row, refined_from = "PPD+Sample", dist[rows, best]
+  if "fit" in layout:  # the same rows on the boxes fitted to the voxels
+    rec.update({("shape_fit", k): np.asarray(v) for k, v in out["shape_fit"].items()})
+    fvalid = np.asarray(out["fitted"].valid)
+    fd, fm = out["dist"][:, layout["fit"]], out["mae"][:, layout["fit"]]
+    f_obj = sampling.selection_objective(fd, out["fit_logp"], prior_weight)
+    f_best = np.argmin(f_obj, -1)
+    scores["PPD+Fit"] = logits
+    mae["PPD+Fit"] = fm[:, 0]
+    scores["PPD+Fit+Sample"] = sample_scores(logits, out["fit_slots"], f_obj, fvalid)
+    mae["PPD+Fit+Sample"] = fm[rows, f_best]
+    sample_row, refined_from, pvalid = "PPD+Fit+Sample", fd[rows, f_best], fvalid
+    for p in prefixes:
+      rec[("prefix", "PPD+Fit", p)] = fm[rows, np.argmin(fd[:, :p], -1)]
   if refine:
     r = out["refine"]
-    scores["PPD+Sample+Refine"] = refine_scores(logits, r["density"], pvalid)
-    mae["PPD+Sample+Refine"] = r["mae"]
+    scores[sample_row + "+Refine"] = refine_scores(logits, r["density"], pvalid)
+    mae[sample_row + "+Refine"] = r["mae"]
     rec.update({("refine", k): r[k] for k in ("cost_start", "cost", "dist")})
-    rec[("refine", "sample_dist")] = dist[rows, best]
+    rec[("refine", "sample_dist")] = refined_from
   for name, sc in scores.items():
     rec.update({("counts", name, k): v for k, v in _row_counts(sc, slot, valid).items()})
     rec[("guess", name)] = np.argmax(sc, -1)
@@ -239,7 +304,8 @@ def _batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: 
 def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              refine: bool = False, refine_steps: int = 12, batch_size: int = 16,
              max_objects: int = 0, with_baselines: bool = True, seed: int = 0,
-             prior_weight: float = 0.0, subset: str = "first", progress: bool = True) -> dict:
+             prior_weight: float = 0.0, subset: str = "first", fit: bool = False,
+             refine_prior: float = 0.0, progress: bool = True) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
@@ -261,7 +327,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   train = baselines.TrainingSet(storage.open_dataset(data_dir, "train"),
                                 progress=progress) if with_baselines else None
   ev = Evaluator(model, config, samples=samples, refine=refine, refine_steps=refine_steps,
-                 baselines_on=with_baselines, prior_weight=prior_weight)
+                 baselines_on=with_baselines, prior_weight=prior_weight, fit=fit,
+                 refine_prior=refine_prior)
   prefixes = sorted({p for p in PREFIXES if p <= samples} | {samples})
   records = collections.defaultdict(list)
   key = jax.random.key(seed)
@@ -284,7 +351,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
     rec = _batch_records(out, slot[:keep], slot[:keep] >= 0,
                          None if base is None else base[:keep], samples=samples,
                          prior_weight=prior_weight, prefixes=prefixes,
-                         with_baselines=with_baselines, refine=refine)
+                         with_baselines=with_baselines, refine=refine, layout=ev.layout)
     for k, v in rec.items():
       records[k].append(np.asarray(v))
     bar.update(keep)
@@ -294,6 +361,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       "workdir": trained if isinstance(trained, str) else None, "data": data_dir,
       "split": split, "objects": int(n), "samples": samples, "refine": refine,
       "refine_steps": refine_steps if refine else 0, "baselines": with_baselines,
-      "prior_weight": prior_weight, "subset": subset,
+      "prior_weight": prior_weight, "subset": subset, "fit": fit,
+      "refine_prior": refine_prior if fit and refine else 0.0,
       "seconds": round(time.perf_counter() - t_start, 1)})
   return results

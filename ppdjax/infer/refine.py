@@ -12,15 +12,27 @@ import jax.numpy as jnp
 from flax import struct
 
 from ppdjax import metrics
-from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY
+from ppdjax.conventions import (MAX_DENSITY, MIN_DENSITY, NUM_DENSITY_SLOTS,
+                                slot_to_density_jax)
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
 from ppdjax.sim.simulate import simulate
 
 
+def density_prior(logits_Kx100: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """(mean (K,), std (K,)) of log density under the network's per-box slot distribution:
+  the Gaussian that +Refine's MAP step uses as its prior (std at least 0.05)."""
+  p = jax.nn.softmax(logits_Kx100[..., :NUM_DENSITY_SLOTS], -1)
+  log_rho = jnp.log(slot_to_density_jax(jnp.arange(NUM_DENSITY_SLOTS)))
+  mean = (p * log_rho).sum(-1)
+  std = jnp.sqrt((p * (log_rho - mean[..., None]) ** 2).sum(-1))
+  return mean, jnp.maximum(std, 0.05)
+
+
 def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | None = None, *,
                      steps: int = 12, warmup_steps: int = 64, damping: float = 1e-3,
+                     prior: tuple | None = None, prior_weight: float = 0.0,
                      settings: MjxSettings = DEFAULT_SETTINGS) -> tuple[Primitives, dict]:
   """Fits the densities of valid boxes to the observed trajectories (Levenberg–Marquardt).
 
@@ -40,6 +52,12 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     steps: LM iterations (steps + 1 rollouts in all, each with its K tangents).
     warmup_steps: the horizon of the first steps // 2 iterations.
     damping: initial λ of (JᵀJ + λ·diag(JᵀJ)) δ = −Jᵀr.
+    prior: (mean (K,), std (K,)) of a Gaussian prior on log densities (`density_prior` of
+      the network's logits), or None.
+    prior_weight: with a prior, the MAP cost is 0.5·|r|² + 0.5·prior_weight·n·Σ z_k²,
+      z_k = (log ρ_k − mean_k) / std_k and n the number of residual entries at the
+      horizon: a one-σ move costs as much as sqrt(prior_weight) metres of residual on every
+      entry (1e-5: about 3 mm). 0 is a plain least-squares fit.
     settings: MJX solver settings.
 
   Returns:
@@ -58,14 +76,26 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     r = metrics.pose_residual(sim, observed)
     return r, (r, sim)
 
-  def cost(r, horizon):
-    return 0.5 * jnp.sum(jnp.where(jnp.arange(t)[:, None] < horizon, r, 0.0) ** 2)
+  mean, std = (jnp.zeros(valid.shape), jnp.ones(valid.shape)) if prior is None else prior
+  weight_per_entry = 0.0 if prior is None else prior_weight
+  entries_per_step = observed.shape[0] * 6  # P pushes x 6 residual components
+
+  def prior_terms(u, horizon):  # (weight w, z): cost 0.5·w·Σ z², gradient w·z/std
+    w = weight_per_entry * entries_per_step * jnp.minimum(horizon, t)
+    return w, jnp.where(valid, (u - mean) / std, 0.0)
+
+  def cost(r, horizon, u):
+    w, z = prior_terms(u, horizon)
+    return (0.5 * jnp.sum(jnp.where(jnp.arange(t)[:, None] < horizon, r, 0.0) ** 2)
+            + 0.5 * w * jnp.sum(z * z))
 
   def propose(u, r, jac, lam, horizon):
     keep = (jnp.arange(t) < horizon)[None, :, None]
     jac = jnp.where(keep[..., None] & valid, jac, 0.0).reshape(-1, valid.shape[0])
     r = jnp.where(keep, r, 0.0).reshape(-1)
-    h, g = jac.T @ jac, jac.T @ r
+    w, z = prior_terms(u, horizon)
+    h = jac.T @ jac + jnp.diag(jnp.where(valid, w / std ** 2, 0.0))
+    g = jac.T @ r + jnp.where(valid, w * z / std, 0.0)
     diag = jnp.where(valid, jnp.diagonal(h), 1.0)
     a = h + jnp.diag(lam * diag + 1e-9 + (~valid))
     return jnp.where(valid, jnp.clip(u - jnp.linalg.solve(a, g), lo, hi), u)
@@ -79,8 +109,8 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     trial, u, r, jac, sim, lam, accepted, r0, sim0 = carry
     jac_t, (r_t, sim_t) = jax.jacfwd(residual, has_aux=True)(trial)
     first = jnp.isinf(lam)  # pass 0: nothing to compare with
-    c_t = cost(r_t, proposed_with)
-    take = first | (jnp.isfinite(c_t) & (c_t < cost(r, proposed_with)))
+    c_t = cost(r_t, proposed_with, trial)
+    take = first | (jnp.isfinite(c_t) & (c_t < cost(r, proposed_with, u)))
     u, r, jac, sim = jax.tree.map(lambda a, b: jnp.where(take, a, b), (trial, r_t, jac_t, sim_t),
                                   (u, r, jac, sim))
     lam = jnp.where(first, damping, jnp.where(take, lam * 0.3, lam * 4.0))
@@ -99,7 +129,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   (_, u, r, _, sim, _, accepted, r0, sim0), _ = jax.lax.scan(iterate, init, horizons)
   # The warm-up passes fit a shorter horizon and may raise the full-trajectory cost:
   # never return something worse than the start.
-  c0, c1 = cost(r0, t), cost(r, t)
+  c0, c1 = cost(r0, t, u0), cost(r, t, u)
   better = c1 < c0
   u = jnp.where(better, u, u0)
   out = prims.replace(density=jnp.where(valid, jnp.exp(u), prims.density))
@@ -129,24 +159,29 @@ class Refinement:
 
 def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array,
                      pushes: Pushes | None = None, *, steps: int = 12,
+                     prior: tuple | None = None, prior_weight: float = 0.0,
                      settings: MjxSettings = DEFAULT_SETTINGS) -> Refinement:
   """Refines one object's densities; keeps them only if the trajectory distance drops.
 
-  LM lowers the squared pose residual; +Sample ranks by the mean residual norm
-  (`metrics.trajectory_distance`). The refined densities replace the start only where
-  that distance agrees.
+  LM lowers the squared pose residual (with a prior: the MAP cost); +Sample ranks by the
+  mean residual norm (`metrics.trajectory_distance`). The refined densities replace the
+  start only where that distance agrees (without a prior) or where the MAP cost fell
+  (with one: a MAP step may trade a little distance for a likelier density).
 
   Args:
     prims: one object with the starting densities (the best sample's).
     observed: (P, T, 7).
     distance: the start's trajectory distance (metres), as +Sample computed it.
-    pushes, steps, settings: as `refine_densities`.
+    pushes, steps, prior, prior_weight, settings: as `refine_densities`.
   """
   pushes = default_pushes() if pushes is None else pushes
-  refined, info = refine_densities(prims, observed, pushes, steps=steps, settings=settings)
+  refined, info = refine_densities(prims, observed, pushes, steps=steps, prior=prior,
+                                   prior_weight=prior_weight, settings=settings)
   sim = info["trajectories"]
   new = metrics.trajectory_distance(sim, observed)
   closer = new < distance
+  if prior is not None and prior_weight > 0:
+    closer = info["cost"] < info["cost_start"]
   kept = jax.tree.map(lambda a, b: jnp.where(closer, a, b), refined, prims)
-  return Refinement(kept, jnp.minimum(new, distance), sim, closer, info["cost_start"],
+  return Refinement(kept, jnp.where(closer, new, distance), sim, closer, info["cost_start"],
                     info["cost"])

@@ -13,7 +13,8 @@ from ppdjax.plots import plot_confusion
 
 # Row and column names of one model's evaluation.
 BASELINES = ("Frequent", "Nearest", "Oracle")
-PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine")
+PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine", "PPD+Fit", "PPD+Fit+Sample",
+            "PPD+Fit+Sample+Refine")
 PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
 PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)  # τ swept for +Sample (m/nat)
 
@@ -47,21 +48,62 @@ def model_switches(config) -> dict:
   return {k: bool(config.model[k]) for k in ("use_voxels", "use_image", "use_trajectory")}
 
 
+def _np_metrics(counts: dict, idx) -> dict:
+  """top-k (%) and RMSE (slots) of the objects `idx` (NumPy; the bootstrap's inner loop)."""
+  n = max(float(counts["count"][idx].sum()), 1.0)
+  out = {k: 100.0 * float(v[idx].sum()) / n for k, v in counts.items() if k.startswith("top")}
+  out["rmse"] = float(np.sqrt(counts["sq_err"][idx].sum() / n))
+  return out
+
+
+def intervals(counts: dict, mae, resamples: int = 1000) -> dict:
+  """95 % bootstrap intervals over objects of a row's top-k, RMSE and MAE."""
+  n = len(counts["count"])
+  out = {}
+  for k in [k for k in counts if k.startswith("top")] + ["rmse"]:
+    out[k] = metrics.bootstrap_interval(lambda i, k=k: _np_metrics(counts, i)[k], n,
+                                        resamples=resamples)
+  if mae is not None:
+    out["mae"] = metrics.bootstrap_interval(lambda i: float(np.mean(mae[i])), n,
+                                            resamples=resamples)
+  return out
+
+
+def _f1(rec, kind):
+  c = [np.asarray(rec[(kind, k)]) for k in ("matched", "predicted", "true")]
+  f1 = lambda i: metrics.f1_from_counts(c[0][i], c[1][i], c[2][i])
+  exact = lambda i: 100.0 * float(np.mean(c[1][i] == c[2][i]))
+  everyone = np.arange(len(c[0]))
+  return {"f1": f1(everyone), "f1_ci95": metrics.bootstrap_interval(f1, len(everyone)),
+          "count_exact": exact(everyone),
+          "count_exact_ci95": metrics.bootstrap_interval(exact, len(everyone))}
+
+
 def summarize(switches: dict, rec: dict) -> dict:
   """Tables 2, 4, 5, F1, the τ sweep, refinement statistics and confusion matrices from
-  the concatenated per-object records of `evaluation._batch_records`."""
+  the concatenated per-object records of `evaluation._batch_records`, with 95 %
+  bootstrap intervals over objects ("ci95") for Table 2's rows, Table 5 and F1."""
   group = lambda *prefix: {k[len(prefix)]: v for k, v in rec.items()
                            if k[:len(prefix)] == prefix and len(k) == len(prefix) + 1}
   nb = rec[("blocks",)]
+  shape = _f1(rec, "shape")
   results = {"model": switches, "mae_units": "mm", "table2": {}, "table4": {}, "table5": {},
-             "f1": metrics.f1_from_counts(*[rec[("shape", k)] for k in
-                                            ("matched", "predicted", "true")])}
+             "table5_ci95": {}, "f1": shape["f1"], "shape": shape}
+  if ("shape_fit", "matched") in rec:
+    results["shape_fit"] = _f1(rec, "shape_fit")
+    results["f1_fit"] = results["shape_fit"]["f1"]
   names = {k[1] for k in rec if k[0] == "counts"}
   for name in [r for r in BASELINES + PPD_ROWS if r in names]:
-    counts = group("counts", name)
+    counts = {k: np.asarray(v) for k, v in group("counts", name).items()}
     row = metrics.summarize(counts)
     row["mae"] = float(np.mean(rec[("mae", name)]))
+    row["ci95"] = intervals(counts, np.asarray(rec[("mae", name)]))
     results["table2"][name] = row
+    results["table5_ci95"][name] = {
+        str(b): metrics.bootstrap_interval(
+            lambda i, sel=np.flatnonzero(nb == b): _np_metrics(counts, sel[i])["rmse"],
+            int(np.sum(nb == b)))
+        for b in range(2, nb.max() + 1) if np.any(nb == b)}
     results["table5"][name] = {
         str(b): metrics.summarize({k: v[nb == b] for k, v in counts.items()})["rmse"]
         for b in range(2, nb.max() + 1) if np.any(nb == b)}
@@ -101,14 +143,23 @@ def _sign(on: bool) -> str:
   return "+" if on else "–"
 
 
+def with_ci(row: dict, key: str, digits: int = 1) -> str:
+  """'12.3 [11.0, 13.5]' (a value and its 95 % interval when the row has one)."""
+  ci = row.get("ci95", {}).get(key)
+  v = f"{row[key]:.{digits}f}"
+  return v if ci is None else f"{v} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}]"
+
+
 def table2_md(rows: dict, observes: dict) -> list[str]:
-  """Markdown lines of Table 2; observes[row] = (texture, physics) booleans."""
+  """Markdown lines of Table 2 (95 % intervals in brackets where measured); observes[row]
+  = (texture, physics) booleans."""
   lines = ["| Method | Texture | Physics | Top 1 | Top 5 | Top 10 | RMSE | MAE (mm) |",
            "|---|:-:|:-:|--:|--:|--:|--:|--:|"]
   for name, r in rows.items():
     tex, phys = observes[name]
-    lines.append(f"| {name} | {_sign(tex)} | {_sign(phys)} | {r['top1']:.1f} | {r['top5']:.1f} "
-                 f"| {r['top10']:.1f} | {r['rmse']:.1f} | {r['mae']:.1f} |")
+    lines.append(f"| {name} | {_sign(tex)} | {_sign(phys)} | "
+                 + " | ".join(with_ci(r, k) for k in ("top1", "top5", "top10", "rmse", "mae"))
+                 + " |")
   return lines
 
 
@@ -116,7 +167,7 @@ def table4_md(table4: dict) -> list[str]:
   ns = sorted({int(n) for r in table4.values() for n in r})
   lines = ["| trajectory MAE (mm) | " + " | ".join(f"{n}×" for n in ns) + " |",
            "|---|" + "--:|" * len(ns)]
-  for name in ("Sample Phys.+Shape", "Sample Phys.", "PPD"):
+  for name in ("Sample Phys.+Shape", "Sample Phys.", "PPD", "PPD+Fit"):
     if name in table4:
       lines.append(f"| {name} | " + " | ".join(f"{table4[name].get(str(n), float('nan')):.1f}"
                                                for n in ns) + " |")
@@ -145,7 +196,8 @@ def results_md(results: dict, command: str = "") -> str:
   lines += [f"{results['samples']} density samples per object"
             + (f", refinement {results['refine_steps']} LM steps" if results["refine"] else "")
             + f"; {results['seconds']:.0f} s in all. Shape F1: **{results['f1']:.1f}** "
-            f"(paper: {PAPER_SHAPE_F1}).", "", "## Table 2: density and trajectory", ""]
+            f"(paper: {PAPER_SHAPE_F1})" + shape_line(results) + ".", "",
+            "## Table 2: density and trajectory", ""]
   lines += table2_md(results["table2"], observes)
   lines += ["", "Paper (block towers): " + paper_line(PAPER_TABLE2_ONE_MODEL) + ".", ""]
   if results["table4"]:
@@ -170,6 +222,20 @@ def results_md(results: dict, command: str = "") -> str:
               f"{r['median_distance_ratio']:.3f}; mean distance {r['mean_distance_sample_m']:.4f}"
               f" → {r['mean_distance_refined_m']:.4f} m.", ""]
   return "\n".join(lines)
+
+
+def shape_line(results: dict) -> str:
+  """'; 95 % interval [a, b]; boxes fitted to the voxels (+Fit): F1 c [d, e]' where known."""
+  out = ""
+  if "shape" in results:
+    lo, hi = results["shape"]["f1_ci95"]
+    out += f", 95 % interval [{lo:.1f}, {hi:.1f}], box count exact on " \
+           f"{results['shape']['count_exact']:.1f} % of objects"
+  if "shape_fit" in results:
+    s = results["shape_fit"]
+    out += (f"; boxes fitted to the voxels (+Fit): F1 **{s['f1']:.1f}** [{s['f1_ci95'][0]:.1f}, "
+            f"{s['f1_ci95'][1]:.1f}], box count exact on {s['count_exact']:.1f} %")
+  return out
 
 
 def write_results(results: dict, out_dir: str, command: str = "") -> tuple[str, str]:
