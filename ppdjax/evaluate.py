@@ -26,6 +26,11 @@ _BATCH_SIZE = flags.DEFINE_integer("batch_size", None, "Objects per jitted call 
 _PRIOR_WEIGHT = flags.DEFINE_float("prior_weight", None, "+Sample selects by distance - "
                                    "prior_weight * log prior (metres per nat; default: "
                                    "eval.prior_weight; 0 is the paper's closest trajectory).")
+_FIT = flags.DEFINE_bool("fit", None, "Also the +Fit rows: boxes fitted to the voxels "
+                         "(default: eval.fit).")
+_REFINE_PRIOR = flags.DEFINE_float("refine_prior", None, "With --fit, +Refine is a MAP step "
+                                   "under the network's density scores with this weight "
+                                   "(default: eval.refine_prior; 0: least squares).")
 _MAX_OBJECTS = flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")
 _SUBSET = flags.DEFINE_enum("subset", "first", ["first", "spread"],
                             "With --max_objects: the first N objects, or N spread over the split.")
@@ -45,7 +50,8 @@ def main(argv):
     settings = evaluation.eval_settings(config, samples=_SAMPLES.value, refine=_REFINE.value,
                                         refine_steps=_REFINE_STEPS.value,
                                         batch_size=_BATCH_SIZE.value,
-                                        prior_weight=_PRIOR_WEIGHT.value)
+                                        prior_weight=_PRIOR_WEIGHT.value, fit=_FIT.value,
+                                        refine_prior=_REFINE_PRIOR.value)
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,
                                   with_baselines=_BASELINES.value, seed=_SEED.value, **settings)
@@ -55,7 +61,9 @@ def main(argv):
   command = "python -m ppdjax.evaluate " + " ".join(sys.argv[1:])
   paths = tables.write_results(results, _OUT.value or os.path.join(_WORKDIR.value, "eval"),
                                command)
-  best = results["table2"].get("PPD+Sample+Refine") or results["table2"].get("PPD+Sample")
+  rows = results["table2"]
+  best = next(rows[r] for r in ("PPD+Fit+Sample+Refine", "PPD+Fit+Sample", "PPD+Sample+Refine",
+                                "PPD+Sample") if r in rows)
   print(f"F1 {results['f1']:.1f}; best row: top1 {best['top1']:.1f}, RMSE {best['rmse']:.2f}, "
         f"MAE {best['mae']:.1f} mm ({settings}) -> {paths[0]}, {paths[1]}")
 

@@ -23,9 +23,11 @@ def test_list_shows_every_step_and_bad_steps_are_named(tmp_path):
   done = _blocks(*TINY, f"--root={tmp_path}", "--list")
   assert done.returncode == 0, done.stderr[-2000:]
   names = [line.split()[1] for line in done.stdout.splitlines() if line.startswith("todo")]
-  assert names == ["generate", "train:full", "train:no_image", "train:no_trajectory",
-                   "train:no_voxels", "evaluate:full", "evaluate:no_image",
-                   "evaluate:no_trajectory", "evaluate:no_voxels", "report"]
+  assert names == ["generate", "train:full", "evaluate:full", "train:no_image",
+                   "evaluate:no_image", "train:no_trajectory", "evaluate:no_trajectory",
+                   "train:no_voxels", "evaluate:no_voxels", "report"]
+  streamed = _blocks(*TINY, "--config.train.stream_steps=5", f"--root={tmp_path}", "--list")
+  assert "train:geometry" in streamed.stdout.splitlines()[1], streamed.stdout
   bad = _blocks(*TINY, f"--root={tmp_path}", "--step=train")
   assert bad.returncode != 0 and "--step must be" in bad.stderr
 
@@ -44,7 +46,7 @@ def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
   assert set(r["table2"]) >= {"Frequent", "Nearest", "Oracle", "PPD (no trajectory)",
                               "PPD (no image)", "PPD (no voxels)", "PPD (full)",
                               "PPD (full)+Sample"}
-  assert all(set(row) == {"top1", "top5", "top10", "rmse", "mae"}
+  assert all(set(row) >= {"top1", "top5", "top10", "rmse", "mae", "ci95", "objects"}
              for row in r["table2"].values())
   assert "f1" in r and r["table4"] and r["table5"] and r["steps"]["generate"]["calls"] == 1
   for name in ("blocks.md", "blocks_learning_curves.png", "blocks_confusion.png",

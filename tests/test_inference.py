@@ -159,7 +159,7 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   out = str(tmp_path / "eval")
   flags.FLAGS.unparse_flags()
   flags.FLAGS(["ppdjax.evaluate", f"--workdir={tiny_run[0]}", f"--data={tiny_dataset}",
-               f"--out={out}", "--max_objects=8"])
+               f"--out={out}", "--max_objects=8", "--fit"])
   try:
     cli.main([])
   finally:
@@ -167,11 +167,18 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   with open(os.path.join(out, "results.json")) as f:
     results = json.load(f)
   rows = results["table2"]
-  assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample"}
+  assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample", "PPD+Fit",
+                       "PPD+Fit+Sample"}
+  # the fit reads the tiny towers' boxes exactly; densities are the network's either way
+  assert results["shape_fit"]["f1"] == 100.0 and results["shape_fit"]["count_exact"] == 100.0
+  assert {k: rows["PPD+Fit"][k] for k in ("top1", "rmse")} == {
+      k: rows["PPD"][k] for k in ("top1", "rmse")}
+  lo, hi = rows["PPD"]["ci95"]["rmse"]
+  assert lo <= rows["PPD"]["rmse"] <= hi
   for row in rows.values():
     assert 0 <= row["top1"] <= row["top5"] <= row["top10"] <= 100 and row["mae"] >= 0
   assert rows["Oracle"]["top10"] > rows["Frequent"]["top10"]
-  assert set(results["table4"]) == {"PPD", "Sample Phys.", "Sample Phys.+Shape"}
+  assert set(results["table4"]) == {"PPD", "PPD+Fit", "Sample Phys.", "Sample Phys.+Shape"}
   for r in results["table4"].values():  # MAE (mm) of the best of 1, 8, S by distance
     assert set(r) == {"1", "8", str(SAMPLES)} and all(0 < v < 2000 for v in r.values())
   assert results["table4"]["PPD"]["1"] == pytest.approx(rows["PPD"]["mae"])
@@ -203,3 +210,22 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
                          f"--data={tiny_dataset}"], cwd=ROOT, capture_output=True, text=True,
                         env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)
   assert done.returncode != 0 and "not a training workdir" in done.stderr
+
+
+def test_density_prior_is_the_moments_of_the_networks_scores():
+  from ppdjax.infer.refine import density_prior
+  logits = jnp.full((2, 100), -1e9).at[0, 9].set(0.0).at[1, 9].set(0.0).at[1, 39].set(0.0)
+  mean, std = density_prior(logits)
+  np.testing.assert_allclose(mean[0], np.log(1000.0), rtol=1e-6)
+  assert float(std[0]) == pytest.approx(0.05)  # a point mass gets the floor
+  np.testing.assert_allclose(mean[1], (np.log(1000.0) + np.log(4000.0)) / 2, rtol=1e-6)
+  np.testing.assert_allclose(std[1], (np.log(4000.0) - np.log(1000.0)) / 2, rtol=1e-5)
+
+
+def test_bootstrap_interval_covers_a_proportion():
+  hits = np.r_[np.ones(30), np.zeros(70)]
+  lo, hi = metrics.bootstrap_interval(lambda i: 100.0 * hits[i].mean(), len(hits))
+  assert 19 < lo < 30 < hi < 41  # binomial 95 % interval of 30 % of 100 is about ±9
+  assert metrics.bootstrap_interval(lambda i: 1.0, 5) == (1.0, 1.0)
+  with pytest.raises(ValueError, match="at least one object"):
+    metrics.bootstrap_interval(lambda i: 0.0, 0)

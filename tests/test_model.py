@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from flax import nnx
 
@@ -151,6 +152,40 @@ def test_loss_is_zero_for_the_truth_and_masks_padding(rng):
   n = float(boxes.valid.sum(-1).mean())
   np.testing.assert_allclose(losses.loss_fn(worse, tgt, 0.0)[1]["geometry_loss"], 0.3 * n,
                              rtol=1e-4)
+
+
+def test_end_token_and_density_split_the_papers_cross_entropy(rng):
+  """L_E + L_D is the paper's 102-way cross-entropy; with w = 0 only the end token learns."""
+  boxes = _random_boxes(rng, 5)
+  tgt = losses.targets(boxes)
+  logits = jnp.asarray(rng.normal(size=(5, 6, 102)) * 3, jnp.float32)
+  pred = model.Prediction(logits, tgt["half_size"], tgt["pos"], tgt["quat"])
+  _, aux = losses.loss_fn(pred, tgt, 1.0)
+  ce = optax.softmax_cross_entropy_with_integer_labels(logits, tgt["token"])
+  paper = jnp.where(tgt["density_mask"], ce, 0.0).sum(-1).mean()
+  np.testing.assert_allclose(aux["end_loss"] + aux["density_loss"], paper, rtol=1e-5)
+  # with w = 0 the slots' scores do not matter (only how they weigh against the end
+  # token): shuffling them leaves the loss as it is, and with w = 1 it does not
+  shuffled = logits.at[..., :100].set(logits[..., :100][..., rng.permutation(100)])
+  loss = lambda lg, w: float(losses.loss_fn(pred.replace(density_logits=lg), tgt, w)[0])
+  assert loss(shuffled, 0.0) == pytest.approx(loss(logits, 0.0), rel=1e-6)
+  assert loss(shuffled, 1.0) != pytest.approx(loss(logits, 1.0), rel=1e-3)
+  grad = jax.grad(lambda lg: losses.loss_fn(pred.replace(density_logits=lg), tgt, 0.0)[0])
+  assert float(jnp.abs(grad(logits)[..., model.END]).max()) > 1e-3  # the end token learns
+
+
+def test_voxel_encoder_keeps_position_and_takes_voxels_alone(rng):
+  config = tiny.get_config().model
+  config.voxel_keep = 4
+  net4 = model.PPD(config, rngs=nnx.Rngs(0))
+  obs = _obs(rng)
+  f = net4.encode({"voxels": obs["voxels"]})  # image and trajectories absent: zeros
+  assert f.shape == (3, config.feature)
+  np.testing.assert_allclose(net4.encode({"voxels": obs["voxels"], "image": obs["image"] * 0,
+                                          "trajectories": obs["trajectories"]}).shape, f.shape)
+  config.voxel_keep = 3
+  with pytest.raises(ValueError, match="voxel_keep"):
+    model.PPD(config, rngs=nnx.Rngs(0))
 
 
 def test_box_iou_against_exact_and_monte_carlo(rng):

@@ -21,11 +21,17 @@ from ppdjax.training import state as train_state
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def short_config(geometry_steps=3, joint_steps=3):
+def short_config(geometry_steps=3, joint_steps=3, stream_steps=0):
+  """A few steps of the tiny preset; with stream_steps, geometry-stream steps first and the
+  stream's loss kept on beside the dataset's afterwards."""
   config = tiny.get_config()
   config.train.update(geometry_steps=geometry_steps, joint_steps=joint_steps, log_every=1,
-                      eval_every=1000, eval_batches=1)
+                      eval_every=1000, eval_batches=1, stream_steps=stream_steps,
+                      stream_weight=0.5 if stream_steps else 0.0)
   return config
+
+
+STREAM = 2  # the shared straight run starts with two geometry-stream steps
 
 
 def _rows(workdir, split="train"):
@@ -42,8 +48,16 @@ def _params(workdir):
 @pytest.fixture(scope="module")
 def straight_run(tiny_dataset, tmp_path_factory):
   workdir = str(tmp_path_factory.mktemp("straight"))
-  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+  loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, workdir,
+                           progress=False)
   return workdir
+
+
+def test_stream_phase_then_dataset_phases(straight_run):
+  rows = _rows(straight_run)
+  assert [r["phase"] for r in rows] == [0, 0, 1, 1, 1, 2, 2, 2]
+  assert "density_loss" not in rows[0] and "end_loss" in rows[0]  # placeholder densities
+  assert all("stream_geometry_loss" in r for r in rows[2:])
 
 
 def test_tiny_preset_trains_with_a_falling_loss(tiny_run):
@@ -89,8 +103,9 @@ def test_overfits_sixteen_samples(tiny_dataset):
   ds = storage.open_dataset(tiny_dataset, "train")
   batch = jax.tree.map(jnp.asarray, loader.model_inputs(next(storage.batches(ds, 16, seed=0))))
   graphdef, state = nnx.split(train_state.build(config))
-  step = jax.jit(lambda s, b, i: train_state.train_step(graphdef, s, b, i, 0.5, 0))
-  evaluate = jax.jit(lambda s, b: train_state.eval_step(graphdef, s, b, 0.5))
+  t, weights = config.train, train_state.loss_weights(config.train)
+  step = jax.jit(lambda s, b, i: train_state.train_step(graphdef, s, b, i, 0.5, t))
+  evaluate = jax.jit(lambda s, b: train_state.eval_step(graphdef, s, b, 0.5, weights))
   first, _ = evaluate(state, batch)
   for i in range(300):
     state, _ = step(state, batch, i)
@@ -115,11 +130,13 @@ def test_resume_is_bitwise_equal(straight_run, tiny_dataset, tmp_path, monkeypat
 
   monkeypatch.setattr(train_state.Trainer, "train_step", interrupt_at_4)
   with pytest.raises(KeyboardInterrupt):
-    loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+    loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, workdir,
+                             progress=False)
   assert [r["step"] for r in _rows(workdir)] == [1, 2, 3, 4]
   monkeypatch.setattr(train_state.Trainer, "train_step", real)
-  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
-  key = lambda rows: [(r["step"], r["loss"], r["geometry_loss"], r["density_loss"])
+  loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, workdir,
+                           progress=False)
+  key = lambda rows: [(r["step"], r["loss"], r["geometry_loss"], r.get("density_loss"))
                       for r in rows]
   assert key(_rows(workdir)) == key(_rows(straight_run))
   for a, b in zip(_params(workdir), _params(straight_run), strict=True):
@@ -131,7 +148,8 @@ def test_eight_fake_devices_match_one(straight_run, tiny_dataset, tmp_path):
   workdir = str(tmp_path / "eight")
   code = ("import jax; from ppdjax.training import loop; "
           "from tests.test_train import short_config; assert jax.device_count() == 8; "
-          f"loop.train_and_evaluate(short_config(), {tiny_dataset!r}, {workdir!r}, "
+          f"loop.train_and_evaluate(short_config(stream_steps={STREAM}), {tiny_dataset!r}, "
+          f"{workdir!r}, "
           "progress=False)")
   env = dict(os.environ, JAX_PLATFORMS="cpu",
              XLA_FLAGS="--xla_force_host_platform_device_count=8",
@@ -154,6 +172,15 @@ def test_bad_configs_and_inputs_are_named(tiny_dataset, straight_run, tmp_path, 
     with pytest.raises(ValueError, match=match):
       loop.check_config(config)
   config = short_config()
+  config.model.use_voxels = False
+  config.train.stream_steps = 2
+  with pytest.raises(ValueError, match="use_voxels=False"):
+    loop.check_config(config)
+  config = short_config()
+  config.train.init_from = str(tmp_path / "nowhere")
+  with pytest.raises(ValueError, match="init_from"):
+    loop.check_config(config)
+  config = short_config(stream_steps=STREAM)
   config.model.hidden = 32
   with pytest.raises(ValueError, match="model.hidden"):
     loop.train_and_evaluate(config, tiny_dataset, straight_run, progress=False)
@@ -168,13 +195,28 @@ def test_time_limit_stops_with_a_checkpoint_and_resumes(straight_run, tiny_datas
   """A call with no time left trains one step and saves it; the next call finishes the run
   exactly as an uninterrupted one."""
   workdir = str(tmp_path / "limited")
-  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False,
-                           time_limit_s=0.0)
+  config = short_config(stream_steps=STREAM)
+  loop.train_and_evaluate(config, tiny_dataset, workdir, progress=False, time_limit_s=0.0)
   assert loop.trained_steps(workdir) == 1
-  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
-  assert loop.trained_steps(workdir) == 6
+  loop.train_and_evaluate(config, tiny_dataset, workdir, progress=False)
+  assert loop.trained_steps(workdir) == 8
   key = lambda rows: [(r["step"], r["loss"]) for r in rows]
   assert key(_rows(workdir)) == key(_rows(straight_run))
+
+
+def test_init_from_copies_what_matches(tiny_run):
+  workdir, _ = tiny_run
+  source, _ = load(workdir, "latest")
+  config = tiny.get_config()
+  config.model.voxel_keep = 4  # another voxel head: the rest still matches
+  fresh = train_state.build(config).model
+  copied = train_state.init_from(fresh, workdir)
+  assert any(p.startswith("voxel_encoder/convs") for p in copied)
+  assert "voxel_encoder/head1/kernel" not in copied  # a 1x1x1 conv there, a dense layer here
+  np.testing.assert_array_equal(fresh.voxel_encoder.convs[0].kernel.value,
+                                source.voxel_encoder.convs[0].kernel.value)
+  np.testing.assert_array_equal(fresh.density_head.kernel.value,
+                                source.density_head.kernel.value)
 
 
 def test_cosine_schedule_and_bad_schedule():
