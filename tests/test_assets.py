@@ -33,19 +33,18 @@ def test_shipped_model_recovers_the_example_tower():
   prims, _ = nnx.jit(lambda m, o: m.decode(o))(model, batch)
   assert int(prims.valid.sum()) == 4
   # Both are ordered bottom to top: the k-th decoded box overlaps the k-th true box. The
-  # shipped model's boxes sit in place but with footprints near the mean (IoU 0.41-0.57;
-  # shape F1 45 in experiments/results/blocks.md), so the bar is IoU > 0.35, not 0.5.
+  # shipped model's network boxes reach IoU 0.62-0.85 here (shape F1 81 on unseen test
+  # towers, experiments/results/blocks.md); the fit (fit_boxes) takes them further.
   true_b = jax.tree.map(lambda x: jnp.asarray(x)[None], true)
   iou = np.diagonal(np.asarray(box_iou(prims, true_b))[0][:4, :4])
-  assert np.all(iou > 0.35), iou
-  np.testing.assert_allclose(prims.pos[0, :4], true.pos[:4], atol=0.06)
+  assert np.all(iou > 0.5), iou
+  np.testing.assert_allclose(prims.pos[0, :4], true.pos[:4], atol=0.05)
 
 
 @pytest.mark.slow
 def test_physics_sampling_finds_the_heavy_blocks(tmp_path):
-  """Blocks 2 and 4 of the example are metal (9,800 and 9,700 kg/m³), 1 and 3 light; the
-  network's arg-max guess misses block 2, and 64 density samples scored by simulation
-  recover which two blocks are heavy."""
+  """Blocks 2 and 4 of the example are metal (9,800 and 9,700 kg/m³), 1 and 3 light; 64
+  density samples on the fitted boxes, scored by simulation, find which two are heavy."""
   r = decompose_example.decompose_example(MODEL, EXAMPLE, str(tmp_path / "d.png"), samples=64)
   assert set(np.argsort(r["densities"])[-2:]) == {1, 3}, r["densities"]
   assert os.path.getsize(tmp_path / "d.png") > 0

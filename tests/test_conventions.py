@@ -9,8 +9,8 @@ import numpy as np
 
 from ppdjax import conventions, metrics, primitives
 from ppdjax.conventions import density_to_slot, density_to_slot_jax, slot_to_density
-from ppdjax.dataset import storage, towers
-from ppdjax.infer import baselines, decompose, evaluation, refine, sampling
+from ppdjax.dataset import storage, stream, towers, voxels
+from ppdjax.infer import baselines, decompose, evaluation, fit, refine, sampling
 from ppdjax.nn import losses
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -60,6 +60,10 @@ def test_consumers_use_the_one_definition():
   assert baselines.rotation_vector is metrics.rotation_vector
   assert decompose.refine_if_closer is refine.refine_if_closer
   assert evaluation.refine_if_closer is refine.refine_if_closer
+  assert evaluation.fit_boxes is fit.fit_boxes and decompose.fit_boxes is fit.fit_boxes
+  assert evaluation.density_prior is refine.density_prior
+  assert decompose.density_prior is refine.density_prior
+  assert stream.TOUCH is voxels.TOUCH and fit.voxelizer is voxels  # one occupancy rule
   assert losses.density_to_slot_jax is conventions.density_to_slot_jax
   assert storage.OBS_KEYS is conventions.OBS_KEYS
   assert storage.FIELDS[4:4 + len(primitives.FIELDS)] == primitives.FIELDS

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 from ppdjax.conventions import NUM_SLOTS, VOXEL_RESOLUTION
 from ppdjax.dataset.towers import HEIGHT_RANGE, WIDTH_RANGE
-from ppdjax.dataset.voxels import _TOUCH, voxel_centers
+from ppdjax.dataset.voxels import TOUCH, voxel_centers
 from ppdjax.primitives import Primitives, mat_to_quat, quat_to_mat
 
 GEOMETRY_DENSITY = 1000.0  # kg/m^3 placeholder: the stream trains no density
@@ -61,7 +61,7 @@ def voxelize_axis_aligned(prims: Primitives, resolution: int = VOXEL_RESOLUTION)
   plus half a voxel (less the same touching tolerance).
   """
   c = jnp.asarray(voxel_centers(resolution)[:, 0, 0, 0])  # (R,)
-  reach = prims.half_size + 0.5 / resolution - _TOUCH  # (..., K, 3)
+  reach = prims.half_size + 0.5 / resolution - TOUCH  # (..., K, 3)
   inside = jnp.abs(c - prims.pos[..., None]) < reach[..., None]  # (..., K, 3, R)
   x, y, z = inside[..., 0, :], inside[..., 1, :], inside[..., 2, :]
   cell = x[..., :, None, None] & y[..., None, :, None] & z[..., None, None, :]

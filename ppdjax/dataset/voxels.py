@@ -17,7 +17,7 @@ import numpy as np
 from ppdjax.conventions import VOXEL_RESOLUTION as RESOLUTION
 from ppdjax.primitives import Primitives, flatten, quat_to_mat
 
-_TOUCH = 1e-7  # separations below this (metres) count as touching, not overlapping
+TOUCH = 1e-7  # separations below this (metres) count as touching, not overlapping
 
 
 def voxel_centers(resolution: int = RESOLUTION) -> np.ndarray:
@@ -42,7 +42,7 @@ def _occupancy(prims: Primitives, resolution: int) -> jax.Array:
   r_box = (jnp.abs(jnp.einsum("kai,kij->kaj", axes, rot)) * prims.half_size[:, None]).sum(-1)
   dist = jnp.abs(jnp.einsum("kai,vki->vka", axes, prims.pos[None] - centers[:, None]))
   degenerate = (norm[..., 0] <= 1e-6)[None]  # parallel edges give no axis
-  separated = ((dist >= r_voxel + r_box - _TOUCH) & ~degenerate).any(-1)  # (V, K)
+  separated = ((dist >= r_voxel + r_box - TOUCH) & ~degenerate).any(-1)  # (V, K)
   filled = (~separated & prims.valid[None]).any(-1)
   return filled.reshape(resolution, resolution, resolution)
 

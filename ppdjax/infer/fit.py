@@ -1,16 +1,8 @@
-"""Test-time fit of oriented boxes to 32^3 voxels: exact tower reading, then refinement.
+"""Test-time fit of oriented boxes to 32^3 voxels: the exact tower reading, then refinement.
 
-`read_tower`: the voxelizer fills voxels sharing volume with a box, so a z-slice of an
-axis-aligned tower is one block's rectangle or, where an interface lies inside the slice
-("straddling"), the union of two. Runs of identical pure slices are blocks; a straddling
-slice belongs to both. Faces go at the centres of the first/last occupied voxels (along z,
-of the slices touching the block); runs meeting with no straddling slice meet inside the
-slice of the containing rectangle if nested, else on the voxel boundary. Limits: stacked
-blocks with identical voxel rectangles read as one; of more than K runs the K largest are
-kept; blocks under 2 voxels tall may have no pure slice.
-
-`fit_boxes`: Adam on a soft occupancy of voxel centres (the voxelizer's separating-axis
-test on the 3 box and 3 world axes, each sigmoid((radius + voxel radius - |distance|) / T),
+`read_tower` (`tower_reading.py`) reads axis-aligned towers exactly. `fit_boxes`: Adam on
+a soft occupancy of voxel centres (the voxelizer's separating-axis test on the 3 box and
+3 world axes, each sigmoid((radius + voxel radius - |distance|) / T),
 joined by 1 - prod(1 - occ)), class-balanced cross-entropy on sampled voxels, T annealed
 from 1 to 0.05 voxel; the winner is chosen by the exact voxelization (`_select`).
 """
@@ -26,133 +18,13 @@ import optax
 
 from ppdjax.conventions import NUM_SLOTS, VOXEL_RESOLUTION as R
 from ppdjax.dataset import voxels as voxelizer
-from ppdjax.primitives import (Primitives, bottom_to_top, canonical_boxes, flatten, mat_to_quat,
-                               quat_to_mat, unflatten)
+from ppdjax.infer.tower_reading import (IDENTITY, VOXEL, as_bool, check_voxels, finish_boxes,
+                                        read_one, read_tower)
+from ppdjax.primitives import Primitives, flatten, mat_to_quat, quat_to_mat, unflatten
 
-VOXEL = 1.0 / R  # m
-PLACEHOLDER_DENSITY = 1000.0  # kg/m^3 of the returned boxes; callers put densities on
 _ROT_SCALE = 8.0  # rotation columns scale like a point this many voxels from the centre
 _SIZE_SCALE = 5.0  # log half sizes scale so that one Adam rate moves faces ~ like centres
-_IDENTITY = np.float32([1, 0, 0, 0])
-
-
-def check_voxels(voxels, init: Primitives | None = None) -> tuple[int, ...]:
-  """Batch shape of (B..., 32, 32, 32) `voxels`; ValueError naming the problem if bad.
-
-  Values (exactly 0/1, no empty grid) are checked only on concrete arrays (not under jit).
-  """
-  shape = tuple(np.shape(voxels))
-  dtype = np.dtype(voxels.dtype if hasattr(voxels, "dtype") else np.asarray(voxels).dtype)
-  if len(shape) < 3 or shape[-3:] != (R, R, R):
-    raise ValueError(f"voxels: expected shape (..., {R}, {R}, {R}), got {shape}")
-  if not (dtype == np.bool_ or np.issubdtype(dtype, np.integer)
-          or np.issubdtype(dtype, np.floating)):
-    raise ValueError(f"voxels: expected a bool, integer or 0/1 float dtype, got {dtype}")
-  if not isinstance(voxels, jax.core.Tracer):
-    v = np.asarray(voxels)
-    if dtype != np.bool_ and not np.all((v == 0) | (v == 1)):
-      raise ValueError(f"voxels: values must be exactly 0 or 1 (binary occupancy); got "
-                       f"{dtype} values in [{v.min()}, {v.max()}]")
-    empty = ~v.reshape(-1, R ** 3).astype(bool).any(-1)
-    if empty.any():
-      raise ValueError(f"voxels: {int(empty.sum())} of {empty.size} grids are all empty "
-                       f"(first at flat index {int(np.argmax(empty))}); nothing to fit")
-  if init is not None and tuple(init.batch_shape) != shape[:-3]:
-    raise ValueError(f"init: batch shape {tuple(init.batch_shape)} does not match the "
-                     f"voxels' batch shape {shape[:-3]}")
-  return shape[:-3]
-
-
-def _as_bool(v: jax.Array) -> jax.Array:
-  return v > 0.5 if jnp.issubdtype(v.dtype, jnp.floating) else v != 0
-
-
-def _finish(half, pos, quat, valid) -> Primitives:
-  """One object's Primitives: canonical labels, bottom to top, padding cleared."""
-  p = bottom_to_top(canonical_boxes(Primitives(half, pos, quat, jnp.ones(valid.shape), valid)))
-  v = p.valid[:, None]
-  return Primitives(half_size=jnp.where(v, p.half_size, 0.0), pos=jnp.where(v, p.pos, 0.0),
-                    quat=jnp.where(v, p.quat, _IDENTITY),
-                    density=jnp.where(p.valid, PLACEHOLDER_DENSITY, 0.0), valid=p.valid)
-
-
-# --- A. exact reading of axis-aligned towers ---------------------------------------------
-
-
-def _center(i):
-  """Centre (m) of voxel index i along an axis."""
-  return (i + 0.5) * VOXEL - 0.5
-
-
-def _down(a):
-  """a[z - 1] at z (zeros at z = 0)."""
-  return jnp.concatenate([jnp.zeros_like(a[:1]), a[:-1]])
-
-
-def _up(a):
-  """a[z + 1] at z (zeros at the top)."""
-  return jnp.concatenate([a[1:], jnp.zeros_like(a[:1])])
-
-
-def _read_one(vox_XYZ: jax.Array, num_slots: int, tol: float = 0.0) -> Primitives:
-  """`read_tower` of one (R, R, R) bool grid; slice masks match at IoU >= 1 - tol."""
-  s = jnp.moveaxis(vox_XYZ, -1, 0)  # (Z, X, Y) slices
-  size = lambda a: jnp.sum(a, axis=(-2, -1))
-  same = lambda a, b: size(a & b) >= (1 - tol) * jnp.maximum(size(a | b), 1)
-  within = lambda a, b: ~jnp.any(a & ~b, axis=(-2, -1))
-  occ, below, above = s.any((-2, -1)), _down(s), _up(s)
-  straddle = (occ & _down(occ) & _up(occ) & same(s, below | above) & ~same(s, below)
-              & ~same(s, above))  # the union of two different neighbours
-  pure = occ & ~straddle
-  start = pure & ~(_down(pure) & same(s, below))
-  member = jnp.where(pure, jnp.cumsum(start) - 1, -1)[:, None] == jnp.arange(R)  # (Z, runs)
-  count = jnp.einsum("zr,z->r", member, size(s))
-  z = jnp.arange(R)[:, None]
-  lo, hi = jnp.where(member, z, R).min(0), jnp.where(member, z, -1).max(0)
-  mask = jnp.einsum("zr,zxy->rxy", member.astype(jnp.int32), s.astype(jnp.int32)) > 0
-
-  def face(end, step):
-    """z face (m) of each run beyond its first (step -1) or last (step 1) pure slice."""
-    nb = jnp.clip(end + step, 0, R - 1)
-    inside = (end + step >= 0) & (end + step < R)
-    here, there = _center(jnp.clip(end, 0, R - 1).astype(jnp.float32)), _center(nb * 1.0)
-    mine, theirs = s[jnp.clip(end, 0, R - 1)], s[nb]
-    touching = jnp.where(within(mine, theirs), there,  # interface in the neighbour's slice
-                         jnp.where(within(theirs, mine), here, here + step * VOXEL / 2))
-    return jnp.where(inside & straddle[nb], there,
-                     jnp.where(inside & pure[nb], touching, here))
-
-  first = lambda m: _center(jnp.argmax(m, -1))
-  last = lambda m: _center(R - 1 - jnp.argmax(m[:, ::-1], -1))
-  xs, ys = mask.any(2), mask.any(1)  # (runs, X), (runs, Y)
-  lo3 = jnp.stack([first(xs), first(ys), face(lo, -1)], -1)
-  hi3 = jnp.stack([last(xs), last(ys), face(hi, 1)], -1)
-  _, keep = jax.lax.top_k(count, num_slots)  # the largest runs
-  return _finish((hi3 - lo3)[keep] / 2, (hi3 + lo3)[keep] / 2,
-                 jnp.broadcast_to(_IDENTITY, (num_slots, 4)), count[keep] > 0)
-
-
-@functools.partial(jax.jit, static_argnums=1)
-def _read_batch(vox_NxRxRxR, num_slots: int) -> Primitives:
-  return jax.vmap(lambda x: _read_one(x, num_slots))(_as_bool(vox_NxRxRxR))
-
-
-def read_tower(voxels, num_slots: int = NUM_SLOTS) -> Primitives:
-  """Reads axis-aligned towers exactly from the z-profile of their voxels.
-
-  Args:
-    voxels: (B..., 32, 32, 32) occupancy indexed [x, y, z]; bool, integer or 0/1 float.
-    num_slots: K, boxes per object (with more runs of slices, the K largest are kept).
-
-  Returns:
-    Primitives (B..., K): axis-aligned boxes bottom to top, density 1000 (placeholder),
-    padding last (half size 0, pos 0, identity quat). An empty grid gives no valid box.
-  """
-  batch = check_voxels(voxels)
-  return unflatten(_read_batch(jnp.asarray(voxels).reshape(-1, R, R, R), num_slots), batch)
-
-
-# --- B. differentiable refinement of oriented boxes ----------------------------------------
+__all__ = ["check_voxels", "fit_boxes", "read_tower"]
 
 
 def _rotation(rot_Kx2x3: jax.Array) -> jax.Array:
@@ -174,7 +46,7 @@ def _params(pos, half, rot) -> dict:
 
 def _to_params(prims: Primitives) -> dict:
   norm = jnp.linalg.norm(prims.quat, axis=-1, keepdims=True)
-  quat = jnp.where(norm > 1e-6, prims.quat / jnp.maximum(norm, 1e-6), _IDENTITY)
+  quat = jnp.where(norm > 1e-6, prims.quat / jnp.maximum(norm, 1e-6), IDENTITY)
   return _params(prims.pos / VOXEL, jnp.maximum(prims.half_size, 1e-3) / VOXEL,
                  quat_to_mat(quat))
 
@@ -186,7 +58,7 @@ def _unpack(p: dict):
 
 def _to_prims(p: dict, valid: jax.Array) -> Primitives:
   pos, half, rot = _unpack(p)
-  return _finish(half * VOXEL, pos * VOXEL, jax.vmap(mat_to_quat)(rot), valid)
+  return finish_boxes(half * VOXEL, pos * VOXEL, jax.vmap(mat_to_quat)(rot), valid)
 
 
 def _soft_loss(p: dict, valid, pts_Px3, filled_P, temp):
@@ -266,7 +138,7 @@ def _box_occupancy(prims: Primitives) -> jax.Array:
   norm = jnp.linalg.norm(axes, axis=-1, keepdims=True)
   axes = jnp.where(norm > 1e-6, axes / jnp.maximum(norm, 1e-6), 0.0)
   r_box = (jnp.abs(jnp.einsum("kai,kij->kaj", axes, rot)) * prims.half_size[:, None]).sum(-1)
-  touch = voxelizer._TOUCH  # pylint: disable=protected-access
+  touch = voxelizer.TOUCH
   lim = jnp.where(norm[..., 0] > 1e-6, VOXEL / 2 * jnp.abs(axes).sum(-1) + r_box - touch, jnp.inf)
   p = axes[..., None] * (c - prims.pos[:, None, :, None])  # (K, 15, 3, R)
   d = p[..., 0, :, None, None] + p[..., 1, None, :, None] + p[..., 2, None, None, :]
@@ -305,7 +177,7 @@ def _select(cands: Primitives, soft_C, vox_XYZ, box_cost: float) -> Primitives:
   best = jnp.lexsort((jnp.repeat(soft_C, drop.shape[0]), score))[0]
   c, d = best // drop.shape[0], best % drop.shape[0]
   win = jax.tree.map(lambda x: x[c], cands)
-  return _finish(win.half_size, win.pos, win.quat, win.valid & (jnp.asarray(drop)[d] == 0))
+  return finish_boxes(win.half_size, win.pos, win.quat, win.valid & (jnp.asarray(drop)[d] == 0))
 
 
 def _moments_box(vox_XYZ) -> Primitives:
@@ -326,7 +198,7 @@ def _moments_box(vox_XYZ) -> Primitives:
 def _fit_one(vox_XYZ, init: Primitives | None, key, *, steps, points, lr, jitter_starts, jitter,
              jitter_angle, loose, box_cost) -> Primitives:
   """`fit_boxes` of one (R, R, R) bool grid."""
-  bases = [_read_one(vox_XYZ, NUM_SLOTS, loose), _moments_box(vox_XYZ)]
+  bases = [read_one(vox_XYZ, NUM_SLOTS, loose), _moments_box(vox_XYZ)]
   bases += [] if init is None else [init]
   keys = jax.random.split(key, 2 + len(bases) * jitter_starts)
   starts, valids = [], []
@@ -339,7 +211,7 @@ def _fit_one(vox_XYZ, init: Primitives | None, key, *, steps, points, lr, jitter
   cdf = _sampler(vox_XYZ)
   refine = functools.partial(_refine, vox_XYZ=vox_XYZ, cdf=cdf, steps=steps, points=points, lr=lr)
   refined = jax.vmap(refine)(starts, valids, key=jax.random.split(keys[0], len(valids)))
-  reading = _read_one(vox_XYZ, NUM_SLOTS)
+  reading = read_one(vox_XYZ, NUM_SLOTS)
   cands = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), reading,
                        jax.vmap(_to_prims)(refined, valids))
   pts, idx = _draw(cdf, keys[1], 4 * points)
@@ -352,7 +224,7 @@ def _fit_one(vox_XYZ, init: Primitives | None, key, *, steps, points, lr, jitter
 @functools.partial(jax.jit, static_argnames=("steps", "points", "lr", "jitter_starts", "jitter",
                                              "jitter_angle", "loose", "box_cost"))
 def _fit_batch(vox_NxRxRxR, init: Primitives | None, seed, **options) -> Primitives:
-  v = _as_bool(vox_NxRxRxR)
+  v = as_bool(vox_NxRxRxR)
   # the barrier keeps XLA from constant-folding every step's random key (slow to compile)
   keys = jax.random.split(jax.lax.optimization_barrier(jax.random.key(seed)), v.shape[0])
   one = functools.partial(_fit_one, **options)

@@ -81,7 +81,7 @@ def _f1(rec, kind):
 
 def summarize(switches: dict, rec: dict) -> dict:
   """Tables 2, 4, 5, F1, the τ sweep, refinement statistics and confusion matrices from
-  the concatenated per-object records of `evaluation._batch_records`, with 95 %
+  the concatenated per-object records of `rows.batch_records`, with 95 %
   bootstrap intervals over objects ("ci95") for Table 2's rows, Table 5 and F1."""
   group = lambda *prefix: {k[len(prefix)]: v for k, v in rec.items()
                            if k[:len(prefix)] == prefix and len(k) == len(prefix) + 1}

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import optax
 
 from ppdjax.conventions import density_to_slot_jax
 from ppdjax.nn.model import END, START, Prediction, primitive_vector

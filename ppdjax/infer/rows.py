@@ -1,0 +1,106 @@
+"""The rows of one model's evaluation: how each ranks density slots, and its per-object records.
+
+`evaluation.Evaluator` simulates every candidate once per batch; `batch_records` turns
+one batch's candidates into the records of Table 2's rows (PPD, +Sample, +Sample+Refine,
+the +Fit rows, the baselines), Table 4's prefixes, the τ sweep and the refinement
+statistics, which `tables.summarize` reduces (with bootstrap intervals) to the tables.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ppdjax import metrics
+from ppdjax.conventions import NUM_DENSITY_SLOTS, SLOT_DENSITY
+from ppdjax.infer import sampling
+from ppdjax.infer.tables import BASELINES, PRIOR_WEIGHTS
+
+
+def sample_scores(logits, slots, objective, valid):
+  """(B, K, 100) +Sample ranking: slots a sample has, by that sample's best objective first.
+
+  Slots no sample has follow in the network's order; boxes the network did not emit keep
+  the network's scores.
+  """
+  b, s, k = slots.shape
+  best = np.full((b, k, NUM_DENSITY_SLOTS), np.inf)
+  bi, _, ki = np.meshgrid(np.arange(b), np.arange(s), np.arange(k), indexing="ij")
+  np.minimum.at(best, (bi, ki, slots), np.broadcast_to(objective[:, :, None], slots.shape))
+  lsm = np.asarray(jax.nn.log_softmax(jnp.asarray(logits, jnp.float32)), np.float64)
+  out = np.where(np.isfinite(best), 1e6 - np.where(np.isfinite(best), best, 0.0), lsm - 1e6)
+  return np.where(valid[..., None], out, logits)
+
+
+def refine_scores(logits, density, valid):
+  """(B, K, 100) +Refine ranking: slots by distance to the refined (continuous) slot."""
+  cont = density / SLOT_DENSITY - 1.0
+  out = -np.abs(cont[..., None] - np.arange(NUM_DENSITY_SLOTS))
+  return np.where(valid[..., None], out, logits)
+
+
+def _row_counts(scores, slot, valid):
+  c = metrics.density_counts(jnp.asarray(scores, jnp.float32), jnp.asarray(np.maximum(slot, 0)),
+                             jnp.asarray(valid))
+  return {n: np.asarray(v) for n, v in c.items()}
+
+
+def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: float,
+                   prefixes, with_baselines: bool, refine: bool, layout: dict) -> dict:
+  """Per-object records of one batch, keyed by (kind, row, name); `evaluation.evaluate`
+  concatenates them and `tables.summarize` turns them into the tables."""
+  keep = len(slot)
+  rows = np.arange(keep)
+  pvalid = np.asarray(out["pred"].valid)
+  logits = out["logits"].astype(np.float64)
+  slots = out["slots"]
+  dist, omae = out["dist"][:, layout["ppd"]], out["mae"][:, layout["ppd"]]
+  objective = lambda tau: sampling.selection_objective(dist, out["logp"], tau)
+  rec = {("blocks",): valid.sum(-1), ("true_slot",): slot, ("true_valid",): valid}
+  rec.update({("shape", k): np.asarray(v) for k, v in out["shape"].items()})
+  best = np.argmin(objective(prior_weight), -1)
+  scores = {"PPD": logits,
+            "PPD+Sample": sample_scores(logits, slots, objective(prior_weight), pvalid)}
+  mae = {"PPD": omae[:, 0], "PPD+Sample": omae[rows, best]}
+  for tau in PRIOR_WEIGHTS:
+    pick = np.argmin(objective(tau), -1)
+    counts = _row_counts(sample_scores(logits, slots, objective(tau), pvalid), slot, valid)
+    rec.update({("sweep", tau, k): v for k, v in counts.items()})
+    rec[("sweep", tau, "mae")] = omae[rows, pick]
+  for p in prefixes:
+    rec[("prefix", "PPD", p)] = omae[rows, np.argmin(dist[:, :p], -1)]
+  if with_baselines:
+    base_mae = out["mae"][:, layout["baselines"]]
+    for j, name in enumerate(BASELINES):
+      scores[name] = base[:, j]
+      mae[name] = base_mae[:, j]
+    for group, name in (("uniform", "Sample Phys."), ("shapes", "Sample Phys.+Shape")):
+      d, e = out["dist"][:, layout[group]], out["mae"][:, layout[group]]
+      for p in prefixes:
+        rec[("prefix", name, p)] = e[rows, np.argmin(d[:, :p], -1)]
+  sample_row, refined_from = "PPD+Sample", dist[rows, best]
+  if "fit" in layout:  # the same rows on the boxes fitted to the voxels
+    rec.update({("shape_fit", k): np.asarray(v) for k, v in out["shape_fit"].items()})
+    fvalid = np.asarray(out["fitted"].valid)
+    fd, fm = out["dist"][:, layout["fit"]], out["mae"][:, layout["fit"]]
+    f_obj = sampling.selection_objective(fd, out["fit_logp"], prior_weight)
+    f_best = np.argmin(f_obj, -1)
+    scores["PPD+Fit"] = logits
+    mae["PPD+Fit"] = fm[:, 0]
+    scores["PPD+Fit+Sample"] = sample_scores(logits, out["fit_slots"], f_obj, fvalid)
+    mae["PPD+Fit+Sample"] = fm[rows, f_best]
+    sample_row, refined_from, pvalid = "PPD+Fit+Sample", fd[rows, f_best], fvalid
+    for p in prefixes:
+      rec[("prefix", "PPD+Fit", p)] = fm[rows, np.argmin(fd[:, :p], -1)]
+  if refine:
+    r = out["refine"]
+    scores[sample_row + "+Refine"] = refine_scores(logits, r["density"], pvalid)
+    mae[sample_row + "+Refine"] = r["mae"]
+    rec.update({("refine", k): r[k] for k in ("cost_start", "cost", "dist")})
+    rec[("refine", "sample_dist")] = refined_from
+  for name, sc in scores.items():
+    rec.update({("counts", name, k): v for k, v in _row_counts(sc, slot, valid).items()})
+    rec[("guess", name)] = np.argmax(sc, -1)
+    rec[("mae", name)] = mae[name]
+  return rec
