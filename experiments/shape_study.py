@@ -30,17 +30,29 @@ from ppdjax.configs import paper
 from ppdjax.dataset import stream
 from ppdjax.training import state
 
-# name -> (voxel_keep, feature and hidden size, distinct geometries (0: the stream), augment)
+# name -> voxel_keep, feature and hidden size, distinct geometries (0: the stream), augment,
+# and optionally Adam's peak rate (default --lr), global-norm clipping and linear warm-up.
+_STABLE = {"clip_norm": 1.0, "warmup_steps": 300}
 RUNS = {
-    "paper_encoder": (1, 64, 0, True),
-    "paper_encoder_f256": (1, 256, 0, True),
-    "keep4_f64": (4, 64, 0, True),
-    "keep4": (4, 256, 0, True),
-    "keep4_pool4800": (4, 256, 4_800, True),
-    "keep4_pool4800_noaug": (4, 256, 4_800, False),
-    "keep4_pool50k": (4, 256, 50_000, True),
+    "paper_encoder": dict(keep=1, feature=64, geometries=0, augment=True),
+    "paper_encoder_f256": dict(keep=1, feature=256, geometries=0, augment=True),
+    "keep4_f64": dict(keep=4, feature=64, geometries=0, augment=True),
+    "keep4": dict(keep=4, feature=256, geometries=0, augment=True),
+    "keep4_pool4800": dict(keep=4, feature=256, geometries=4_800, augment=True),
+    "keep4_pool4800_noaug": dict(keep=4, feature=256, geometries=4_800, augment=False),
+    "keep4_pool50k": dict(keep=4, feature=256, geometries=50_000, augment=True),
+    # the 256-wide runs above collapsed at 4e-3: a lower rate, clipping and a warm-up
+    "paper_encoder_clip": dict(keep=1, feature=64, geometries=0, augment=True, **_STABLE),
+    "keep4_f64_clip": dict(keep=4, feature=64, geometries=0, augment=True, **_STABLE),
+    "paper_encoder_f256_lr1e-3": dict(keep=1, feature=256, geometries=0, augment=True,
+                                      lr=1e-3, **_STABLE),
+    "keep4_f256_lr1e-3": dict(keep=4, feature=256, geometries=0, augment=True, lr=1e-3,
+                              **_STABLE),
+    "keep4_f128_lr2e-3": dict(keep=4, feature=128, geometries=0, augment=True, lr=2e-3,
+                              **_STABLE),
 }
-_RUNS = flags.DEFINE_list("runs", list(RUNS), f"which of {', '.join(RUNS)}")
+_RUNS = flags.DEFINE_list("runs", list(RUNS), f"which of {', '.join(RUNS)}; NAME@N trains NAME "
+                         "on a fixed pool of N geometries instead (the geometry-count curve)")
 _STEPS = flags.DEFINE_integer("steps", 3000, "Adam steps per model")
 _BATCH = flags.DEFINE_integer("batch", 256, "batch size")
 _LR = flags.DEFINE_float("lr", 4e-3, "Adam's rate, cosine-decayed to 0")
@@ -48,17 +60,21 @@ _WIDTH = flags.DEFINE_integer("width", 8, "voxel encoder channel multiplier")
 _TEST = flags.DEFINE_integer("test_towers", 1000, "held-out towers")
 _TEST_SEED = flags.DEFINE_integer("test_seed", 20261123, "their seed (never trained on)")
 _CURVE = flags.DEFINE_integer("curve_points", 4, "held-out F1 evaluations per run")
+_SEED = flags.DEFINE_integer("seed", 0, "train.seed (initialisation and stream); rows of a "
+                             "seed other than 0 are named NAME#seed")
 _OUT = flags.DEFINE_string("out", "experiments/results/shape_study.json", "results JSON")
 
 
-def study_config(keep: int, feature: int, augment: bool):
+def study_config(spec: dict):
+  keep, feature, augment = spec["keep"], spec["feature"], spec["augment"]
   config = paper.get_config()
   m, t = config.model, config.train
   m.use_image = m.use_trajectory = False
   m.voxel_width, m.voxel_keep, m.feature, m.hidden, m.dropout = _WIDTH.value, keep, feature, \
       feature, 0.0
-  t.update(batch_size=_BATCH.value, learning_rate=_LR.value, schedule="cosine",
-           stream_steps=_STEPS.value, geometry_steps=0, joint_steps=0, augment=augment)
+  t.update(seed=_SEED.value, batch_size=_BATCH.value, learning_rate=spec.get("lr", _LR.value), schedule="cosine",
+           stream_steps=_STEPS.value, geometry_steps=0, joint_steps=0, augment=augment,
+           clip_norm=spec.get("clip_norm", 0.0), warmup_steps=min(spec.get("warmup_steps", 0), _STEPS.value // 10))
   return config
 
 
@@ -85,9 +101,20 @@ def score(graphdef, st, voxels, prims) -> dict:
           "objects": len(everything)}
 
 
+def row_name(name: str) -> str:
+  return name if _SEED.value == 0 else f"{name}#{_SEED.value}"
+
+
+def spec_of(name: str) -> dict:
+  """A run's spec; NAME@N is NAME on a fixed pool of N towers."""
+  base, _, pool = name.partition("@")
+  return {**RUNS[base], **({"geometries": int(pool)} if pool else {})}
+
+
 def run(name: str, test) -> dict:
-  keep, feature, pool_size, augment = RUNS[name]
-  config = study_config(keep, feature, augment)
+  spec = spec_of(name)
+  pool_size, augment = spec["geometries"], spec["augment"]
+  config = study_config(spec)
   t = config.train
   graphdef, st = nnx.split(state.build(config))
   if pool_size:  # a fixed pool drawn once from the stream's sampler, then resampled
@@ -116,14 +143,16 @@ def run(name: str, test) -> dict:
       print(f"{name}: step {i + 1} F1 {s['f1']:.1f} [{s['f1_ci95'][0]:.1f}, "
             f"{s['f1_ci95'][1]:.1f}] count exact {s['count_exact']:.1f} % "
             f"({time.time() - start:.0f} s)", flush=True)
-  return {"name": name, "voxel_keep": keep, "feature": feature,
+  return {"name": row_name(name), "seed": _SEED.value, "voxel_keep": spec["keep"], "feature": spec["feature"],
           "geometries": pool_size or "unlimited", "augment": augment, "steps": _STEPS.value,
-          "batch": _BATCH.value, "lr": _LR.value, "width": _WIDTH.value, **curve[-1],
+          "batch": _BATCH.value, "lr": t.learning_rate, "clip_norm": t.clip_norm,
+          "warmup_steps": t.warmup_steps, "width": _WIDTH.value, **curve[-1],
           "curve": curve, "train_losses": losses}
 
 
 def main(_):
-  unknown = set(_RUNS.value) - set(RUNS)
+  unknown = {n for n in _RUNS.value if n.partition("@")[0] not in RUNS
+             or not n.partition("@")[2].isdigit() and "@" in n}
   if unknown:
     raise app.UsageError(f"unknown runs {sorted(unknown)}; choose from {list(RUNS)}")
   test = held_out()
@@ -135,7 +164,7 @@ def main(_):
   if os.path.exists(_OUT.value):  # rows of other runs stay; a rerun replaces its own
     with open(_OUT.value) as f:
       old = json.load(f)
-    results["rows"] = [r for r in old.get("rows", []) if r.get("name") not in _RUNS.value
+    results["rows"] = [r for r in old.get("rows", []) if r.get("name") not in map(row_name, _RUNS.value)
                        and "curve" in r]
   for name in _RUNS.value:
     results["rows"].append(run(name, test))

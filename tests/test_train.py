@@ -31,7 +31,7 @@ def short_config(geometry_steps=3, joint_steps=3, stream_steps=0):
   return config
 
 
-STREAM = 2  # the shared straight run starts with two geometry-stream steps
+STREAM = 2  # geometry-stream steps of the stream-phase test
 
 
 def _rows(workdir, split="train"):
@@ -48,16 +48,39 @@ def _params(workdir):
 @pytest.fixture(scope="module")
 def straight_run(tiny_dataset, tmp_path_factory):
   workdir = str(tmp_path_factory.mktemp("straight"))
-  loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, workdir,
-                           progress=False)
+  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
   return workdir
 
 
-def test_stream_phase_then_dataset_phases(straight_run):
-  rows = _rows(straight_run)
+@pytest.mark.slow  # two more compilations (~45 s on 2 cores): `make test-all`
+def test_stream_phase_then_dataset_phases_and_exact_resume(tiny_dataset, tmp_path, monkeypatch):
+  """Stream steps first, then the dataset's phases with the stream's loss beside them;
+  interrupted inside the stream phase and run again, the run is bitwise the same."""
+  straight, resumed = str(tmp_path / "straight"), str(tmp_path / "resumed")
+  loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, straight,
+                           progress=False)
+  rows = _rows(straight)
   assert [r["phase"] for r in rows] == [0, 0, 1, 1, 1, 2, 2, 2]
   assert "density_loss" not in rows[0] and "end_loss" in rows[0]  # placeholder densities
   assert all("stream_geometry_loss" in r for r in rows[2:])
+  real = train_state.Trainer.train_step
+
+  def interrupt_at_2(self, batch, step, w):
+    if step == 2:
+      raise KeyboardInterrupt
+    return real(self, batch, step, w)
+
+  monkeypatch.setattr(train_state.Trainer, "train_step", interrupt_at_2)
+  with pytest.raises(KeyboardInterrupt):
+    loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, resumed,
+                             progress=False)
+  monkeypatch.setattr(train_state.Trainer, "train_step", real)
+  loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, resumed,
+                           progress=False)
+  key = lambda rows: [(r["step"], r["loss"], r["geometry_loss"]) for r in rows]
+  assert key(_rows(resumed)) == key(rows)
+  for a, b in zip(_params(resumed), _params(straight), strict=True):
+    np.testing.assert_array_equal(a, b)
 
 
 def test_tiny_preset_trains_with_a_falling_loss(tiny_run):
@@ -130,12 +153,10 @@ def test_resume_is_bitwise_equal(straight_run, tiny_dataset, tmp_path, monkeypat
 
   monkeypatch.setattr(train_state.Trainer, "train_step", interrupt_at_4)
   with pytest.raises(KeyboardInterrupt):
-    loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, workdir,
-                             progress=False)
+    loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
   assert [r["step"] for r in _rows(workdir)] == [1, 2, 3, 4]
   monkeypatch.setattr(train_state.Trainer, "train_step", real)
-  loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, workdir,
-                           progress=False)
+  loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
   key = lambda rows: [(r["step"], r["loss"], r["geometry_loss"], r.get("density_loss"))
                       for r in rows]
   assert key(_rows(workdir)) == key(_rows(straight_run))
@@ -148,7 +169,7 @@ def test_eight_fake_devices_match_one(straight_run, tiny_dataset, tmp_path):
   workdir = str(tmp_path / "eight")
   code = ("import jax; from ppdjax.training import loop; "
           "from tests.test_train import short_config; assert jax.device_count() == 8; "
-          f"loop.train_and_evaluate(short_config(stream_steps={STREAM}), {tiny_dataset!r}, "
+          f"loop.train_and_evaluate(short_config(), {tiny_dataset!r}, "
           f"{workdir!r}, "
           "progress=False)")
   env = dict(os.environ, JAX_PLATFORMS="cpu",
@@ -180,7 +201,7 @@ def test_bad_configs_and_inputs_are_named(tiny_dataset, straight_run, tmp_path, 
   config.train.init_from = str(tmp_path / "nowhere")
   with pytest.raises(ValueError, match="init_from"):
     loop.check_config(config)
-  config = short_config(stream_steps=STREAM)
+  config = short_config()
   config.model.hidden = 32
   with pytest.raises(ValueError, match="model.hidden"):
     loop.train_and_evaluate(config, tiny_dataset, straight_run, progress=False)
@@ -195,11 +216,11 @@ def test_time_limit_stops_with_a_checkpoint_and_resumes(straight_run, tiny_datas
   """A call with no time left trains one step and saves it; the next call finishes the run
   exactly as an uninterrupted one."""
   workdir = str(tmp_path / "limited")
-  config = short_config(stream_steps=STREAM)
+  config = short_config()
   loop.train_and_evaluate(config, tiny_dataset, workdir, progress=False, time_limit_s=0.0)
   assert loop.trained_steps(workdir) == 1
   loop.train_and_evaluate(config, tiny_dataset, workdir, progress=False)
-  assert loop.trained_steps(workdir) == 8
+  assert loop.trained_steps(workdir) == 6
   key = lambda rows: [(r["step"], r["loss"]) for r in rows]
   assert key(_rows(workdir)) == key(_rows(straight_run))
 

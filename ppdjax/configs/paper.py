@@ -14,20 +14,26 @@ def get_config():
   config.data.render_workers = 12
   # The appendix's network: ResNet-18 at full width on 224x224 images.
   config.model.resnet_width = 64
-  # Beyond the appendix, to learn geometry within a 25-minute GPU budget: a voxel encoder
-  # 8x wider (shape F1 on voxels alone, experiments/results/shape_study.json), no dropout
-  # (experiments/results/train_paper_variants), batch 256 (1.7x the samples/s of 64 on an
-  # H100) at Adam 4e-3, decayed by a cosine to 0 over the run (docs/training.md).
+  # Beyond the appendix, to learn geometry to a fraction of a voxel (shape F1 on voxels
+  # alone: experiments/results/shape_study.md): a voxel encoder 8x wider that stops pooling
+  # at 4^3 and keeps where things are (model.voxel_keep), features and generator 256 wide,
+  # Adam at 1e-3 after a 300-step warm-up with gradients clipped to norm 1 (at 4e-3 without
+  # them, 256-wide generators collapsed), decayed by a cosine to 0 over the run
+  # (docs/training.md); no dropout (experiments/results/train_paper_variants); batch 256
+  # (1.7x the samples/s of 64 on an H100).
   config.model.voxel_width = 8
+  config.model.voxel_keep = 4
+  config.model.feature = 256
+  config.model.hidden = 256
   config.model.dropout = 0.0
   config.train.batch_size = 256
-  config.train.learning_rate = 4e-3
+  config.train.learning_rate = 1e-3
+  config.train.warmup_steps = 300
+  config.train.clip_norm = 1.0
   config.train.schedule = "cosine"
-  # 3k steps (768k samples, 20 epochs) per model: the four models of Table 2 train in
-  # ~11 minutes of one H100, inside experiments/blocks.py's 25-minute budget.
-  # Geometry from the stream of fresh towers first (dataset.stream; 10k steps, 2.6M towers,
-  # ~3 min on one H100), kept on beside the dataset's loss afterwards (stream_weight):
-  # experiments/results/shape_study.md. The paper's encoder (voxel_keep = 1) and sizes.
+  # 3k steps (768k samples, 20 epochs) per model after the geometry stage.
+  # Geometry from the stream of fresh towers first (dataset.stream; 10k steps, 2.6M towers),
+  # kept on beside the dataset's loss afterwards (stream_weight).
   config.train.stream_steps = 10_000
   config.train.stream_weight = 1.0
   config.train.geometry_steps = 750

@@ -48,6 +48,8 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.batch_size = 16  # global, split over all devices
   config.train.learning_rate = 1e-3  # Adam, beta = (0.9, 0.999), as in the appendix
   config.train.schedule = "constant"  # or "cosine": decay to 0 over all steps
+  config.train.warmup_steps = 0  # > 0: the rate rises linearly from 0 over these steps
+  config.train.clip_norm = 0.0  # > 0: gradients clipped to this global norm before Adam
   config.train.stream_steps = 0  # phase 0: voxels of fresh towers only (dataset.stream)
   config.train.geometry_steps = 40  # phase 1: geometry only (w = 0)
   config.train.joint_steps = 80  # phase 2: geometry + w x density

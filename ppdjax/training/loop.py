@@ -27,7 +27,8 @@ from ppdjax.training.state import Trainer, phase, total_steps
 ADDED_KEYS = {"model.voxel_width": 1, "model.voxel_coords": False, "model.voxel_keep": 1,
               "train.schedule": "constant", "train.end_weight": None,
               "train.geometry_weight": 1.0, "train.stream_steps": 0, "train.stream_weight": 0.0,
-              "train.augment": True, "train.init_from": ""}
+              "train.augment": True, "train.init_from": "",
+              "train.clip_norm": 0.0, "train.warmup_steps": 0}
 # Keys a resumed run may change without invalidating its checkpoints.
 RESUMABLE_CHANGES = ("train.joint_steps", "train.log_every", "train.eval_every",
                      "train.eval_batches", "train.prefetch", "train.keep_checkpoints")
@@ -45,7 +46,7 @@ def check_config(config) -> None:
     if not value > 0:
       raise ValueError(f"config.{name} must be > 0, got {value}")
   for name in ("stream_steps", "geometry_steps", "joint_steps", "eval_batches", "prefetch",
-               "end_weight", "geometry_weight", "stream_weight"):
+               "end_weight", "geometry_weight", "stream_weight", "clip_norm", "warmup_steps"):
     if t.get(name) is not None and t.get(name, 0) < 0:
       raise ValueError(f"config.train.{name} must be >= 0, got {t[name]}")
   if total_steps(t) == 0:

@@ -37,6 +37,8 @@ def build(config) -> TrainState:
       raise ValueError("config.model.image_weights is set but use_image is False")
     load_torchvision_weights(model.image_encoder, config.model.image_weights)
   tx = optax.adam(learning_rate(config.train), b1=0.9, b2=0.999)
+  if config.train.get("clip_norm", 0.0) > 0:  # gradients rescaled to this global norm first
+    tx = optax.chain(optax.clip_by_global_norm(config.train.clip_norm), tx)
   return TrainState(model, nnx.Optimizer(model, tx, wrt=nnx.Param))
 
 
@@ -45,12 +47,21 @@ def learning_rate(t):
 
   The geometry loss is an L1: its gradients keep their size near the optimum, so at a
   constant rate the boxes jitter at the rate's scale; the decay lets them settle
-  (docs/training.md).
+  (docs/training.md). With `warmup_steps` > 0 the rate first rises linearly from 0 over those steps.
   """
+  warmup = t.get("warmup_steps", 0)
+  if warmup and warmup >= total_steps(t):
+    raise ValueError(f"config.train.warmup_steps ({warmup}) must be below the run's "
+                     f"{total_steps(t)} steps")
   if t.get("schedule", "constant") == "constant":
-    return t.learning_rate
+    if not warmup:
+      return t.learning_rate
+    return optax.join_schedules([optax.linear_schedule(0.0, t.learning_rate, warmup),
+                                 optax.constant_schedule(t.learning_rate)], [warmup])
   if t.schedule != "cosine":
     raise ValueError(f"config.train.schedule must be 'constant' or 'cosine', got {t.schedule!r}")
+  if warmup:
+    return optax.warmup_cosine_decay_schedule(0.0, t.learning_rate, warmup, total_steps(t))
   return optax.cosine_decay_schedule(t.learning_rate, total_steps(t))
 
 
