@@ -249,9 +249,35 @@ def test_cosine_schedule_and_bad_schedule():
   assert float(rate(0)) == pytest.approx(t.learning_rate)
   assert float(rate(total // 2)) == pytest.approx(t.learning_rate / 2, rel=1e-3)
   assert float(rate(total)) == pytest.approx(0.0, abs=1e-9)
+  t.warmup_steps = 20  # a linear rise to the peak, then the cosine
+  rate = train_state.learning_rate(t)
+  assert float(rate(0)) == 0.0
+  assert float(rate(10)) == pytest.approx(t.learning_rate / 2, rel=1e-3)
+  assert float(rate(20)) == pytest.approx(t.learning_rate, rel=1e-3)
+  assert float(rate(total)) == pytest.approx(0.0, abs=1e-9)
+  t.warmup_steps = total
+  with pytest.raises(ValueError, match="warmup_steps"):
+    train_state.learning_rate(t)
+  t.warmup_steps = 0
   t.schedule = "linear"
   with pytest.raises(ValueError, match="schedule"):
     train_state.learning_rate(t)
+
+
+def test_clipping_bounds_the_first_update():
+  """With train.clip_norm = 1, Adam's moments see the gradient rescaled to norm 1 (a 1e6
+  gradient unclipped would put 1e5 into the first moment); its first step is ±rate."""
+  config = tiny.get_config()
+  config.train.clip_norm = 1.0
+  ts = train_state.build(config)
+  grads = jax.tree.map(lambda p: jnp.full_like(p, 1e6), nnx.state(ts.model, nnx.Param))
+  before = jax.tree.leaves(nnx.state(ts.model, nnx.Param))
+  ts.optimizer.update(ts.model, grads)
+  after = jax.tree.leaves(nnx.state(ts.model, nnx.Param))
+  step = max(float(jnp.abs(a - b).max()) for a, b in zip(after, before))
+  assert step == pytest.approx(config.train.learning_rate, rel=1e-3)
+  m = jax.tree.leaves(ts.optimizer.opt_state)
+  assert max(float(jnp.abs(x).max()) for x in m if jnp.issubdtype(x.dtype, jnp.floating)) < 1.0
 
 
 def test_export_round_trip_and_corruption(tiny_run, tiny_dataset, tmp_path):
