@@ -3,6 +3,8 @@
 import json
 import os
 
+import pytest
+
 from ppdjax import showcase
 from ppdjax.configs import tiny
 
@@ -20,6 +22,7 @@ def test_physics_tour_writes_plot_and_summary(tmp_path):
   assert max(summary["gap_to_reference_mm"]["first_0.1s_max"]) < 2.0
 
 
+@pytest.mark.slow  # ~50 s on 2 cores (`make demo` runs it; test_assets pins the model)
 def test_shipped_example_report_puts_the_answer_beside_the_truth(tmp_path):
   r = showcase.shipped_example(os.path.join(ROOT, "assets", "blocks_model"),
                                os.path.join(ROOT, "assets", "blocks_example.npz"),

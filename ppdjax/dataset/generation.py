@@ -19,7 +19,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ppdjax import primitives
-from ppdjax.dataset import card, materials, render, storage, towers, voxels
+from ppdjax.dataset import camera, card, materials, render, storage, towers, voxels
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
 from ppdjax.sim.simulate import simulate
 
@@ -121,6 +121,7 @@ def generate(config, out: str, progress: bool = True) -> dict:
       "engine": {"backend": cfg.backend,
                  "precision": "float32" if cfg.backend == "mjx" else "float64 (stored float32)",
                  "mjx_settings": dataclasses.asdict(DEFAULT_SETTINGS)},
+      "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
       "shards": counts,
   }
   with open(os.path.join(out, "manifest.json"), "w") as f:

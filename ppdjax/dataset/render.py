@@ -2,8 +2,8 @@
 
 One render model holds K textured box slots; per object the boxes' geometry, rest pose and
 texture pixels are written into it and the textures re-uploaded, so a single GL context
-renders a whole dataset. Camera and light are fixed: the camera looks at the object's
-middle from the front-right (+x, -y) and above.
+renders a whole dataset. Camera and light are fixed: the camera (`dataset.camera`) looks at
+the object's middle from the front-right (+x, -y) and above.
 """
 
 from __future__ import annotations
@@ -18,21 +18,15 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ppdjax.conventions import NUM_SLOTS  # noqa: E402
-from ppdjax.dataset import materials  # noqa: E402
+from ppdjax.dataset import camera, materials  # noqa: E402
 from ppdjax.primitives import Primitives  # noqa: E402
 from ppdjax.sim import scene  # noqa: E402
 
-CAMERA_POS = np.array([1.55, -1.9, 1.35])
-CAMERA_TARGET = np.array([0.0, 0.0, 0.45])
 HIDDEN_GROUP = 3  # geom group not drawn by default: padded slots go there
 
 
 def _camera_xyaxes() -> str:
-  forward = CAMERA_TARGET - CAMERA_POS
-  forward /= np.linalg.norm(forward)
-  right = np.cross(forward, [0.0, 0.0, 1.0])
-  right /= np.linalg.norm(right)
-  up = np.cross(right, forward)
+  right, up, _ = camera.camera_axes()
   return " ".join(f"{v:.6f}" for v in np.concatenate([right, up]))
 
 
@@ -47,7 +41,7 @@ def render_xml(num_slots: int = NUM_SLOTS, texture_size: int = materials.TEXTURE
       f'height="{texture_size}" rgb1="1 1 1"/>\n'
       f'    <material name="mat{k}" texture="tex{k}" texuniform="true" texrepeat="4 4" '
       f'specular="0.3" shininess="0.3"/>' for k in range(num_slots))
-  pos = " ".join(f"{v}" for v in CAMERA_POS)
+  pos = " ".join(f"{v}" for v in camera.CAMERA_POS)
   return f"""<mujoco model="ppdjax_render">
   <visual><global offwidth="1024" offheight="1024"/><quality shadowsize="2048"/></visual>
   <asset>
@@ -60,7 +54,7 @@ def render_xml(num_slots: int = NUM_SLOTS, texture_size: int = materials.TEXTURE
   </asset>
   <worldbody>
     <light pos="2 -1 4" dir="-0.4 0.2 -1" directional="true" diffuse="0.8 0.8 0.8"/>
-    <camera name="view" pos="{pos}" xyaxes="{_camera_xyaxes()}" fovy="40"/>
+    <camera name="view" pos="{pos}" xyaxes="{_camera_xyaxes()}" fovy="{camera.FOVY}"/>
     <geom name="ground" type="plane" size="5 5 0.1" material="floor"/>
     <body name="object" pos="0 0 0.5">
 {boxes}

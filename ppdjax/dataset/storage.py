@@ -32,6 +32,7 @@ import numpy as np
 
 from ppdjax.conventions import OBS_KEYS
 from ppdjax import primitives
+from ppdjax.dataset import camera
 from ppdjax.primitives import Primitives
 
 FORMAT_VERSION = 1
@@ -156,6 +157,18 @@ class Dataset:
     self._index = np.concatenate(index) if index else np.zeros((0, 2), np.int64)
     if split is not None and len(self._index) == 0:
       raise DatasetError(f"{path} has no samples in split {split!r}")
+
+  @property
+  def camera(self) -> dict:
+    """The camera of the "image" and "depth" arrays (`dataset.camera`): height, width,
+    intrinsics (3, 3) and camera_from_world (4, 4), OpenCV axes. Datasets written before
+    the manifest stored it were all rendered by the one fixed camera: it is rebuilt from
+    `dataset.camera` at their image size."""
+    cam = self.manifest.get("camera")
+    if cam is None:
+      size = int(self.manifest["config"]["data"]["image_size"])
+      cam = camera.camera_dict(size, size)
+    return camera.check_camera(cam)
 
   def __len__(self) -> int:
     return len(self._index)

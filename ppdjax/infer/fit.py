@@ -18,6 +18,7 @@ import optax
 
 from ppdjax.conventions import NUM_SLOTS, VOXEL_RESOLUTION as R
 from ppdjax.dataset import voxels as voxelizer
+from ppdjax.infer import depth_fit
 from ppdjax.infer.tower_reading import (IDENTITY, VOXEL, as_bool, check_voxels, finish_boxes,
                                         read_one, read_tower)
 from ppdjax.primitives import Primitives, flatten, mat_to_quat, quat_to_mat, unflatten
@@ -237,7 +238,8 @@ def _fit_batch(vox_NxRxRxR, init: Primitives | None, seed, **options) -> Primiti
 def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, points: int = 256,
               lr: float = 0.1, jitter_starts: int = 0, jitter: float = 1.0,
               jitter_angle: float = 0.1, loose: float = 0.25, box_cost: float = 0.01,
-              seed: int = 0) -> Primitives:
+              seed: int = 0, depth=None, camera: dict | None = None,
+              depth_iterations: int = 15) -> Primitives:
   """Fits up to K = 5 oriented boxes to voxel grids; jittable, batched over leading axes.
 
   Starts: a loose tower reading (slices alike at IoU >= 1 - `loose` form one run), one box
@@ -246,9 +248,11 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
   refined starts, each also less any one or two boxes. The winner has the fewest voxels
   where its exact voxelization and the input disagree, plus `box_cost` x (filled voxels)
   per box; an exact explanation wins outright (ties: the exact reading, then the lower
-  soft loss), so a tower's exact reading is never replaced. Value checks run on concrete
-  arrays only (under jit an empty grid gives no valid box). Under `jax.jit`, bind options
-  with `functools.partial`.
+  soft loss), so a tower's exact reading is never replaced. With a `depth` image and its
+  `camera`, the winner's faces are then refined against the depth (`depth_fit`): faces
+  the camera sees become sub-voxel, the others stay within half a voxel of the voxel fit.
+  Value checks run on concrete arrays only (under jit an empty grid gives no valid box).
+  Under `jax.jit`, bind options (and the camera) with `functools.partial`.
 
   Args:
     voxels: (B..., 32, 32, 32) occupancy indexed [x, y, z]; bool, integer or 0/1 float.
@@ -263,6 +267,10 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
     loose: IoU tolerance of the loose reading that seeds the refinement.
     box_cost: price of a box, as a fraction of the filled voxels (inexact candidates).
     seed: random seed (points drawn, jitter).
+    depth: optional (B..., H, W) depth images (metres along the optical axis) of the same
+      objects at rest, as the dataset stores them.
+    camera: the depth images' camera (`storage.Dataset.camera`); required with `depth`.
+    depth_iterations: Levenberg-Marquardt steps of the depth refinement.
 
   Returns:
     Primitives (B..., K): boxes bottom to top, canonical unit quats, density 1000
@@ -272,7 +280,15 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
   flat = None if init is None else flatten(jax.tree.map(jnp.asarray, init))[0]
   if flat is not None and flat.num_slots != NUM_SLOTS:
     raise ValueError(f"init: expected {NUM_SLOTS} slots, got {flat.num_slots}")
+  if depth is not None:
+    depth_fit.check_depth(depth, camera, batch)
+  elif camera is not None:
+    raise ValueError("camera was given without a depth image")
   out = _fit_batch(jnp.asarray(voxels).reshape(-1, R, R, R), flat, seed, steps=steps,
                    points=points, lr=lr, jitter_starts=jitter_starts, jitter=jitter,
                    jitter_angle=jitter_angle, loose=loose, box_cost=box_cost)
+  if depth is not None:
+    d = jnp.asarray(depth, jnp.float32)
+    out = depth_fit.refine_batch(out, d.reshape((-1,) + d.shape[-2:]), camera,
+                                 iterations=depth_iterations)
   return unflatten(out, batch)
