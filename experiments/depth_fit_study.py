@@ -46,7 +46,8 @@ def seen_faces(prims, cam) -> np.ndarray:
   origin, dirs = depth.rays(cam)
   world = depth.to_world(p)
   d = jnp.asarray(dirs.reshape(-1, 3))
-  t_in, t_out = depth.slabs(jnp.asarray(origin), d, world)
+  with jax.default_matmul_precision("highest"):
+    t_in, t_out = depth.slabs(jnp.asarray(origin), d, world)
   hit = (t_in <= t_out) & (t_out > 0) & world.valid[None]
   box = jnp.argmin(jnp.where(hit, t_in, depth.FAR), -1)
   t = jnp.take_along_axis(t_in, box[:, None], -1)[:, 0]

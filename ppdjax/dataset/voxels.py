@@ -28,6 +28,11 @@ def voxel_centers(resolution: int = RESOLUTION) -> np.ndarray:
 
 @functools.partial(jax.jit, static_argnames="resolution")
 def _occupancy(prims: Primitives, resolution: int) -> jax.Array:
+  with jax.default_matmul_precision("highest"):  # exact: no TF32 on GPUs
+    return _occupancy_body(prims, resolution)
+
+
+def _occupancy_body(prims: Primitives, resolution: int) -> jax.Array:
   centers = jnp.asarray(voxel_centers(resolution)).reshape(-1, 3)  # (V, 3)
   half_voxel = 0.5 / resolution
   rot = quat_to_mat(prims.quat)  # (K, 3, 3), columns = box axes

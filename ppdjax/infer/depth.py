@@ -3,7 +3,9 @@ against an observed depth image, differentiable in the boxes' faces.
 
 The camera is `dataset.camera`'s pinhole model (OpenCV axes); a depth image holds z along
 the optical axis, as MuJoCo renders it. Boxes are in the object frame and stand on the
-ground as the dataset's objects do (`sim.scene.rest_position`).
+ground as the dataset's objects do (`sim.scene.rest_position`). Products run at full
+float32 precision (`jax.default_matmul_precision("highest")`): GPUs multiply float32 in
+TF32 by default, whose 1e-3 relative error is millimetres at the camera's 2.6 m.
 """
 
 from __future__ import annotations
@@ -24,9 +26,10 @@ def rays(camera: dict) -> tuple[jax.Array, jax.Array]:
   """The camera's centre (3,) and per-pixel ray directions (H, W, 3) in the world, scaled so
   that a point at ray parameter t lies at depth z = t."""
   cam = check_camera(camera)
-  return camera_rays(jnp.asarray(cam["intrinsics"], jnp.float32),
-                     jnp.asarray(cam["camera_from_world"], jnp.float32),
-                     cam["height"], cam["width"])
+  with jax.default_matmul_precision("highest"):
+    return camera_rays(jnp.asarray(cam["intrinsics"], jnp.float32),
+                       jnp.asarray(cam["camera_from_world"], jnp.float32),
+                       cam["height"], cam["width"])
 
 
 def camera_rays(intrinsics, camera_from_world, height: int, width: int):
@@ -66,7 +69,8 @@ def render_depth(prims: Primitives, camera: dict) -> jax.Array:
   h, w = dirs.shape[:2]
   dirs = dirs.reshape(-1, 3)
   world = to_world(prims)
-  t_in, t_out = slabs(origin, dirs, world)
+  with jax.default_matmul_precision("highest"):
+    t_in, t_out = slabs(origin, dirs, world)
   hit = (t_in <= t_out) & (t_out > 0) & world.valid[None]
   box = jnp.where(hit, jnp.maximum(t_in, 0.0), FAR).min(-1)
   return jnp.minimum(box, floor_depth(origin, dirs)).reshape(h, w)
@@ -77,7 +81,8 @@ def object_mask(depth_HW, camera: dict) -> jax.Array:
   farther than the space an object can occupy (the unit cube on the ground: the sky's
   far plane is not the object)."""
   cam = check_camera(camera)
-  return mask_from_rays(depth_HW, *rays(cam), jnp.asarray(cam["camera_from_world"]))
+  with jax.default_matmul_precision("highest"):
+    return mask_from_rays(depth_HW, *rays(cam), jnp.asarray(cam["camera_from_world"]))
 
 
 def mask_from_rays(depth_HW, origin, dirs_HWx3, camera_from_world) -> jax.Array:

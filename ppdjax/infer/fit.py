@@ -229,10 +229,11 @@ def _fit_batch(vox_NxRxRxR, init: Primitives | None, seed, **options) -> Primiti
   # the barrier keeps XLA from constant-folding every step's random key (slow to compile)
   keys = jax.random.split(jax.lax.optimization_barrier(jax.random.key(seed)), v.shape[0])
   one = functools.partial(_fit_one, **options)
-  if init is None:
-    return jax.vmap(lambda x, k: one(x, None, k))(v, keys)
-  init = jax.tree.map(lambda x: x if x.dtype == bool else x.astype(jnp.float32), init)
-  return jax.vmap(one)(v, init, keys)
+  with jax.default_matmul_precision("highest"):  # the exact selection: no TF32 on GPUs
+    if init is None:
+      return jax.vmap(lambda x, k: one(x, None, k))(v, keys)
+    init = jax.tree.map(lambda x: x if x.dtype == bool else x.astype(jnp.float32), init)
+    return jax.vmap(one)(v, init, keys)
 
 
 def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, points: int = 256,
