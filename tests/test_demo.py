@@ -11,6 +11,7 @@ from ppdjax.configs import tiny
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+@pytest.mark.slow  # ~22 s on 2 cores (`make demo` runs it; test_physics pins the engines)
 def test_physics_tour_writes_plot_and_summary(tmp_path):
   summary = showcase.physics_tour(tiny.get_config(), str(tmp_path))
   for name in ("trajectories.png", "summary.md", "summary.json"):

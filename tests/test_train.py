@@ -45,6 +45,21 @@ def _params(workdir):
   return jax.tree.leaves(nnx.state(model))
 
 
+def _interrupted_at(stop: int, config, data: str, workdir: str, monkeypatch) -> None:
+  """Trains until step `stop` and interrupts it there (Ctrl-C: the loop saves)."""
+  real = train_state.Trainer.train_step
+
+  def interrupt(self, batch, step, w):
+    if step == stop:
+      raise KeyboardInterrupt
+    return real(self, batch, step, w)
+
+  monkeypatch.setattr(train_state.Trainer, "train_step", interrupt)
+  with pytest.raises(KeyboardInterrupt):
+    loop.train_and_evaluate(config, data, workdir, progress=False)
+  monkeypatch.setattr(train_state.Trainer, "train_step", real)
+
+
 @pytest.fixture(scope="module")
 def straight_run(tiny_dataset, tmp_path_factory):
   workdir = str(tmp_path_factory.mktemp("straight"))
@@ -63,18 +78,7 @@ def test_stream_phase_then_dataset_phases_and_exact_resume(tiny_dataset, tmp_pat
   assert [r["phase"] for r in rows] == [0, 0, 1, 1, 1, 2, 2, 2]
   assert "density_loss" not in rows[0] and "end_loss" in rows[0]  # placeholder densities
   assert all("stream_geometry_loss" in r for r in rows[2:])
-  real = train_state.Trainer.train_step
-
-  def interrupt_at_2(self, batch, step, w):
-    if step == 2:
-      raise KeyboardInterrupt
-    return real(self, batch, step, w)
-
-  monkeypatch.setattr(train_state.Trainer, "train_step", interrupt_at_2)
-  with pytest.raises(KeyboardInterrupt):
-    loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, resumed,
-                             progress=False)
-  monkeypatch.setattr(train_state.Trainer, "train_step", real)
+  _interrupted_at(2, short_config(stream_steps=STREAM), tiny_dataset, resumed, monkeypatch)
   loop.train_and_evaluate(short_config(stream_steps=STREAM), tiny_dataset, resumed,
                            progress=False)
   key = lambda rows: [(r["step"], r["loss"], r["geometry_loss"]) for r in rows]
@@ -144,18 +148,8 @@ def test_overfits_sixteen_samples(tiny_dataset):
 def test_resume_is_bitwise_equal(straight_run, tiny_dataset, tmp_path, monkeypatch):
   """Interrupted at step 4 (Ctrl-C: it saves), run again: identical losses and weights."""
   workdir = str(tmp_path / "resumed")
-  real = train_state.Trainer.train_step
-
-  def interrupt_at_4(self, batch, step, w):
-    if step == 4:
-      raise KeyboardInterrupt
-    return real(self, batch, step, w)
-
-  monkeypatch.setattr(train_state.Trainer, "train_step", interrupt_at_4)
-  with pytest.raises(KeyboardInterrupt):
-    loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
+  _interrupted_at(4, short_config(), tiny_dataset, workdir, monkeypatch)
   assert [r["step"] for r in _rows(workdir)] == [1, 2, 3, 4]
-  monkeypatch.setattr(train_state.Trainer, "train_step", real)
   loop.train_and_evaluate(short_config(), tiny_dataset, workdir, progress=False)
   key = lambda rows: [(r["step"], r["loss"], r["geometry_loss"], r.get("density_loss"))
                       for r in rows]
