@@ -38,6 +38,8 @@ def test_shipped_example_report_puts_the_answer_beside_the_truth(tmp_path):
   assert r["shape_matched"] >= 1 and 0 < r["distance_m"] < 0.5
 
 
+@pytest.mark.slow  # ~60 s on 2 cores (`make demo` runs it; test_inference and test_assets
+# pin evaluation and decompose)
 def test_smoke_run_evaluates_and_decomposes(tiny_run, tiny_dataset, tmp_path):
   results = showcase.evaluate_and_decompose(tiny.get_config(), tiny_dataset, tiny_run[0],
                                             str(tmp_path))

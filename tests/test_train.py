@@ -304,6 +304,7 @@ def test_export_round_trip_and_corruption(tiny_run, tiny_dataset, tmp_path):
     load(out)
 
 
+@pytest.mark.slow  # ~20 s on 2 cores; test_export_round_trip_and_corruption pins corrupt files
 def test_a_truncated_checkpoint_is_named_and_training_resumes_from_an_intact_one(
     tiny_dataset, tmp_path, capsys):
   config = short_config(joint_steps=5)
