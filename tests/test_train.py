@@ -206,6 +206,7 @@ def test_bad_configs_and_inputs_are_named(tiny_dataset, straight_run, tmp_path, 
     loop.train_and_evaluate(short_config(), tiny_dataset, str(tmp_path / "w3"))
 
 
+@pytest.mark.slow  # ~15 s on 2 cores: `make test-all`
 def test_time_limit_stops_with_a_checkpoint_and_resumes(straight_run, tiny_dataset, tmp_path):
   """A call with no time left trains one step and saves it; the next call finishes the run
   exactly as an uninterrupted one."""
