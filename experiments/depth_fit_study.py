@@ -47,9 +47,7 @@ def seen_faces(prims, cam) -> np.ndarray:
   world = depth.to_world(p)
   d = jnp.asarray(dirs.reshape(-1, 3))
   with jax.default_matmul_precision("highest"):
-    t_in, t_out = depth.slabs(jnp.asarray(origin), d, world)
-  hit = (t_in <= t_out) & (t_out > 0) & world.valid[None]
-  box = jnp.argmin(jnp.where(hit, t_in, depth.FAR), -1)
+    any_hit, box, t_in, _ = depth.nearest_hits(jnp.asarray(origin), d, world)
   t = jnp.take_along_axis(t_in, box[:, None], -1)[:, 0]
   point = jnp.asarray(origin) + t[:, None] * d - world.pos[box]  # axis-aligned towers
   rel = point / jnp.maximum(world.half_size[box], 1e-9)
@@ -57,7 +55,7 @@ def seen_faces(prims, cam) -> np.ndarray:
   side = jnp.take_along_axis(rel, axis[:, None], -1)[:, 0] > 0
   face = axis + 3 * side
   seen = np.zeros((p.valid.shape[0], 6), bool)
-  any_hit = np.asarray(hit.any(-1))
+  any_hit = np.asarray(any_hit)
   np.logical_or.at(seen, (np.asarray(box)[any_hit], np.asarray(face)[any_hit]), True)
   return seen
 

@@ -58,6 +58,14 @@ def floor_depth(origin, dirs_Nx3):
   return jnp.minimum(t, FAR)
 
 
+def nearest_hits(origin, dirs_Nx3, world: Primitives):
+  """Per ray: whether it meets a valid box (N,), the nearest such box (N,), and the
+  entry and exit parameters against every box (N, K)."""
+  t_in, t_out = slabs(origin, dirs_Nx3, world)
+  hit = (t_in <= t_out) & (t_out > 0) & world.valid[None]
+  return hit.any(-1), jnp.argmin(jnp.where(hit, t_in, FAR), -1), t_in, t_out
+
+
 def to_world(prims: Primitives) -> Primitives:
   """Boxes of one object (object frame) at rest on the ground, in the world."""
   return prims.replace(pos=prims.pos + rest_position(prims))
@@ -68,12 +76,11 @@ def render_depth(prims: Primitives, camera: dict) -> jax.Array:
   origin, dirs = rays(camera)
   h, w = dirs.shape[:2]
   dirs = dirs.reshape(-1, 3)
-  world = to_world(prims)
   with jax.default_matmul_precision("highest"):
-    t_in, t_out = slabs(origin, dirs, world)
-  hit = (t_in <= t_out) & (t_out > 0) & world.valid[None]
-  box = jnp.where(hit, jnp.maximum(t_in, 0.0), FAR).min(-1)
-  return jnp.minimum(box, floor_depth(origin, dirs)).reshape(h, w)
+    any_hit, box, t_in, _ = nearest_hits(origin, dirs, to_world(prims))
+  t_box = jnp.where(any_hit, jnp.maximum(jnp.take_along_axis(t_in, box[:, None], -1)[:, 0],
+                                         0.0), FAR)
+  return jnp.minimum(t_box, floor_depth(origin, dirs)).reshape(h, w)
 
 
 def object_mask(depth_HW, camera: dict) -> jax.Array:
@@ -105,12 +112,8 @@ def residuals(prims: Primitives, depth_N, mask_N, origin, dirs_Nx3) -> jax.Array
   the edge back. Faces the camera cannot see get no gradient from here.
   """
   world = to_world(prims)
-  t_in, t_out = slabs(origin, dirs_Nx3, world)
+  any_hit, nearest, t_in, t_out = nearest_hits(origin, dirs_Nx3, world)
   valid = world.valid[None]
-  hit = (t_in <= t_out) & (t_out > 0) & valid
-  t_hit = jnp.where(hit, t_in, FAR)
-  nearest = jnp.argmin(t_hit, -1)
-  any_hit = hit.any(-1)
   t_near = jnp.take_along_axis(t_in, nearest[:, None], -1)[:, 0]
   inside = jnp.take_along_axis(t_out - t_in, nearest[:, None], -1)[:, 0]
   gap = jnp.where(valid, t_in - t_out, FAR).min(-1)

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ppdjax.conventions import VOXEL_RESOLUTION
+from ppdjax.dataset.camera import check_camera
 from ppdjax.infer import depth as depth_lib
 from ppdjax.primitives import Primitives, quat_to_mat
 
@@ -62,7 +63,7 @@ def refine_batch(prims: Primitives, depth_BxHxW, camera: dict, *, iterations: in
                  ) -> Primitives:
   """`refine_with_depth` over a batch (B, K) of objects seen by one camera (jitted once per
   image size and iteration count; CHUNK objects at a time bound the Jacobians' memory)."""
-  cam = depth_lib.check_camera(camera)
+  cam = check_camera(camera)
   return _refine_batch(prims, jnp.asarray(depth_BxHxW, jnp.float32),
                        jnp.asarray(cam["intrinsics"], jnp.float32),
                        jnp.asarray(cam["camera_from_world"], jnp.float32),
@@ -120,24 +121,19 @@ def refine_with_depth(prims: Primitives, depth_HW, intrinsics, camera_from_world
     lo = jnp.minimum(faces[:, :3], faces[:, 3:] - 2 * MIN_HALF)
     return jnp.concatenate([lo, faces[:, 3:]], -1).reshape(-1)
 
-  def cost(x):
-    r = residual(x)
-    return 0.5 * jnp.sum(r * r)
-
   def step(carry, _):
-    x, lam, c = carry
-    r = residual(x)
+    x, r, lam = carry
     jac = jax.jacfwd(residual)(x)
     jtj, g = jac.T @ jac, jac.T @ r
     a = jtj + lam * (jnp.diag(jnp.diag(jtj)) + 1e-6 * jnp.eye(x.size))
     new = project(x - jnp.linalg.solve(a, g))
-    c_new = cost(new)
-    better = c_new < c
-    return (jnp.where(better, new, x), jnp.where(better, lam * 0.3, lam * 4.0),
-            jnp.where(better, c_new, c)), c
+    r_new = residual(new)
+    better = jnp.sum(r_new * r_new) < jnp.sum(r * r)
+    return (jnp.where(better, new, x), jnp.where(better, r_new, r),
+            jnp.where(better, lam * 0.3, lam * 4.0)), None
 
   x0 = start.reshape(-1)
-  (x, _, _), _ = jax.lax.scan(step, (x0, jnp.float32(damping), cost(x0)), None,
+  (x, _, _), _ = jax.lax.scan(step, (x0, residual(x0), jnp.float32(damping)), None,
                               length=iterations)
   out = _boxes(prims, x.reshape(k, 6))
   keep = prims.valid[:, None]
@@ -150,7 +146,7 @@ def check_depth(depth, camera: dict, batch: tuple[int, ...]) -> None:
   shape = tuple(np.shape(depth))
   if camera is None:
     raise ValueError("depth was given without its camera (storage.Dataset.camera)")
-  cam = depth_lib.check_camera(camera, shape if len(shape) >= 2 else None)
+  cam = check_camera(camera, shape if len(shape) >= 2 else None)
   if shape != tuple(batch) + (cam["height"], cam["width"]):
     raise ValueError(f"depth: expected shape {tuple(batch) + (cam['height'], cam['width'])} "
                      f"for the voxels' batch {tuple(batch)}, got {shape}")
