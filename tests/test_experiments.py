@@ -19,6 +19,7 @@ def _blocks(*args, timeout=120):
                         capture_output=True, text=True, timeout=timeout)
 
 
+@pytest.mark.slow  # ~13 s on 2 cores: `make test-all`
 def test_list_shows_every_step_and_bad_steps_are_named(tmp_path):
   done = _blocks(*TINY, f"--root={tmp_path}", "--list")
   assert done.returncode == 0, done.stderr[-2000:]

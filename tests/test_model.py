@@ -34,6 +34,7 @@ def _random_boxes(rng, b=4, k=5):
                     jnp.asarray(np.arange(k) < rng.integers(1, k + 1, (b, 1))))
 
 
+@pytest.mark.slow  # ~13 s on 2 cores (eager passes): `make test-all`
 def test_heads_stay_in_range(net, rng):
   obs = _obs(rng)
   prev = jnp.asarray(rng.normal(size=(3, 6, model.PRIM_DIM)) * 5, jnp.float32)
