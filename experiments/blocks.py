@@ -8,7 +8,7 @@ Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder
 generator on the stream of fresh towers, `train.stream_steps`), then the full model and
 the no-trajectory and no-image ablations starting from it, and the no-voxels ablation
 from scratch; evaluate the full model on --max_objects test objects spread over the split
-(+Sample, the +Fit rows, +Fit+Sample+Refine and the baselines) and the ablations on the
+(+Sample, the +Fit and +Fit(depth) rows, +Fit(depth)+Sample+Refine and the baselines) and the ablations on the
 whole split (plain); then `report`: experiments/results/blocks.{json,md} and PNGs, the full model
 exported to assets/blocks_model and a decomposed example tower. Every step resumes:
 generation by shard, training from its last checkpoint (a training step stops itself
@@ -68,9 +68,10 @@ class Pipeline:
     e = self.config.eval
     if variant == "full":
       return {"samples": e.samples, "refine": e.refine, "with_baselines": True,
-              "prior_weight": e.prior_weight, "fit": e.fit, "refine_prior": e.refine_prior}
+              "prior_weight": e.prior_weight, "fit": e.fit, "depth": e.get("depth", False),
+              "refine_prior": e.refine_prior}
     return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0,
-            "fit": False, "refine_prior": 0.0}
+            "fit": False, "depth": False, "refine_prior": 0.0}
 
   def max_objects(self, variant: str) -> int:
     """The full model's evaluation (sampling, baselines, fit, refinement) covers
@@ -119,9 +120,9 @@ class Pipeline:
       r = json.load(f)
     s = self.eval_settings(variant)
     return ((r["samples"], r["refine"], r.get("max_objects", 0), r.get("prior_weight", 0.0),
-             r.get("subset", "first"), r.get("fit", False)) ==
+             r.get("subset", "first"), r.get("fit", False), r.get("depth", False)) ==
             (s["samples"], s["refine"], self.max_objects(variant), s["prior_weight"],
-             FLAGS.subset, s["fit"]))
+             FLAGS.subset, s["fit"], s["depth"]))
 
   def evaluate(self, variant: str) -> None:
     s, e = self.eval_settings(variant), self.config.eval
@@ -135,7 +136,7 @@ class Pipeline:
         f"python -m ppdjax.evaluate --workdir={variant} --data=data --samples={s['samples']}"
         + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"
         + ("" if s["with_baselines"] else " --nobaselines")
-        + (" --fit" if s["fit"] else "")
+        + (" --fit" if s["fit"] else "") + (" --depth" if s["depth"] else "")
         + (f" --max_objects={n} --subset={FLAGS.subset}" if n else ""))
 
   def report(self) -> None:

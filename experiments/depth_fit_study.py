@@ -25,7 +25,7 @@ import ppdjax
 from ppdjax import metrics
 from ppdjax.dataset import camera as camera_lib
 from ppdjax.dataset import render
-from ppdjax.infer import depth
+from ppdjax.dataset import depth
 from ppdjax.primitives import bottom_to_top
 
 _TOWERS = flags.DEFINE_integer("towers", 200, "fresh towers")

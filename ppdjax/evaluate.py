@@ -28,7 +28,9 @@ _PRIOR_WEIGHT = flags.DEFINE_float("prior_weight", None, "+Sample selects by dis
                                    "eval.prior_weight; 0 is the paper's closest trajectory).")
 _FIT = flags.DEFINE_bool("fit", None, "Also the +Fit rows: boxes fitted to the voxels "
                          "(default: eval.fit).")
-_REFINE_PRIOR = flags.DEFINE_float("refine_prior", None, "With --fit, +Refine is a MAP step "
+_DEPTH = flags.DEFINE_bool("depth", None, "Also the +Fit(depth) rows: the fitted boxes refined "
+                           "against the dataset's depth images (default: eval.depth).")
+_REFINE_PRIOR = flags.DEFINE_float("refine_prior", None, "With --fit or --depth, +Refine is a MAP step "
                                    "under the network's density scores with this weight "
                                    "(default: eval.refine_prior; 0: least squares).")
 _MAX_OBJECTS = flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")
@@ -51,7 +53,7 @@ def main(argv):
                                         refine_steps=_REFINE_STEPS.value,
                                         batch_size=_BATCH_SIZE.value,
                                         prior_weight=_PRIOR_WEIGHT.value, fit=_FIT.value,
-                                        refine_prior=_REFINE_PRIOR.value)
+                                        depth=_DEPTH.value, refine_prior=_REFINE_PRIOR.value)
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,
                                   with_baselines=_BASELINES.value, seed=_SEED.value, **settings)
@@ -62,8 +64,9 @@ def main(argv):
   paths = tables.write_results(results, _OUT.value or os.path.join(_WORKDIR.value, "eval"),
                                command)
   rows = results["table2"]
-  best = next(rows[r] for r in ("PPD+Fit+Sample+Refine", "PPD+Fit+Sample", "PPD+Sample+Refine",
-                                "PPD+Sample") if r in rows)
+  best = next(rows[r] for r in ("PPD+Fit(depth)+Sample+Refine", "PPD+Fit+Sample+Refine",
+                                "PPD+Fit(depth)+Sample", "PPD+Fit+Sample", "PPD+Sample+Refine",
+                                "PPD+Sample", "PPD") if r in rows)
   print(f"F1 {results['f1']:.1f}; best row: top1 {best['top1']:.1f}, RMSE {best['rmse']:.2f}, "
         f"MAE {best['mae']:.1f} mm ({settings}) -> {paths[0]}, {paths[1]}")
 

@@ -10,6 +10,7 @@ import pytest
 import ppdjax
 from ppdjax import open_dataset
 from ppdjax.dataset import camera as camera_lib
+from ppdjax.dataset.depth import render_depth, render_depths
 from ppdjax.infer import depth
 from ppdjax.primitives import bottom_to_top
 
@@ -31,8 +32,10 @@ def towers():
 
 def test_ray_cast_depth_matches_mujocos(towers):
   prims, _, deps, cam = towers
+  batched = np.asarray(render_depths(prims, cam))  # what generation stores
   for i in range(len(deps)):
-    ours = np.asarray(depth.render_depth(jax.tree.map(jnp.asarray, index(prims, i)), cam))
+    ours = np.asarray(render_depth(jax.tree.map(jnp.asarray, index(prims, i)), cam))
+    np.testing.assert_allclose(batched[i], ours, atol=1e-6)
     seen = np.asarray(depth.object_mask(jnp.asarray(deps[i]), cam)).reshape(SIZE, SIZE)
     ours_seen = np.asarray(depth.object_mask(jnp.asarray(ours), cam)).reshape(SIZE, SIZE)
     assert seen.sum() > 100 and (seen == ours_seen).all()
@@ -48,7 +51,7 @@ def test_the_datasets_camera_explains_its_depth(tiny_dataset):
   assert (cam["height"], cam["width"]) == size
   np.testing.assert_allclose(cam["intrinsics"], camera_lib.intrinsics(*size))
   sample = ds[0]
-  ours = np.asarray(depth.render_depth(jax.tree.map(jnp.asarray, sample["primitives"]), cam))
+  ours = np.asarray(render_depth(jax.tree.map(jnp.asarray, sample["primitives"]), cam))
   seen = np.asarray(depth.object_mask(jnp.asarray(sample["depth"]), cam)).reshape(size)
   assert np.abs(ours - sample["depth"])[seen].max() < 1e-4
 

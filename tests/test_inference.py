@@ -190,20 +190,24 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   assert os.path.exists(os.path.join(out, "confusion.png"))
 
 
-@pytest.mark.slow  # the fit compiles inside the evaluation: about 50 s more on 2 cores
+@pytest.mark.slow  # the fits compile inside the evaluation: about a minute more on 2 cores
 def test_evaluate_cli_with_the_fit_rows(tiny_run, tiny_dataset, tmp_path):
-  results, _ = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--fit")
+  results, _ = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--fit", "--depth")
   rows = results["table2"]
   assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample", "PPD+Fit",
-                       "PPD+Fit+Sample"}
-  # the fit reads the tiny towers' boxes exactly; densities are the network's either way
-  assert results["shape_fit"]["f1"] == 100.0 and results["shape_fit"]["count_exact"] == 100.0
-  assert {k: rows["PPD+Fit"][k] for k in ("top1", "rmse")} == {
-      k: rows["PPD"][k] for k in ("top1", "rmse")}
+                       "PPD+Fit+Sample", "PPD+Fit(depth)", "PPD+Fit(depth)+Sample"}
+  # the fits read the tiny towers' boxes exactly; densities are the network's either way
+  for key in ("shape_fit", "shape_fit_depth"):
+    assert results[key]["f1"] == 100.0 and results[key]["count_exact"] == 100.0
+  for name in ("PPD+Fit", "PPD+Fit(depth)"):
+    assert {k: rows[name][k] for k in ("top1", "rmse")} == {
+        k: rows["PPD"][k] for k in ("top1", "rmse")}
   lo, hi = rows["PPD"]["ci95"]["rmse"]
   assert lo <= rows["PPD"]["rmse"] <= hi
-  assert set(results["table4"]) == {"PPD", "PPD+Fit", "Sample Phys.", "Sample Phys.+Shape"}
+  assert set(results["table4"]) == {"PPD", "PPD+Fit", "PPD+Fit(depth)", "Sample Phys.",
+                                    "Sample Phys.+Shape"}
   assert results["table4"]["PPD+Fit"]["1"] == pytest.approx(rows["PPD+Fit"]["mae"])
+  assert results["depth"] and results["fit"]
 
 
 def test_evaluation_subsets():

@@ -49,5 +49,6 @@ def get_config():
   # experiments/results/paper_small/README.md)
   config.eval.prior_weight = 0.05
   config.eval.fit = True  # the +Fit rows (boxes fitted to the voxels, infer.fit)
+  config.eval.depth = True  # the +Fit(depth) rows (then refined against depth, depth_fit)
   config.eval.refine_prior = 1e-5  # +Fit+Sample+Refine: MAP under the network's prior
   return config

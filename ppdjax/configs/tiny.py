@@ -72,5 +72,6 @@ def get_config() -> ml_collections.ConfigDict:
   config.eval.batch_size = 8
   config.eval.prior_weight = 0.0  # +Sample: distance - tau log prior (m per nat; 0: the paper's)
   config.eval.fit = False  # also the +Fit rows: boxes fitted to the voxels (infer.fit)
+  config.eval.depth = False  # also the +Fit(depth) rows: then refined against the depth image
   config.eval.refine_prior = 1e-5  # with a fit, +Refine is a MAP step (refine.refine_densities)
   return config

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ppdjax import primitives
-from ppdjax.dataset import camera, card, materials, render, storage, towers, voxels
+from ppdjax.dataset import camera, card, depth, materials, render, storage, towers, voxels
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
 from ppdjax.sim.simulate import simulate
 
@@ -59,7 +59,9 @@ def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray
                         for c in range(cfg.configs_per_tower)])
   ids = np.concatenate(ids)
   tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, ids.shape)
-  images, depths = renderer.render(prims, np.maximum(ids, 0), tex_seeds)
+  images, _ = renderer.render(prims, np.maximum(ids, 0), tex_seeds)
+  depths = np.asarray(depth.render_depths(prims, camera.camera_dict(cfg.image_size,
+                                                                    cfg.image_size)))
   traj = np.asarray(simulate(prims, steps=cfg.steps, backend=cfg.backend),
                     np.float32)
   tower_id = np.repeat(np.arange(first, first + count), cfg.configs_per_tower).astype(np.int64)
@@ -103,7 +105,8 @@ def generate(config, out: str, progress: bool = True) -> dict:
                                       cfg.num_towers - s * cfg.towers_per_shard) for s in todo))
   t0 = time.perf_counter()
   if todo:
-    with render.BatchRenderer(cfg.image_size, cfg.image_size, cfg.render_workers) as renderer:
+    with render.BatchRenderer(cfg.image_size, cfg.image_size, cfg.render_workers,
+                              depth=False) as renderer:
       for s in todo:
         arrays = generate_shard(cfg, config.seed, s, renderer)
         sums[s] = storage.write_shard(os.path.join(out, names[s]), arrays)
@@ -122,6 +125,7 @@ def generate(config, out: str, progress: bool = True) -> dict:
                  "precision": "float32" if cfg.backend == "mjx" else "float64 (stored float32)",
                  "mjx_settings": dataclasses.asdict(DEFAULT_SETTINGS)},
       "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
+      "depth": "exact ray cast of the boxes and the ground (ppdjax.dataset.depth)",
       "shards": counts,
   }
   with open(os.path.join(out, "manifest.json"), "w") as f:

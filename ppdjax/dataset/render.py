@@ -1,9 +1,11 @@
-"""RGB and depth images of an object at rest, with MuJoCo's renderer (headless: MUJOCO_GL=egl).
+"""RGB (and GL depth) images of an object at rest, with MuJoCo's renderer (MUJOCO_GL=egl).
 
 One render model holds K textured box slots; per object the boxes' geometry, rest pose and
 texture pixels are written into it and the textures re-uploaded, so a single GL context
 renders a whole dataset. Camera and light are fixed: the camera (`dataset.camera`) looks at
-the object's middle from the front-right (+x, -y) and above.
+the object's middle from the front-right (+x, -y) and above. The dataset's depth images
+come from the exact ray cast (`dataset.depth`); MuJoCo's GL depth pass stays available
+(`depth=True`) as an independent check of it.
 """
 
 from __future__ import annotations
@@ -98,9 +100,10 @@ class ObjectRenderer:
   def __exit__(self, *exc):
     self.close()
 
-  def render(self, prims: Primitives, material_ids, texture_seeds) -> tuple[np.ndarray,
-                                                                            np.ndarray]:
-    """RGB (H, W, 3) uint8 and depth (H, W) float32 metres of one object at rest.
+  def render(self, prims: Primitives, material_ids, texture_seeds, depth: bool = True
+             ) -> tuple[np.ndarray, np.ndarray | None]:
+    """RGB (H, W, 3) uint8 and MuJoCo's depth (H, W) float32 metres (None without `depth`)
+    of one object at rest.
 
     Args:
       prims: one object (K slots).
@@ -128,6 +131,8 @@ class ObjectRenderer:
     mujoco.mj_forward(m, self.data)
     self._renderer.update_scene(self.data, camera="view")
     rgb = self._renderer.render().copy()
+    if not depth:
+      return rgb, None
     # A second pass for depth: MuJoCo's depth-only pass (no skybox: the sky reads as the
     # far plane) rather than the colour pass's depth buffer, whose values differ.
     self._renderer.enable_depth_rendering()
@@ -145,22 +150,24 @@ def _worker_init(height, width, num_slots):
 
 
 def _worker_render(args):
-  prims, material_ids, seeds = args
+  prims, material_ids, seeds, depth = args
   r = _WORKER["renderer"]
-  out = [r.render(jax.tree.map(lambda x, i=i: x[i], prims), material_ids[i], seeds[i])
+  out = [r.render(jax.tree.map(lambda x, i=i: x[i], prims), material_ids[i], seeds[i], depth)
          for i in range(len(material_ids))]
-  return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
+  return (np.stack([o[0] for o in out]),
+          np.stack([o[1] for o in out]) if depth else None)
 
 
 class BatchRenderer:
   """Renders batches of objects, in `workers` processes (each with its own GL context).
 
   workers=0 renders in this process. Results do not depend on the number of workers.
+  With depth=False, `render` skips MuJoCo's depth pass and returns None for it.
   """
 
   def __init__(self, height: int = 224, width: int = 224, workers: int = 0,
-               num_slots: int = NUM_SLOTS):
-    self.workers = workers
+               num_slots: int = NUM_SLOTS, depth: bool = True):
+    self.workers, self.depth = workers, depth
     if workers > 0:
       import multiprocessing  # pylint: disable=import-outside-toplevel
       ctx = multiprocessing.get_context("spawn")  # JAX and GL contexts do not survive fork
@@ -180,15 +187,17 @@ class BatchRenderer:
       self._pool = None
 
   def render(self, prims: Primitives, material_ids, seeds):
-    """(N, H, W, 3) uint8 and (N, H, W) float32 for a batch of N objects."""
+    """(N, H, W, 3) uint8 and (N, H, W) float32 (or None) for a batch of N objects."""
     p = jax.tree.map(np.asarray, prims)
     n = len(material_ids)
     if self._pool is None:
-      return _worker_render((p, material_ids, seeds))
+      return _worker_render((p, material_ids, seeds, self.depth))
     chunks = np.array_split(np.arange(n), min(n, self.workers * 4))
     parts = self._pool.map(_worker_render, [
-        (jax.tree.map(lambda x, c=c: x[c], p), material_ids[c], seeds[c]) for c in chunks])
-    return np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts])
+        (jax.tree.map(lambda x, c=c: x[c], p), material_ids[c], seeds[c], self.depth)
+        for c in chunks])
+    return (np.concatenate([a for a, _ in parts]),
+            np.concatenate([b for _, b in parts]) if self.depth else None)
 
   def close(self):
     if self._pool is not None:

@@ -73,7 +73,7 @@ def check_observation(obs: dict, config) -> bool:
 
 
 def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
-                      refine: bool = False, refine_steps: int = 12, prior_weight: float = 0.0,
+                      camera: dict | None = None, refine: bool = False, refine_steps: int = 12, prior_weight: float = 0.0,
                       refine_prior: float = 0.0, pushes: Pushes | None = None,
                       settings: MjxSettings = DEFAULT_SETTINGS):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
@@ -84,6 +84,9 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     fit: replace the network's boxes by boxes fitted to the voxels (`ppdjax.fit_boxes`,
       started from the network's); the network's k-th density scores go to the k-th
       fitted box from the bottom. False: the network's boxes, as the paper.
+    camera: the depth images' camera (`open_dataset(DIR).camera`): the fitted boxes are
+      then refined against observation["depth"] (`fit_boxes(..., depth=, camera=)`):
+      faces the camera sees become sub-voxel. Needs `fit`.
     refine: fit the best candidate's densities by Levenberg–Marquardt through MJX.
     refine_steps: LM iterations.
     prior_weight: τ of `select_densities` (0: the closest trajectory wins).
@@ -95,14 +98,17 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
 
   Returns:
     decompose(observation, key): observation is a dict with "voxels" (32,32,32),
-    "image" (H,W,3) uint8 and "trajectories" (P,T,7), or a batch of them (leading B);
-    the result has the same leading axes.
+    "image" (H,W,3) uint8 and "trajectories" (P,T,7) (and "depth" (H',W') metres with a
+    camera), or a batch of them (leading B); the result has the same leading axes.
   """
   if isinstance(trained, str):
     trained = checkpoints.load(trained)
   model, config = trained
   if num_samples < 1:
     raise ValueError(f"num_samples must be >= 1, got {num_samples}")
+  if camera is not None and not fit:
+    raise ValueError("camera is for the depth fit: it needs fit=True")
+  keys = OBS_KEYS + (("depth",) if camera is not None else ())
   pushes = default_pushes() if pushes is None else pushes
   graphdef, state = nnx.split(model)
 
@@ -113,7 +119,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     k = prims.num_slots
     logits = raw.density_logits[:, :k, :NUM_DENSITY_SLOTS]
     if fit:
-      prims = fit_boxes(obs["voxels"], init=prims).replace(density=prims.density)
+      prims = fit_boxes(obs["voxels"], init=prims, depth=obs.get("depth"),
+                        camera=camera).replace(density=prims.density)
     traj = obs["trajectories"].astype(jnp.float32)
     keys = jax.random.split(key, traj.shape[0])
     sel = jax.vmap(lambda p, l, o, kk: select_densities(
@@ -132,7 +139,10 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
 
   def decompose(observation: dict, key: jax.Array) -> Decomposition:
     batched = check_observation(observation, config)
-    obs = {k: jnp.asarray(observation[k]) for k in OBS_KEYS}
+    if camera is not None and "depth" not in observation:
+      raise ValueError("observation lacks 'depth', which the camera given to "
+                       "make_decompose_fn asks for")
+    obs = {k: jnp.asarray(observation[k]) for k in keys}
     if not batched:
       obs = jax.tree.map(lambda x: x[None], obs)
     out = run(state, obs, key)

@@ -19,6 +19,7 @@ import numpy as np
 
 from ppdjax.conventions import VOXEL_RESOLUTION
 from ppdjax.dataset.camera import check_camera
+from ppdjax.dataset.depth import camera_rays
 from ppdjax.infer import depth as depth_lib
 from ppdjax.primitives import Primitives, quat_to_mat
 
@@ -97,7 +98,7 @@ def refine_with_depth(prims: Primitives, depth_HW, intrinsics, camera_from_world
     damping: the starting Levenberg-Marquardt damping.
   """
   h, w = depth_HW.shape
-  origin, dirs = depth_lib.camera_rays(intrinsics, camera_from_world, h, w)
+  origin, dirs = camera_rays(intrinsics, camera_from_world, h, w)
   obs = jnp.asarray(depth_HW, jnp.float32).reshape(-1)
   mask = depth_lib.mask_from_rays(obs, origin, dirs, camera_from_world)
   dirs = dirs.reshape(-1, 3)

@@ -12,6 +12,9 @@ from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
   PPD+Sample      slots ranked by the best selection objective of a sample that has them
                   (`sampling.selection_objective`; the paper: the trajectory distance);
   PPD+Sample+Refine  slots ranked by closeness to the refined continuous density;
+  PPD+Fit..., PPD+Fit(depth)...  the same on boxes fitted to the voxels (`fit`), or to
+                  the voxels and then the depth image (`depth`); refinement starts from
+                  the most precise boxes evaluated (depth, else voxels, else the network's);
   Frequent, Nearest, Oracle (`ppdjax.infer.baselines`), on the true shape.
 MAE is the paper's trajectory MAE in mm (`metrics.trajectory_mae`).
 """
@@ -32,7 +35,7 @@ from ppdjax import metrics
 from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
                                 slot_to_density_jax)
 from ppdjax.dataset import storage
-from ppdjax.infer import baselines, rows, sampling
+from ppdjax.infer import baselines, depth_fit, rows, sampling
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import density_prior, refine_if_closer
 from ppdjax.infer.tables import BASELINES, PREFIXES, model_switches, summarize
@@ -49,28 +52,42 @@ def simultaneous_candidates() -> int:
   return 2048 if jax.default_backend() == "cpu" else 16384
 
 
-def _decode(graphdef, state, obs, true, *, fit):
-  """The network's boxes and slot logits, and with `fit` the boxes fitted to the voxels
-  (`fit.fit_boxes` from the network's; the k-th logits go to the k-th fitted box from
-  the bottom); shape counts of each."""
+def fit_groups(fit: bool, depth: bool) -> tuple[str, ...]:
+  """The fitted-box groups an evaluation has, least precise first."""
+  return (("fit",) if fit else ()) + (("fit_depth",) if depth else ())
+
+
+def _decode(graphdef, state, obs, true, *, groups, camera, depth_iterations=15):
+  """The network's boxes and slot logits, and per fit group the fitted boxes
+  (`fit.fit_boxes` from the network's; with depth, then refined against the depth image,
+  `depth_fit`; the k-th logits go to the k-th fitted box from the bottom); shape counts
+  of each ("shape", "shape_fit", "shape_fit_depth")."""
   model = nnx.merge(graphdef, state)
   pred, raw = model.decode(obs)
   logits = raw.density_logits[:, :pred.num_slots, :NUM_DENSITY_SLOTS]
-  out = {"pred": pred, "logits": logits, "shape": metrics.shape_counts(pred, true)}
-  if fit:
+  out = {"pred": pred, "logits": logits, "shape": metrics.shape_counts(pred, true),
+         "fitted": {}}
+  if groups:
     fitted = fit_boxes(obs["voxels"], init=pred)
-    out["fitted"] = fitted.replace(density=pred.density)
-    out["shape_fit"] = metrics.shape_counts(fitted, true)
+    if "fit_depth" in groups:
+      out["fitted"]["fit_depth"] = depth_fit.refine_batch(
+          fitted, obs["depth"].astype(jnp.float32), camera, iterations=depth_iterations)
+    if "fit" in groups:
+      out["fitted"]["fit"] = fitted
+  for g, boxes in out["fitted"].items():
+    out["fitted"][g] = boxes.replace(density=pred.density)
+    out["shape_" + g] = metrics.shape_counts(boxes, true)
   return out
 
 
-def candidate_layout(samples: int, fit: bool, with_baselines: bool) -> dict:
+def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) -> dict:
   """Where each group of candidates sits along an object's candidate axis: name -> slice.
 
-  "ppd": the network's samples on its boxes; "fit": the network's samples on the fitted
-  boxes; "uniform" / "shapes": Table 4's sampling baselines; "baselines": Table 2's three.
+  "ppd": the network's samples on its boxes; "fit" / "fit_depth" (`fits`): the network's
+  samples on the fitted boxes; "uniform" / "shapes": Table 4's sampling baselines;
+  "baselines": Table 2's three.
   """
-  sizes = [("ppd", samples)] + ([("fit", samples)] if fit else [])
+  sizes = [("ppd", samples)] + [(g, samples) for g in fits]
   if with_baselines:
     sizes += [("uniform", samples), ("shapes", samples), ("baselines", len(BASELINES))]
   out, start = {}, 0
@@ -82,21 +99,20 @@ def candidate_layout(samples: int, fit: bool, with_baselines: bool) -> dict:
 
 def _simulate(pred, fitted, logits, true, base_slots, pool, obs_traj, key, *, samples,
               with_baselines, chunk, pushes, settings):
-  """Per object: (distance, MAE) of every candidate (`candidate_layout`), and the
-  network's candidate slots on its boxes and on the fitted ones (None without a fit)."""
+  """Per object: (distance, MAE) of every candidate (`candidate_layout`), the network's
+  candidate slots on its boxes, and a tuple of them on each of `fitted` (a tuple of the
+  fit groups' boxes, in layout order)."""
   b, k = pred.density.shape
-  keys = jax.random.split(key, (b, 4))
-  fit = fitted is not None
-  fitted = pred if fitted is None else fitted
+  keys = jax.random.split(key, (b, max(4, 3 + len(fitted))))
 
   def one(args):
-    p, f, lg, t, bs, traj, kk = args
+    p, fs, lg, t, bs, traj, kk = args
     slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
     cands = [sampling.with_slots(p, slots)]
-    fit_slots = slots
-    if fit:
-      fit_slots, _ = sampling.candidate_slots(lg, f.valid, samples, kk[3])
-      cands.append(sampling.with_slots(f, fit_slots))
+    fit_slots = []
+    for i, f in enumerate(fs):
+      fit_slots.append(sampling.candidate_slots(lg, f.valid, samples, kk[3 + i])[0])
+      cands.append(sampling.with_slots(f, fit_slots[-1]))
     if with_baselines:
       uniform, _ = sampling.candidate_slots(jnp.zeros_like(lg), t.valid, samples, kk[1],
                                             include_mode=False)
@@ -106,7 +122,7 @@ def _simulate(pred, fitted, logits, true, base_slots, pool, obs_traj, key, *, sa
                 sampling.with_slots(t, bs)]
     cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
     dist, mae = sampling.score_candidates(cands, traj, pushes, settings)
-    return dist, mae, slots, fit_slots
+    return dist, mae, slots, tuple(fit_slots)
 
   return jax.lax.map(one, (pred, fitted, logits, true, base_slots, obs_traj, keys),
                      batch_size=chunk)
@@ -131,32 +147,40 @@ class Evaluator:
 
   def __init__(self, model, config, *, samples: int, refine: bool, refine_steps: int = 12,
                baselines_on: bool = True, prior_weight: float = 0.0, fit: bool = False,
-               refine_prior: float = 0.0, pushes=None, settings=DEFAULT_SETTINGS):
+               depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
+               pushes=None, settings=DEFAULT_SETTINGS):
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
-    self.config, self.samples, self.refine, self.fit = config, samples, refine, fit
+    if depth and camera is None:
+      raise ValueError("the +Fit(depth) rows need the depth images' camera "
+                       "(storage.Dataset.camera)")
+    self.config, self.samples, self.refine = config, samples, refine
+    self.fits = fit_groups(fit, depth)
     self.baselines_on, self.prior_weight = baselines_on, prior_weight
     pushes = default_pushes() if pushes is None else pushes
-    self.layout = candidate_layout(samples, fit, baselines_on)
+    self.layout = candidate_layout(samples, self.fits, baselines_on)
     per_object = max(s.stop for s in self.layout.values())
     chunk = max(1, simultaneous_candidates() // per_object)
     self.graphdef, self.state = nnx.split(model)
-    self._decode = jax.jit(functools.partial(_decode, self.graphdef, fit=fit))
+    self._decode = jax.jit(functools.partial(_decode, self.graphdef, groups=self.fits,
+                                             camera=camera))
     self._simulate = jax.jit(functools.partial(
         _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
         settings=settings))
     # without a fit, the network's boxes are refined as the paper's least squares; with a
     # fit, the fitted boxes by the MAP step (refine_prior)
     self._refine = jax.jit(functools.partial(
-        _refine, steps=refine_steps, prior_weight=refine_prior if fit else 0.0,
+        _refine, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
         pushes=pushes, settings=settings))
 
   def batch(self, batch: dict, base_scores: np.ndarray | None, key) -> dict:
     """Per-object arrays for one batch (see `evaluate` for what they become)."""
-    obs = {k: jnp.asarray(batch[k]) for k in OBS_KEYS}
+    obs = {k: jnp.asarray(batch[k])
+           for k in OBS_KEYS + (("depth",) if "fit_depth" in self.fits else ())}
     true = bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
     decoded = self._decode(self.state, obs, true)
-    pred, logits, fitted = decoded["pred"], decoded["logits"], decoded.get("fitted")
+    pred, logits = decoded["pred"], decoded["logits"]
+    fitted = tuple(decoded["fitted"][g] for g in self.fits)
     b, k = true.density.shape
     base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
                   else np.zeros((b, len(BASELINES), k), np.int32))
@@ -168,15 +192,15 @@ class Evaluator:
     out = jax.device_get({**decoded, "dist": dist, "mae": mae, "slots": slots})
     out["logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, jnp.asarray(out["slots"]),
                                                           pred.valid))
-    if self.fit:
-      out["fit_slots"] = np.asarray(fit_slots)
-      out["fit_logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, fit_slots,
-                                                                fitted.valid))
-    if self.refine:  # from the best sample: on the fitted boxes when there is a fit
-      group, boxes = ("fit", fitted) if self.fit else ("ppd", pred)
-      cand_slots = out["fit_slots"] if self.fit else out["slots"]
+    out["fit_slots"] = {g: np.asarray(s) for g, s in zip(self.fits, fit_slots)}
+    out["fit_logp"] = {g: np.asarray(jax.vmap(sampling.log_prior)(logits, s, f.valid))
+                       for g, s, f in zip(self.fits, fit_slots, fitted)}
+    if self.refine:  # from the best sample, on the most precise boxes evaluated
+      group = self.fits[-1] if self.fits else "ppd"
+      boxes = decoded["fitted"][group] if self.fits else pred
+      cand_slots = out["fit_slots"][group] if self.fits else out["slots"]
       d, m = out["dist"][:, self.layout[group]], out["mae"][:, self.layout[group]]
-      logp = out["fit_logp"] if self.fit else out["logp"]
+      logp = out["fit_logp"][group] if self.fits else out["logp"]
       best = np.argmin(sampling.selection_objective(d, logp, self.prior_weight), -1)
       start = np.take_along_axis(cand_slots, best[:, None, None], 1)[:, 0]
       prims = boxes.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
@@ -187,12 +211,12 @@ class Evaluator:
 
 
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
-                 "refine_prior")
+                 "depth", "refine_prior")
 
 
 def eval_settings(config, **overrides) -> dict:
   """`evaluate`'s settings from a preset's `eval` section; overrides that are not None win."""
-  defaults = {"fit": False, "refine_prior": 0.0}  # presets saved before the fit existed
+  defaults = {"fit": False, "depth": False, "refine_prior": 0.0}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -217,7 +241,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              refine: bool = False, refine_steps: int = 12, batch_size: int = 16,
              max_objects: int = 0, with_baselines: bool = True, seed: int = 0,
              prior_weight: float = 0.0, subset: str = "first", fit: bool = False,
-             refine_prior: float = 0.0, progress: bool = True) -> dict:
+             depth: bool = False, refine_prior: float = 0.0, progress: bool = True) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
@@ -225,6 +249,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   the candidates are simulated once). Choose τ on the validation split. With
   `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
   split ("spread": many towers, since a tower's 8 configurations are stored together).
+  `fit` adds the +Fit rows (boxes fitted to the voxels), `depth` the +Fit(depth) rows
+  (then refined against the dataset's depth images, through its camera).
 
   Raises:
     CheckpointError for a workdir without a checkpoint, DatasetError for a dataset
@@ -239,8 +265,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   train = baselines.TrainingSet(storage.open_dataset(data_dir, "train"),
                                 progress=progress) if with_baselines else None
   ev = Evaluator(model, config, samples=samples, refine=refine, refine_steps=refine_steps,
-                 baselines_on=with_baselines, prior_weight=prior_weight, fit=fit,
-                 refine_prior=refine_prior)
+                 baselines_on=with_baselines, prior_weight=prior_weight, fit=fit, depth=depth,
+                 camera=test.camera if depth else None, refine_prior=refine_prior)
   prefixes = sorted({p for p in PREFIXES if p <= samples} | {samples})
   records = collections.defaultdict(list)
   key = jax.random.key(seed)
@@ -249,7 +275,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
     idx = objects[start:start + batch_size]
     keep = len(idx)
     idx = np.pad(idx, (0, batch_size - keep), mode="edge")  # one compiled shape
-    batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials"))
+    batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials")
+                      + (("depth",) if depth else ()))
     slot = baselines.true_slots(batch["primitives"])
     base = None
     if with_baselines:
@@ -273,7 +300,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       "workdir": trained if isinstance(trained, str) else None, "data": data_dir,
       "split": split, "objects": int(n), "samples": samples, "refine": refine,
       "refine_steps": refine_steps if refine else 0, "baselines": with_baselines,
-      "prior_weight": prior_weight, "subset": subset, "fit": fit,
-      "refine_prior": refine_prior if fit and refine else 0.0,
+      "prior_weight": prior_weight, "subset": subset, "fit": fit, "depth": depth,
+      "refine_prior": refine_prior if (fit or depth) and refine else 0.0,
       "seconds": round(time.perf_counter() - t_start, 1)})
   return results

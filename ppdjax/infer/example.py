@@ -17,22 +17,41 @@ from ppdjax.primitives import Primitives
 from ppdjax.training import checkpoints
 
 
-def save_example(sample: dict, path: str) -> None:
-  """Writes one dataset sample (observation and true boxes) as an .npz."""
+def save_example(sample: dict, path: str, camera: dict | None = None) -> None:
+  """Writes one dataset sample (observation and true boxes) as an .npz; with the
+  dataset's `camera`, also its depth image and that camera (for the depth fit)."""
   p = sample["primitives"]
-  np.savez_compressed(path, **{k: sample[k] for k in OBS_KEYS},
+  extra = {}
+  if camera is not None:
+    extra = {"depth": sample["depth"], "camera_size": [camera["height"], camera["width"]],
+             "camera_intrinsics": camera["intrinsics"],
+             "camera_from_world": camera["camera_from_world"]}
+  np.savez_compressed(path, **{k: sample[k] for k in OBS_KEYS}, **extra,
                       **{f"true_{f}": np.asarray(getattr(p, f)) for f in primitives.FIELDS})
 
 
 def load_example(path: str) -> tuple[dict, Primitives]:
-  """(observation, true Primitives) from an .npz written by `save_example`."""
+  """(observation, true Primitives) from an .npz written by `save_example`; the
+  observation holds "depth" where the example has one (`load_camera` gives its camera)."""
   try:
     with np.load(path) as z:
-      obs = {k: z[k] for k in OBS_KEYS}
+      obs = {k: z[k] for k in OBS_KEYS + (("depth",) if "depth" in z.files else ())}
       true = Primitives(*[z[f"true_{f}"] for f in primitives.FIELDS])
   except (OSError, KeyError, ValueError) as e:
     raise DatasetError(f"{path} is not a readable example tower: {e}") from e
   return obs, true
+
+
+def load_camera(path: str) -> dict | None:
+  """The camera of an example's depth image (None for an example saved without one)."""
+  try:
+    with np.load(path) as z:
+      if "camera_size" not in z.files:
+        return None
+      (h, w), k, pose = z["camera_size"], z["camera_intrinsics"], z["camera_from_world"]
+  except (OSError, KeyError, ValueError) as e:
+    raise DatasetError(f"{path} is not a readable example tower: {e}") from e
+  return {"height": int(h), "width": int(w), "intrinsics": k, "camera_from_world": pose}
 
 
 def decompose_example(model_dir: str, example: str, out: str, samples: int = 512,
@@ -41,7 +60,8 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
 
   Args:
     model_dir: an exported model (assets/blocks_model) or a training workdir.
-    example: an .npz written by `save_example`.
+    example: an .npz written by `save_example` (with a depth image and its camera, the
+      boxes are fitted to voxels and depth).
     out: the PNG to write: the input image, the recovered boxes coloured by density and
       the truth.
     samples: density samples simulated per call.
@@ -56,8 +76,9 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
   """
   trained = checkpoints.load(model_dir)
   obs, true = load_example(example)
+  camera = load_camera(example) if "depth" in obs else None  # the depth fit where it can
   tau = trained[1].eval.prior_weight if prior_weight is None else prior_weight
-  decompose = make_decompose_fn(trained, num_samples=samples, prior_weight=tau)
+  decompose = make_decompose_fn(trained, num_samples=samples, prior_weight=tau, camera=camera)
   key = jax.random.key(seed)
   jax.block_until_ready(decompose(obs, key))  # compiles
   t0 = time.perf_counter()
@@ -81,7 +102,7 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
           "iou": [float(iou[k, k]) for k in range(min(valid.sum(), true_valid.sum()))],
           "distance_m": float(got.score),
           "mae_mm": float(metrics.trajectory_mae(got.trajectories, obs["trajectories"])),
-          "samples": samples, "seconds": seconds, "path": out}
+          "samples": samples, "depth_fit": camera is not None, "seconds": seconds, "path": out}
 
 
 def heaviest_line(r: dict, count: int = 2) -> str:

@@ -2,7 +2,7 @@
 
 `evaluation.Evaluator` simulates every candidate once per batch; `batch_records` turns
 one batch's candidates into the records of Table 2's rows (PPD, +Sample, +Sample+Refine,
-the +Fit rows, the baselines), Table 4's prefixes, the τ sweep and the refinement
+the +Fit and +Fit(depth) rows, the baselines), Table 4's prefixes, the τ sweep and the refinement
 statistics, which `tables.summarize` reduces (with bootstrap intervals) to the tables.
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS, SLOT_DENSITY
 from ppdjax.infer import sampling
-from ppdjax.infer.tables import BASELINES, PRIOR_WEIGHTS
+from ppdjax.infer.tables import BASELINES, FIT_ROWS, PRIOR_WEIGHTS
 
 
 def sample_scores(logits, slots, objective, valid):
@@ -80,19 +80,20 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
       for p in prefixes:
         rec[("prefix", name, p)] = e[rows, np.argmin(d[:, :p], -1)]
   sample_row, refined_from = "PPD+Sample", dist[rows, best]
-  if "fit" in layout:  # the same rows on the boxes fitted to the voxels
-    rec.update({("shape_fit", k): np.asarray(v) for k, v in out["shape_fit"].items()})
-    fvalid = np.asarray(out["fitted"].valid)
-    fd, fm = out["dist"][:, layout["fit"]], out["mae"][:, layout["fit"]]
-    f_obj = sampling.selection_objective(fd, out["fit_logp"], prior_weight)
+  for group in [g for g in FIT_ROWS if g in layout]:  # the same rows on fitted boxes
+    name = FIT_ROWS[group]
+    rec.update({("shape_" + group, k): np.asarray(v) for k, v in out["shape_" + group].items()})
+    fvalid = np.asarray(out["fitted"][group].valid)
+    fd, fm = out["dist"][:, layout[group]], out["mae"][:, layout[group]]
+    f_obj = sampling.selection_objective(fd, out["fit_logp"][group], prior_weight)
     f_best = np.argmin(f_obj, -1)
-    scores["PPD+Fit"] = logits
-    mae["PPD+Fit"] = fm[:, 0]
-    scores["PPD+Fit+Sample"] = sample_scores(logits, out["fit_slots"], f_obj, fvalid)
-    mae["PPD+Fit+Sample"] = fm[rows, f_best]
-    sample_row, refined_from, pvalid = "PPD+Fit+Sample", fd[rows, f_best], fvalid
+    scores[name] = logits
+    mae[name] = fm[:, 0]
+    scores[name + "+Sample"] = sample_scores(logits, out["fit_slots"][group], f_obj, fvalid)
+    mae[name + "+Sample"] = fm[rows, f_best]
+    sample_row, refined_from, pvalid = name + "+Sample", fd[rows, f_best], fvalid
     for p in prefixes:
-      rec[("prefix", "PPD+Fit", p)] = fm[rows, np.argmin(fd[:, :p], -1)]
+      rec[("prefix", name, p)] = fm[rows, np.argmin(fd[:, :p], -1)]
   if refine:
     r = out["refine"]
     scores[sample_row + "+Refine"] = refine_scores(logits, r["density"], pvalid)

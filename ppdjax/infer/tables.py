@@ -13,8 +13,10 @@ from ppdjax.plots import plot_confusion
 
 # Row and column names of one model's evaluation.
 BASELINES = ("Frequent", "Nearest", "Oracle")
-PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine", "PPD+Fit", "PPD+Fit+Sample",
-            "PPD+Fit+Sample+Refine")
+# Boxes fitted at test time (`evaluation.fit_groups`): group -> the prefix of its rows.
+FIT_ROWS = {"fit": "PPD+Fit", "fit_depth": "PPD+Fit(depth)"}
+PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine") + tuple(
+    f + s for f in FIT_ROWS.values() for s in ("", "+Sample", "+Sample+Refine"))
 PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
 PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)  # τ swept for +Sample (m/nat)
 
@@ -89,9 +91,10 @@ def summarize(switches: dict, rec: dict) -> dict:
   shape = _f1(rec, "shape")
   results = {"model": switches, "mae_units": "mm", "table2": {}, "table4": {}, "table5": {},
              "table5_ci95": {}, "f1": shape["f1"], "shape": shape}
-  if ("shape_fit", "matched") in rec:
-    results["shape_fit"] = _f1(rec, "shape_fit")
-    results["f1_fit"] = results["shape_fit"]["f1"]
+  for fit in FIT_ROWS:  # "shape_fit" / "f1_fit", "shape_fit_depth" / "f1_fit_depth"
+    if ("shape_" + fit, "matched") in rec:
+      results["shape_" + fit] = _f1(rec, "shape_" + fit)
+      results["f1_" + fit] = results["shape_" + fit]["f1"]
   names = {k[1] for k in rec if k[0] == "counts"}
   for name in [r for r in BASELINES + PPD_ROWS if r in names]:
     counts = {k: np.asarray(v) for k, v in group("counts", name).items()}
@@ -167,7 +170,7 @@ def table4_md(table4: dict) -> list[str]:
   ns = sorted({int(n) for r in table4.values() for n in r})
   lines = ["| trajectory MAE (mm) | " + " | ".join(f"{n}×" for n in ns) + " |",
            "|---|" + "--:|" * len(ns)]
-  for name in ("Sample Phys.+Shape", "Sample Phys.", "PPD", "PPD+Fit"):
+  for name in ("Sample Phys.+Shape", "Sample Phys.", "PPD") + tuple(FIT_ROWS.values()):
     if name in table4:
       lines.append(f"| {name} | " + " | ".join(f"{table4[name].get(str(n), float('nan')):.1f}"
                                                for n in ns) + " |")
@@ -225,16 +228,19 @@ def results_md(results: dict, command: str = "") -> str:
 
 
 def shape_line(results: dict) -> str:
-  """'; 95 % interval [a, b]; boxes fitted to the voxels (+Fit): F1 c [d, e]' where known."""
+  """'; 95 % interval [a, b]; boxes fitted to the voxels (+Fit): F1 c [d, e]' (and to
+  voxels and depth, +Fit(depth)) where known."""
   out = ""
   if "shape" in results:
     lo, hi = results["shape"]["f1_ci95"]
     out += f", 95 % interval [{lo:.1f}, {hi:.1f}], box count exact on " \
            f"{results['shape']['count_exact']:.1f} % of objects"
-  if "shape_fit" in results:
-    s = results["shape_fit"]
-    out += (f"; boxes fitted to the voxels (+Fit): F1 **{s['f1']:.1f}** [{s['f1_ci95'][0]:.1f}, "
-            f"{s['f1_ci95'][1]:.1f}], box count exact on {s['count_exact']:.1f} %")
+  for key, what in (("shape_fit", "the voxels (+Fit)"),
+                    ("shape_fit_depth", "voxels and depth (+Fit(depth))")):
+    if key in results:
+      s = results[key]
+      out += (f"; boxes fitted to {what}: F1 **{s['f1']:.1f}** [{s['f1_ci95'][0]:.1f}, "
+              f"{s['f1_ci95'][1]:.1f}], box count exact on {s['count_exact']:.1f} %")
   return out
 
 

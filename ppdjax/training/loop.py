@@ -80,7 +80,8 @@ def _check_resume(workdir: str, config) -> None:
   old = {**ADDED_KEYS, **_flatten(checkpoints.read_config(workdir).to_dict())}
   new = _flatten(json.loads(config.to_json_best_effort()))
   changed = sorted(k for k in set(old) | set(new)
-                   if k not in RESUMABLE_CHANGES and json.dumps(old.get(k)) != json.dumps(new.get(k)))
+                   if k not in RESUMABLE_CHANGES and not k.startswith("eval.")  # not training's
+                   and json.dumps(old.get(k)) != json.dumps(new.get(k)))
   if changed:
     raise ValueError(f"{workdir} holds a run made with another config ({', '.join(changed)} "
                      "differ); use a new --workdir")
