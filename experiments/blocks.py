@@ -48,6 +48,8 @@ flags.DEFINE_integer("max_objects", 1024, "Evaluate the full model on N test obj
                      "the ablations always on all).")
 flags.DEFINE_enum("subset", "spread", ["first", "spread"],
                   "The first N test objects, or N spread over the split (many towers).")
+flags.DEFINE_integer("val_objects", 256, "Validation objects for the τ sweep of the full "
+                     "model (0: no validation step).")
 flags.DEFINE_integer("step_seconds", 540, "A training call stops after this long.")
 FLAGS = flags.FLAGS
 ORDER = ("full", "no_image", "no_trajectory", "no_voxels")
@@ -106,6 +108,8 @@ class Pipeline:
       if v != GEOMETRY:
         out.append((f"evaluate:{v}", lambda v=v: self.evaluated(v),
                     lambda v=v: self.evaluate(v)))
+      if v == "full" and FLAGS.val_objects:
+        out.append(("validate:full", lambda: os.path.exists(self.val_path()), self.validate))
     out.append(("report", lambda: False, self.report))
     return out
 
@@ -123,6 +127,25 @@ class Pipeline:
              r.get("subset", "first"), r.get("fit", False), r.get("depth", False)) ==
             (s["samples"], s["refine"], self.max_objects(variant), s["prior_weight"],
              FLAGS.subset, s["fit"], s["depth"]))
+
+  def val_path(self) -> str:
+    return os.path.join(self.workdir("full"), "eval_val", "results.json")
+
+  def validate(self) -> None:
+    """The full model on --val_objects validation objects: the +Sample rows' τ sweep
+    (network, fitted and depth-fitted boxes), where τ is to be chosen (no baselines, no
+    refinement)."""
+    s, e = self.eval_settings("full"), self.config.eval
+    results = evaluation.evaluate(
+        self.workdir("full"), self.data, split="val", samples=s["samples"], refine=False,
+        batch_size=e.batch_size, max_objects=FLAGS.val_objects, subset="spread",
+        with_baselines=False, prior_weight=s["prior_weight"], fit=s["fit"], depth=s["depth"])
+    tables.write_results(
+        results, os.path.dirname(self.val_path()),
+        f"python -m ppdjax.evaluate --workdir=full --data=data --split=val "
+        f"--samples={s['samples']} --norefine --nobaselines --prior_weight={s['prior_weight']}"
+        + (" --fit" if s["fit"] else "") + (" --depth" if s["depth"] else "")
+        + f" --max_objects={FLAGS.val_objects} --subset=spread")
 
   def evaluate(self, variant: str) -> None:
     s, e = self.eval_settings(variant), self.config.eval

@@ -43,6 +43,12 @@ def collect(pipe) -> dict:
       with open(pipe.eval_path(v)) as f:                   # ablations are done
         res[v] = json.load(f)
   ablations = {v: name for v, name in ABLATIONS.items() if v in res}
+  val = None
+  if os.path.exists(pipe.val_path()):
+    with open(pipe.val_path()) as f:
+      v = json.load(f)
+    val = {"objects": v["objects"], "prior_sweeps": v.get("prior_sweeps"), "f1": v["f1"],
+           "shape_fit": v.get("shape_fit"), "shape_fit_depth": v.get("shape_fit_depth")}
   full = res["full"]
   table2 = {b: full["table2"][b] for b in tables.BASELINES}
   table2.update({name: res[v]["table2"]["PPD"] for v, name in ablations.items()})
@@ -73,6 +79,7 @@ def collect(pipe) -> dict:
       "subset": full.get("subset", "first"), "samples": full["samples"],
       "refine": full["refine"],
       "prior_weight": full.get("prior_weight", 0.0), "prior_sweep": full.get("prior_sweep"),
+      "prior_sweeps": full.get("prior_sweeps"), "validation": val,
       "refine_stats": full.get("refine_stats"), "steps": steps,
       "total_seconds": round(sum(s["seconds"] for s in steps.values()), 1),
       "paper": {"table2": tables.PAPER_TABLE2, "table4": tables.PAPER_TABLE4,
@@ -147,6 +154,12 @@ def markdown(r: dict, command: str) -> str:
             "## Table 5: density RMSE (slots) by number of blocks", ""]
   lines += tables.table5_md(r["table5"])
   lines += ["", "Paper: " + tables.paper_line(tables.PAPER_TABLE5) + ".", ""]
+  if r.get("validation") and r["validation"].get("prior_sweeps"):
+    lines += [f"## +Sample's τ on the validation split ({r['validation']['objects']} objects)",
+              "", "Where τ is to be chosen (the test split's sweep is in the full model's "
+              "`eval/results.md`):", ""]
+    lines += tables.prior_sweep_md(r["validation"]["prior_sweeps"])
+    lines += ["", f"This run's +Sample rows use τ = {r['prior_weight']}.", ""]
   if r.get("refine_stats"):
     s = r["refine_stats"]
     lines += [f"Refinement lowered the trajectory distance on {100 * s['improved_fraction']:.0f}%"

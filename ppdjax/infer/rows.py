@@ -46,6 +46,18 @@ def _row_counts(scores, slot, valid):
   return {n: np.asarray(v) for n, v in c.items()}
 
 
+def _sweep(row, logits, slots, objective, mae, pvalid, slot, valid) -> dict:
+  """A +Sample row's records for every τ in PRIOR_WEIGHTS (free: the candidates are
+  simulated once), keyed ("sweep", row, τ, name)."""
+  out = {}
+  for tau in PRIOR_WEIGHTS:
+    pick = np.argmin(objective(tau), -1)
+    counts = _row_counts(sample_scores(logits, slots, objective(tau), pvalid), slot, valid)
+    out.update({("sweep", row, tau, k): v for k, v in counts.items()})
+    out[("sweep", row, tau, "mae")] = mae[np.arange(len(pick)), pick]
+  return out
+
+
 def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: float,
                    prefixes, with_baselines: bool, refine: bool, layout: dict) -> dict:
   """Per-object records of one batch, keyed by (kind, row, name); `evaluation.evaluate`
@@ -63,11 +75,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   scores = {"PPD": logits,
             "PPD+Sample": sample_scores(logits, slots, objective(prior_weight), pvalid)}
   mae = {"PPD": omae[:, 0], "PPD+Sample": omae[rows, best]}
-  for tau in PRIOR_WEIGHTS:
-    pick = np.argmin(objective(tau), -1)
-    counts = _row_counts(sample_scores(logits, slots, objective(tau), pvalid), slot, valid)
-    rec.update({("sweep", tau, k): v for k, v in counts.items()})
-    rec[("sweep", tau, "mae")] = omae[rows, pick]
+  rec.update(_sweep("PPD+Sample", logits, slots, objective, omae, pvalid, slot, valid))
   for p in prefixes:
     rec[("prefix", "PPD", p)] = omae[rows, np.argmin(dist[:, :p], -1)]
   if with_baselines:
@@ -85,13 +93,17 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     rec.update({("shape_" + group, k): np.asarray(v) for k, v in out["shape_" + group].items()})
     fvalid = np.asarray(out["fitted"][group].valid)
     fd, fm = out["dist"][:, layout[group]], out["mae"][:, layout[group]]
-    f_obj = sampling.selection_objective(fd, out["fit_logp"][group], prior_weight)
+    f_objective = lambda tau, fd=fd, g=group: sampling.selection_objective(
+        fd, out["fit_logp"][g], tau)
+    f_obj = f_objective(prior_weight)
     f_best = np.argmin(f_obj, -1)
     scores[name] = logits
     mae[name] = fm[:, 0]
     scores[name + "+Sample"] = sample_scores(logits, out["fit_slots"][group], f_obj, fvalid)
     mae[name + "+Sample"] = fm[rows, f_best]
     sample_row, refined_from, pvalid = name + "+Sample", fd[rows, f_best], fvalid
+    rec.update(_sweep(sample_row, logits, out["fit_slots"][group], f_objective, fm, fvalid,
+                      slot, valid))
     for p in prefixes:
       rec[("prefix", name, p)] = fm[rows, np.argmin(fd[:, :p], -1)]
   if refine:

@@ -111,11 +111,14 @@ def summarize(switches: dict, rec: dict) -> dict:
         str(b): metrics.summarize({k: v[nb == b] for k, v in counts.items()})["rmse"]
         for b in range(2, nb.max() + 1) if np.any(nb == b)}
     results["table5"][name]["overall"] = row["rmse"]
-  results["prior_sweep"] = {}
-  for tau in PRIOR_WEIGHTS:
-    counts = group("sweep", tau)
-    mae = counts.pop("mae")
-    results["prior_sweep"][str(tau)] = {**metrics.summarize(counts), "mae": float(np.mean(mae))}
+  results["prior_sweeps"] = {}  # +Sample row -> τ -> metrics
+  for row in sorted({k[1] for k in rec if k[0] == "sweep"}, key=PPD_ROWS.index):
+    sweep = results["prior_sweeps"][row] = {}
+    for tau in PRIOR_WEIGHTS:
+      counts = group("sweep", row, tau)
+      mae = counts.pop("mae")
+      sweep[str(tau)] = {**metrics.summarize(counts), "mae": float(np.mean(mae))}
+  results["prior_sweep"] = results["prior_sweeps"].get("PPD+Sample", {})  # as before
   for k, v in rec.items():
     if k[0] == "prefix":
       results["table4"].setdefault(k[1], {})[str(k[2])] = float(np.mean(v))
@@ -187,6 +190,17 @@ def table5_md(table5: dict) -> list[str]:
   return lines
 
 
+def prior_sweep_md(sweeps: dict) -> list[str]:
+  """Markdown lines: per τ, each +Sample row's top-1 / RMSE / MAE (mm)."""
+  rows = list(sweeps)
+  lines = ["| τ (m per nat) | " + " | ".join(f"{r}: top-1 / RMSE / MAE" for r in rows) + " |",
+           "|--:|" + "--:|" * len(rows)]
+  for tau in sweeps[rows[0]]:
+    lines.append(f"| {tau} | " + " | ".join(
+        "{top1:.1f} / {rmse:.2f} / {mae:.1f}".format(**sweeps[r][tau]) for r in rows) + " |")
+  return lines
+
+
 def results_md(results: dict, command: str = "") -> str:
   """A results.md laid out like the paper's tables, with the paper's numbers beside."""
   m = results["model"]
@@ -210,12 +224,11 @@ def results_md(results: dict, command: str = "") -> str:
   lines += ["## Table 5: density RMSE by number of blocks", ""]
   lines += table5_md(results["table5"])
   lines += ["", "Paper (2/3/4/5 blocks, overall): " + paper_line(PAPER_TABLE5) + ".", ""]
-  if results.get("prior_sweep"):
-    lines += ["## +Sample selection: distance − τ · log prior", "",
-              "| τ (m per nat) | Top 1 | Top 5 | Top 10 | RMSE | MAE (mm) |",
-              "|--:|--:|--:|--:|--:|--:|"]
-    lines += [f"| {t} | {r['top1']:.1f} | {r['top5']:.1f} | {r['top10']:.1f} | {r['rmse']:.1f} "
-              f"| {r['mae']:.1f} |" for t, r in results["prior_sweep"].items()]
+  sweeps = results.get("prior_sweeps") or (
+      {"PPD+Sample": results["prior_sweep"]} if results.get("prior_sweep") else {})
+  if sweeps:
+    lines += ["## +Sample selection: distance − τ · log prior", ""]
+    lines += prior_sweep_md(sweeps)
     lines += ["", f"Table 2's +Sample rows use τ = {results['prior_weight']}.", ""]
   if "refine_stats" in results:
     r = results["refine_stats"]
