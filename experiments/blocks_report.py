@@ -132,6 +132,8 @@ def markdown(r: dict, command: str) -> str:
            + f"{r['samples']} density samples" + (", LM refinement" if r["refine"] else "")
            + f"; +Sample selects by distance − {r['prior_weight']} · log prior. Density "
            f"top-k in %, RMSE in slots (×100 kg/m³), trajectory MAE in {r['mae_units']}.", "",
+           "What each change (encoder, geometry stream, losses, fit, depth, MAP refinement) "
+           "did, measured, and what is still missing: `docs/experiments.md`.", "",
            "## Targets (issue 6)", "", "| target | ours | goal | met |", "|---|--:|--:|:-:|"]
   lines += [f"| {w} | {o:.2f} | {rel} {t} | {'yes' if ok else '**no**'} |"
             for w, o, rel, t, ok in targets(r)]
