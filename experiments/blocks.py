@@ -8,7 +8,8 @@ Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder
 generator on the stream of fresh towers, `train.stream_steps`), then the full model and
 the no-trajectory and no-image ablations starting from it, and the no-voxels ablation
 from scratch; evaluate the full model on --max_objects test objects spread over the split
-(+Sample, the +Fit and +Fit(depth) rows, +Fit(depth)+Sample+Refine and the baselines) and the ablations on the
+(+Sample, the +Fit and +Fit(depth) rows, +Fit(depth)+Sample+Refine and the baselines),
+its τ sweep on --val_objects validation objects (validate:full), and the ablations on the
 whole split (plain); then `report`: experiments/results/blocks.{json,md} and PNGs, the full model
 exported to assets/blocks_model and a decomposed example tower. Every step resumes:
 generation by shard, training from its last checkpoint (a training step stops itself
@@ -44,7 +45,7 @@ flags.DEFINE_string("results", "experiments/results", "Where blocks.json/md and 
 flags.DEFINE_string("assets", "assets", "Where the exported model and example tower go.")
 flags.DEFINE_string("step", "all", "'all' (every step left), 'next', or a step name.")
 flags.DEFINE_bool("list", False, "Print the steps and their state, then exit.")
-flags.DEFINE_integer("max_objects", 1024, "Evaluate the full model on N test objects (0: all; "
+flags.DEFINE_integer("max_objects", 512, "Evaluate the full model on N test objects (0: all; "
                      "the ablations always on all).")
 flags.DEFINE_enum("subset", "spread", ["first", "spread"],
                   "The first N test objects, or N spread over the split (many towers).")
@@ -109,7 +110,7 @@ class Pipeline:
         out.append((f"evaluate:{v}", lambda v=v: self.evaluated(v),
                     lambda v=v: self.evaluate(v)))
       if v == "full" and FLAGS.val_objects:
-        out.append(("validate:full", lambda: os.path.exists(self.val_path()), self.validate))
+        out.append(("validate:full", self.validated, self.validate))
     out.append(("report", lambda: False, self.report))
     return out
 
@@ -131,6 +132,16 @@ class Pipeline:
   def val_path(self) -> str:
     return os.path.join(self.workdir("full"), "eval_val", "results.json")
 
+  def validated(self) -> bool:
+    """Whether the validation sweep exists with this preset's settings and object count."""
+    if not os.path.exists(self.val_path()):
+      return False
+    with open(self.val_path()) as f:
+      r = json.load(f)
+    s = self.eval_settings("full")
+    return ((r["samples"], r.get("max_objects"), r.get("fit"), r.get("depth"))
+            == (s["samples"], FLAGS.val_objects, s["fit"], s["depth"]))
+
   def validate(self) -> None:
     """The full model on --val_objects validation objects: the +Sample rows' τ sweep
     (network, fitted and depth-fitted boxes), where τ is to be chosen (no baselines, no
@@ -140,6 +151,7 @@ class Pipeline:
         self.workdir("full"), self.data, split="val", samples=s["samples"], refine=False,
         batch_size=e.batch_size, max_objects=FLAGS.val_objects, subset="spread",
         with_baselines=False, prior_weight=s["prior_weight"], fit=s["fit"], depth=s["depth"])
+    results["max_objects"] = FLAGS.val_objects
     tables.write_results(
         results, os.path.dirname(self.val_path()),
         f"python -m ppdjax.evaluate --workdir=full --data=data --split=val "

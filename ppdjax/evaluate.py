@@ -30,7 +30,8 @@ _FIT = flags.DEFINE_bool("fit", None, "Also the +Fit rows: boxes fitted to the v
                          "(default: eval.fit).")
 _DEPTH = flags.DEFINE_bool("depth", None, "Also the +Fit(depth) rows: the fitted boxes refined "
                            "against the dataset's depth images (default: eval.depth).")
-_REFINE_PRIOR = flags.DEFINE_float("refine_prior", None, "With --fit or --depth, +Refine is a MAP step "
+_REFINE_PRIOR = flags.DEFINE_float("refine_prior", None, "With --fit or --depth, +Refine is a "
+                                   "MAP step "
                                    "under the network's density scores with this weight "
                                    "(default: eval.refine_prior; 0: least squares).")
 _MAX_OBJECTS = flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")

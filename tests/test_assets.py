@@ -58,3 +58,18 @@ def test_a_broken_example_file_is_named(tmp_path):
   np.savez(tmp_path / "partial.npz", voxels=np.zeros((32, 32, 32), np.uint8))
   with pytest.raises(DatasetError, match="not a readable example"):
     decompose_example.load_example(str(tmp_path / "partial.npz"))
+
+
+def test_the_example_keeps_its_depth_and_camera(tmp_path):
+  """The shipped example carries the dataset's depth and camera (the depth fit uses
+  them); an example saved without a camera has neither."""
+  from ppdjax.dataset import camera as camera_lib
+  obs, true = decompose_example.load_example(EXAMPLE)
+  cam = decompose_example.load_camera(EXAMPLE)
+  assert obs["depth"].shape == (cam["height"], cam["width"]) == (224, 224)
+  np.testing.assert_allclose(cam["intrinsics"], camera_lib.intrinsics(224, 224))
+  np.testing.assert_allclose(cam["camera_from_world"], camera_lib.camera_from_world())
+  sample = {**obs, "primitives": true}
+  decompose_example.save_example(sample, str(tmp_path / "plain.npz"))
+  assert decompose_example.load_camera(str(tmp_path / "plain.npz")) is None
+  assert "depth" not in decompose_example.load_example(str(tmp_path / "plain.npz"))[0]

@@ -151,6 +151,26 @@ def test_bad_observations_are_named(decompose, tiny_dataset):
     decompose({**obs, "voxels": obs["voxels"] * 255}, key)
 
 
+def test_the_depth_fit_in_decompose_names_its_errors(tiny_run, tiny_dataset):
+  """A camera needs the fit and a depth image of its size, finite and positive; all is
+  checked before anything compiles."""
+  ds = storage.open_dataset(tiny_dataset, "test")
+  sample = ds[0]
+  obs = {k: sample[k] for k in OBS_KEYS}
+  with pytest.raises(ValueError, match="needs fit=True"):
+    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, fit=False, camera=ds.camera)
+  with pytest.raises(ValueError, match="camera"):
+    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera={"height": 8})
+  decompose = ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera=ds.camera)
+  key = jax.random.key(0)
+  with pytest.raises(ValueError, match="lacks 'depth'"):
+    decompose(obs, key)
+  with pytest.raises(ValueError, match="depth image is 63x64"):
+    decompose({**obs, "depth": sample["depth"][:-1]}, key)
+  with pytest.raises(ValueError, match="finite and > 0"):
+    decompose({**obs, "depth": sample["depth"] * np.nan}, key)
+
+
 def _evaluate_cli(tiny_run, tiny_dataset, tmp_path, *extra):
   """`python -m ppdjax.evaluate` run in this process (its main, after flag parsing; the
   error test below runs it as a separate process); returns (results, out dir)."""

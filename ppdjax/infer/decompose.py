@@ -8,6 +8,8 @@ import numpy as np
 from flax import nnx, struct
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION
+from ppdjax.dataset.camera import check_camera
+from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import density_prior, refine_if_closer
 from ppdjax.infer.sampling import select_densities
@@ -73,8 +75,8 @@ def check_observation(obs: dict, config) -> bool:
 
 
 def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
-                      camera: dict | None = None, refine: bool = False, refine_steps: int = 12, prior_weight: float = 0.0,
-                      refine_prior: float = 0.0, pushes: Pushes | None = None,
+                      camera: dict | None = None, refine: bool = False,
+                      refine_steps: int = 12, prior_weight: float = 0.0, refine_prior: float = 0.0, pushes: Pushes | None = None,
                       settings: MjxSettings = DEFAULT_SETTINGS):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
 
@@ -108,6 +110,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     raise ValueError(f"num_samples must be >= 1, got {num_samples}")
   if camera is not None and not fit:
     raise ValueError("camera is for the depth fit: it needs fit=True")
+  if camera is not None:
+    camera = check_camera(camera)
   keys = OBS_KEYS + (("depth",) if camera is not None else ())
   pushes = default_pushes() if pushes is None else pushes
   graphdef, state = nnx.split(model)
@@ -139,9 +143,12 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
 
   def decompose(observation: dict, key: jax.Array) -> Decomposition:
     batched = check_observation(observation, config)
-    if camera is not None and "depth" not in observation:
-      raise ValueError("observation lacks 'depth', which the camera given to "
-                       "make_decompose_fn asks for")
+    if camera is not None:
+      if "depth" not in observation:
+        raise ValueError("observation lacks 'depth', which the camera given to "
+                         "make_decompose_fn asks for")
+      lead = np.shape(observation["voxels"])[:1] if batched else ()
+      check_depth(observation["depth"], camera, lead)  # shape, finite, > 0
     obs = {k: jnp.asarray(observation[k]) for k in keys}
     if not batched:
       obs = jax.tree.map(lambda x: x[None], obs)

@@ -103,15 +103,15 @@ def _simulate(pred, fitted, logits, true, base_slots, pool, obs_traj, key, *, sa
   candidate slots on its boxes, and a tuple of them on each of `fitted` (a tuple of the
   fit groups' boxes, in layout order)."""
   b, k = pred.density.shape
-  keys = jax.random.split(key, (b, max(4, 3 + len(fitted))))
+  keys = jax.random.split(key, (b, 4))
 
   def one(args):
     p, fs, lg, t, bs, traj, kk = args
     slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
     cands = [sampling.with_slots(p, slots)]
     fit_slots = []
-    for i, f in enumerate(fs):
-      fit_slots.append(sampling.candidate_slots(lg, f.valid, samples, kk[3 + i])[0])
+    for f in fs:  # one key for every fit group: their rows differ by the boxes alone
+      fit_slots.append(sampling.candidate_slots(lg, f.valid, samples, kk[3])[0])
       cands.append(sampling.with_slots(f, fit_slots[-1]))
     if with_baselines:
       uniform, _ = sampling.candidate_slots(jnp.zeros_like(lg), t.valid, samples, kk[1],
@@ -245,7 +245,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
-  `results["prior_sweep"]` also scores the selection for every τ in PRIOR_WEIGHTS (free:
+  `results["prior_sweeps"][row]` scores each +Sample row's selection (and
+  `results["prior_sweep"]` PPD+Sample's, as before) for every τ in PRIOR_WEIGHTS (free:
   the candidates are simulated once). Choose τ on the validation split. With
   `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
   split ("spread": many towers, since a tower's 8 configurations are stored together).
