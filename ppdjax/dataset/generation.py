@@ -24,6 +24,11 @@ from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
 from ppdjax.sim.simulate import simulate
 
 
+# Where the "depth" arrays come from; part of a dataset's identity (config.json), so that
+# generation never resumes over shards whose depth came from MuJoCo's GL pass (before it).
+DEPTH_SOURCE = "exact ray cast of the boxes and the ground (ppdjax.dataset.depth)"
+
+
 def check_config(cfg) -> None:
   """Raises ValueError naming the first bad value of the `data` section."""
   rules = [("num_towers", cfg.num_towers >= 1), ("towers_per_shard", cfg.towers_per_shard >= 1),
@@ -78,9 +83,10 @@ def generate(config, out: str, progress: bool = True) -> dict:
   check_config(cfg)
   os.makedirs(out, exist_ok=True)
   config_path = os.path.join(out, "config.json")
-  # a dataset depends on the seed and the data section only (not on model or train)
+  # a dataset depends on the seed, the data section and the depth source only (not on
+  # model or train)
   text = ml_collections.ConfigDict({"name": config.name, "seed": config.seed,
-                                    "data": config.data.to_dict()}
+                                    "data": config.data.to_dict(), "depth": DEPTH_SOURCE}
                                    ).to_json_best_effort(sort_keys=True, indent=1)
   if os.path.exists(config_path):
     with open(config_path) as f:
@@ -125,7 +131,7 @@ def generate(config, out: str, progress: bool = True) -> dict:
                  "precision": "float32" if cfg.backend == "mjx" else "float64 (stored float32)",
                  "mjx_settings": dataclasses.asdict(DEFAULT_SETTINGS)},
       "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
-      "depth": "exact ray cast of the boxes and the ground (ppdjax.dataset.depth)",
+      "depth": DEPTH_SOURCE,
       "shards": counts,
   }
   with open(os.path.join(out, "manifest.json"), "w") as f:
