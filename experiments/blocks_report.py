@@ -73,6 +73,7 @@ def collect(pipe) -> dict:
   return {
       "table2": table2, "f1": full["f1"], "shape": full.get("shape"),
       "shape_fit": full.get("shape_fit"), "shape_fit_depth": full.get("shape_fit_depth"),
+      "face_error_mm": full.get("face_error_mm"),
       "f1_ablations": {name: res[v]["f1"] for v, name in ablations.items()},
       "table4": full["table4"], "table5": table5, "table5_ci95": table5_ci95,
       "mae_units": full["mae_units"], "objects": full["objects"], "split": full["split"],
@@ -155,6 +156,9 @@ def markdown(r: dict, command: str) -> str:
             + ", ".join(f"{k} {v:.1f}" for k, v in r["f1_ablations"].items()) + ".", "",
             "## Table 4: best of N samples, trajectory MAE (mm)", ""]
   lines += tables.table4_md(r["table4"])
+  if r.get("face_error_mm"):
+    lines += ["", "## Face error (mm) against the true boxes, k-th box from the bottom", ""]
+    lines += tables.face_md(r["face_error_mm"])
   lines += ["", "Paper (1×/8×/64×/512×): " + tables.paper_line(tables.PAPER_TABLE4) + ".", "",
             "## Table 5: density RMSE (slots) by number of blocks", ""]
   lines += tables.table5_md(r["table5"])

@@ -32,7 +32,6 @@ _TOWERS = flags.DEFINE_integer("towers", 200, "fresh towers")
 _SEED = flags.DEFINE_integer("seed", 20261126, "their seed (never trained on)")
 _SIZE = flags.DEFINE_integer("size", 224, "depth image size (the paper preset renders 224)")
 _OUT = flags.DEFINE_string("out", "experiments/results/depth_fit.json", "results JSON")
-FACES = ("x lo", "y lo", "z lo", "x hi", "y hi", "z hi")
 
 
 def faces_of(prims) -> np.ndarray:
@@ -102,7 +101,7 @@ def main(_):
     s_ok, h_ok = seen & ok[..., None], ~seen & valid[..., None] & ok[..., None]
     rows[name] = {"seen": summary(err[s_ok]), "hidden": summary(err[h_ok]),
                   "all": summary(err[ok]),
-                  "by_face": {f: summary(err[..., j][ok]) for j, f in enumerate(FACES)},
+                  "by_face": {f: summary(err[..., j][ok]) for j, f in enumerate(metrics.FACE_NAMES)},
                   "shape_f1": shape_f1(fit, prims)}
   out = {"command": f"python experiments/depth_fit_study.py --towers={n} --size={size}",
          "device": f"{jax.device_count()} x {jax.devices()[0].device_kind}",

@@ -80,6 +80,19 @@ def shape_counts(pred: Primitives, true: Primitives, grid: int = 32) -> dict:
           "predicted": pred.valid.sum(-1), "true": true.valid.sum(-1)}
 
 
+FACE_NAMES = ("x lo", "y lo", "z lo", "x hi", "y hi", "z hi")
+
+
+def face_errors(pred: Primitives, true: Primitives) -> jax.Array:
+  """(..., K, 6) metres: |face − true face| of the k-th box against the k-th true box (both
+  in the order given; pass them bottom to top), faces as pos ∓ half size along the object
+  frame's axes (`FACE_NAMES`); NaN where either box is missing. Exact for axis-aligned
+  boxes (the block towers); for turned boxes it mixes position and size errors."""
+  faces = lambda p: jnp.concatenate([p.pos - p.half_size, p.pos + p.half_size], -1)
+  both = (pred.valid & true.valid)[..., None]
+  return jnp.where(both, jnp.abs(faces(pred) - faces(true)), jnp.nan)
+
+
 def f1_from_counts(matched, predicted, true) -> float:
   """Micro F1 (percent) over all boxes: 2·matched / (predicted + true)."""
   total = float(jnp.sum(predicted) + jnp.sum(true))

@@ -15,7 +15,7 @@ from ppdjax import metrics
 from ppdjax.configs import tiny
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage, towers
-from ppdjax.infer import evaluation, refine, sampling
+from ppdjax.infer import evaluation, refine, sampling, tables
 from ppdjax.primitives import quat_mul
 from ppdjax.sim.rollout_mjx import MjxSettings
 from ppdjax.training import checkpoints
@@ -43,6 +43,21 @@ def test_candidates_keep_the_mode_and_have_no_duplicates(rng):
                                               jax.random.key(1))
   assert list(np.asarray(distinct)) == [True] * 4 + [False] * 4
   assert len({tuple(r) for r in np.asarray(slots[:4])}) == 4
+
+
+def test_face_errors_on_a_hand_case():
+  from ppdjax.primitives import Primitives
+  box = lambda pos, half, valid: Primitives(
+      half_size=jnp.asarray(half, jnp.float32), pos=jnp.asarray(pos, jnp.float32),
+      quat=jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (2, 1)), density=jnp.ones(2),
+      valid=jnp.asarray(valid))
+  true = box([[0, 0, -0.2], [0, 0, 0.2]], [[0.1, 0.1, 0.2]] * 2, [True, True])
+  pred = box([[0.01, 0, -0.2], [0, 0, 0.2]], [[0.1, 0.1, 0.21], [0.1, 0.1, 0.2]], [True, False])
+  err = np.asarray(metrics.face_errors(pred, true))
+  np.testing.assert_allclose(err[0], [0.01, 0, 0.01, 0.01, 0, 0.01], atol=1e-6)
+  assert np.isnan(err[1]).all()  # a missing box has no faces
+  s = tables.face_summary(err[None])
+  assert s["faces"] == 6 and abs(s["max"] - 10.0) < 1e-3 and abs(s["median_by_face"]["y lo"]) < 1e-3
 
 
 def test_trajectory_metrics_on_hand_cases():
@@ -228,6 +243,9 @@ def test_evaluate_cli_with_the_fit_rows(tiny_run, tiny_dataset, tmp_path):
                                     "Sample Phys.+Shape"}
   assert results["table4"]["PPD+Fit"]["1"] == pytest.approx(rows["PPD+Fit"]["mae"])
   assert results["depth"] and results["fit"]
+  faces = results["face_error_mm"]  # the fits' faces lie within half a voxel (15.6 mm)
+  assert set(faces) == {"ppd", "fit", "fit_depth"} and faces["fit"]["max"] <= 15.7
+  assert faces["fit_depth"]["max"] <= 31.3  # and the depth moves them by half a voxel at most
 
 
 def test_evaluation_subsets():

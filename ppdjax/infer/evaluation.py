@@ -66,7 +66,7 @@ def _decode(graphdef, state, obs, true, *, groups, camera, depth_iterations=15):
   pred, raw = model.decode(obs)
   logits = raw.density_logits[:, :pred.num_slots, :NUM_DENSITY_SLOTS]
   out = {"pred": pred, "logits": logits, "shape": metrics.shape_counts(pred, true),
-         "fitted": {}}
+         "fitted": {}, "faces": {"ppd": metrics.face_errors(bottom_to_top(pred), true)}}
   if groups:
     fitted = fit_boxes(obs["voxels"], init=pred)
     if "fit_depth" in groups:
@@ -77,6 +77,7 @@ def _decode(graphdef, state, obs, true, *, groups, camera, depth_iterations=15):
   for g, boxes in out["fitted"].items():
     out["fitted"][g] = boxes.replace(density=pred.density)
     out["shape_" + g] = metrics.shape_counts(boxes, true)
+    out["faces"][g] = metrics.face_errors(bottom_to_top(boxes), true)
   return out
 
 

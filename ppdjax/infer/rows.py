@@ -71,6 +71,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   objective = lambda tau: sampling.selection_objective(dist, out["logp"], tau)
   rec = {("blocks",): valid.sum(-1), ("true_slot",): slot, ("true_valid",): valid}
   rec.update({("shape", k): np.asarray(v) for k, v in out["shape"].items()})
+  rec.update({("faces", g): np.asarray(v) for g, v in out["faces"].items()})  # (B, K, 6) m
   best = np.argmin(objective(prior_weight), -1)
   scores = {"PPD": logits,
             "PPD+Sample": sample_scores(logits, slots, objective(prior_weight), pvalid)}

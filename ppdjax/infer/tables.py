@@ -81,6 +81,32 @@ def _f1(rec, kind):
           "count_exact_ci95": metrics.bootstrap_interval(exact, len(everyone))}
 
 
+def face_summary(errors_BxKx6) -> dict:
+  """Median, p90 and max (mm) of face errors over every face of every matched box, and
+  the median per face direction (`metrics.FACE_NAMES`)."""
+  e = 1e3 * np.asarray(errors_BxKx6, np.float64)
+  flat = e[np.isfinite(e)]
+  if flat.size == 0:
+    return {"faces": 0}
+  per = {n: float(np.nanmedian(e[..., i])) for i, n in enumerate(metrics.FACE_NAMES)}
+  return {"faces": int(flat.size), "median": float(np.median(flat)),
+          "p90": float(np.percentile(flat, 90)), "max": float(flat.max()), "median_by_face": per}
+
+
+def face_md(face_error_mm: dict) -> list[str]:
+  """Markdown lines: the face-error table (mm) of the network's and the fitted boxes."""
+  names = {"ppd": "network's boxes", "fit": "+Fit (voxels)", "fit_depth": "+Fit(depth)"}
+  lines = ["| boxes | faces | median | p90 | max | median by face: "
+           + " / ".join(metrics.FACE_NAMES) + " |", "|---|--:|--:|--:|--:|---|"]
+  for g, s in sorted(face_error_mm.items(), key=lambda kv: list(names).index(kv[0])
+                     if kv[0] in names else len(names)):
+    if s.get("faces"):
+      lines.append(f"| {names.get(g, g)} | {s['faces']} | {s['median']:.2f} | {s['p90']:.2f} "
+                   f"| {s['max']:.1f} | " + " / ".join(f"{v:.2f}" for v in
+                                                    s["median_by_face"].values()) + " |")
+  return lines
+
+
 def summarize(switches: dict, rec: dict) -> dict:
   """Tables 2, 4, 5, F1, the τ sweep, refinement statistics and confusion matrices from
   the concatenated per-object records of `rows.batch_records`, with 95 %
@@ -111,6 +137,8 @@ def summarize(switches: dict, rec: dict) -> dict:
         str(b): metrics.summarize({k: v[nb == b] for k, v in counts.items()})["rmse"]
         for b in range(2, nb.max() + 1) if np.any(nb == b)}
     results["table5"][name]["overall"] = row["rmse"]
+  # face error (mm) of the network's ("ppd"), fitted ("fit") and depth-fitted boxes
+  results["face_error_mm"] = {g[1]: face_summary(rec[g]) for g in rec if g[0] == "faces"}
   results["prior_sweeps"] = {}  # +Sample row -> τ -> metrics
   for row in sorted({k[1] for k in rec if k[0] == "sweep"}, key=PPD_ROWS.index):
     sweep = results["prior_sweeps"][row] = {}
@@ -221,6 +249,10 @@ def results_md(results: dict, command: str = "") -> str:
     lines += ["## Table 4: best of N samples, trajectory MAE (mm)", ""]
     lines += table4_md(results["table4"])
     lines += ["", "Paper (1×/8×/64×/512×): " + paper_line(PAPER_TABLE4) + ".", ""]
+  if results.get("face_error_mm"):
+    lines += ["## Face error (mm) against the true boxes, k-th box from the bottom", ""]
+    lines += face_md(results["face_error_mm"])
+    lines += [""]
   lines += ["## Table 5: density RMSE by number of blocks", ""]
   lines += table5_md(results["table5"])
   lines += ["", "Paper (2/3/4/5 blocks, overall): " + paper_line(PAPER_TABLE5) + ".", ""]
