@@ -35,8 +35,7 @@ _OUT = flags.DEFINE_string("out", "experiments/results/depth_fit.json", "results
 
 
 def faces_of(prims) -> np.ndarray:
-  p = jax.tree.map(np.asarray, bottom_to_top(jax.tree.map(jnp.asarray, prims)))
-  return np.concatenate([p.pos - p.half_size, p.pos + p.half_size], -1)  # (..., K, 6)
+  return np.asarray(metrics.box_faces(bottom_to_top(jax.tree.map(jnp.asarray, prims))))
 
 
 def seen_faces(prims, cam) -> np.ndarray:
@@ -101,7 +100,8 @@ def main(_):
     s_ok, h_ok = seen & ok[..., None], ~seen & valid[..., None] & ok[..., None]
     rows[name] = {"seen": summary(err[s_ok]), "hidden": summary(err[h_ok]),
                   "all": summary(err[ok]),
-                  "by_face": {f: summary(err[..., j][ok]) for j, f in enumerate(metrics.FACE_NAMES)},
+                  "by_face": {f: summary(err[..., j][ok])
+                              for j, f in enumerate(metrics.FACE_NAMES)},
                   "shape_f1": shape_f1(fit, prims)}
   out = {"command": f"python experiments/depth_fit_study.py --towers={n} --size={size}",
          "device": f"{jax.device_count()} x {jax.devices()[0].device_kind}",

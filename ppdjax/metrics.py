@@ -83,14 +83,18 @@ def shape_counts(pred: Primitives, true: Primitives, grid: int = 32) -> dict:
 FACE_NAMES = ("x lo", "y lo", "z lo", "x hi", "y hi", "z hi")
 
 
+def box_faces(prims: Primitives):
+  """(..., K, 6) faces pos ∓ half size along the object frame's axes (`FACE_NAMES`)."""
+  return jnp.concatenate([prims.pos - prims.half_size, prims.pos + prims.half_size], -1)
+
+
 def face_errors(pred: Primitives, true: Primitives) -> jax.Array:
   """(..., K, 6) metres: |face − true face| of the k-th box against the k-th true box (both
   in the order given; pass them bottom to top), faces as pos ∓ half size along the object
   frame's axes (`FACE_NAMES`); NaN where either box is missing. Exact for axis-aligned
   boxes (the block towers); for turned boxes it mixes position and size errors."""
-  faces = lambda p: jnp.concatenate([p.pos - p.half_size, p.pos + p.half_size], -1)
   both = (pred.valid & true.valid)[..., None]
-  return jnp.where(both, jnp.abs(faces(pred) - faces(true)), jnp.nan)
+  return jnp.where(both, jnp.abs(box_faces(pred) - box_faces(true)), jnp.nan)
 
 
 def f1_from_counts(matched, predicted, true) -> float:

@@ -76,7 +76,8 @@ def check_observation(obs: dict, config) -> bool:
 
 def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       camera: dict | None = None, refine: bool = False,
-                      refine_steps: int = 12, prior_weight: float = 0.0, refine_prior: float = 0.0, pushes: Pushes | None = None,
+                      refine_steps: int = 12, prior_weight: float = 0.0,
+                      refine_prior: float = 0.0, pushes: Pushes | None = None,
                       settings: MjxSettings = DEFAULT_SETTINGS):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
 

@@ -98,10 +98,10 @@ def face_md(face_error_mm: dict) -> list[str]:
   names = {"ppd": "network's boxes", "fit": "+Fit (voxels)", "fit_depth": "+Fit(depth)"}
   lines = ["| boxes | faces | median | p90 | max | median by face: "
            + " / ".join(metrics.FACE_NAMES) + " |", "|---|--:|--:|--:|--:|---|"]
-  for g, s in sorted(face_error_mm.items(), key=lambda kv: list(names).index(kv[0])
-                     if kv[0] in names else len(names)):
+  for g in [g for g in names if g in face_error_mm]:
+    s = face_error_mm[g]
     if s.get("faces"):
-      lines.append(f"| {names.get(g, g)} | {s['faces']} | {s['median']:.2f} | {s['p90']:.2f} "
+      lines.append(f"| {names[g]} | {s['faces']} | {s['median']:.2f} | {s['p90']:.2f} "
                    f"| {s['max']:.1f} | " + " / ".join(f"{v:.2f}" for v in
                                                     s["median_by_face"].values()) + " |")
   return lines
