@@ -34,6 +34,12 @@ _REFINE_PRIOR = flags.DEFINE_float("refine_prior", None, "With --fit or --depth,
                                    "MAP step "
                                    "under the network's density scores with this weight "
                                    "(default: eval.refine_prior; 0: least squares).")
+_ESTIMATOR = flags.DEFINE_string("estimator", None, "A trained density estimator's folder "
+                                 "(python -m ppdjax.train_estimator): adds the +Est rows on the "
+                                 "most precise fitted boxes (default: eval.estimator).")
+_ESTIMATOR_WEIGHT = flags.DEFINE_float("estimator_weight", None, "Weight of the estimator's "
+                                       "log-probabilities beside the network's "
+                                       "(default: eval.estimator_weight).")
 _MAX_OBJECTS = flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")
 _SUBSET = flags.DEFINE_enum("subset", "first", ["first", "spread"],
                             "With --max_objects: the first N objects, or N spread over the split.")
@@ -54,7 +60,9 @@ def main(argv):
                                         refine_steps=_REFINE_STEPS.value,
                                         batch_size=_BATCH_SIZE.value,
                                         prior_weight=_PRIOR_WEIGHT.value, fit=_FIT.value,
-                                        depth=_DEPTH.value, refine_prior=_REFINE_PRIOR.value)
+                                        depth=_DEPTH.value, refine_prior=_REFINE_PRIOR.value,
+                                        estimator=_ESTIMATOR.value,
+                                        estimator_weight=_ESTIMATOR_WEIGHT.value)
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,
                                   with_baselines=_BASELINES.value, seed=_SEED.value, **settings)
@@ -65,7 +73,8 @@ def main(argv):
   paths = tables.write_results(results, _OUT.value or os.path.join(_WORKDIR.value, "eval"),
                                command)
   rows = results["table2"]
-  best = next(rows[r] for r in ("PPD+Fit(depth)+Sample+Refine", "PPD+Fit+Sample+Refine",
+  best = next(rows[r] for r in ("PPD+Fit(depth)+Est+Sample+Refine", "PPD+Fit+Est+Sample+Refine",
+                                "PPD+Fit(depth)+Sample+Refine", "PPD+Fit+Sample+Refine",
                                 "PPD+Fit(depth)+Sample", "PPD+Fit+Sample", "PPD+Sample+Refine",
                                 "PPD+Sample", "PPD") if r in rows)
   print(f"F1 {results['f1']:.1f}; best row: top1 {best['top1']:.1f}, RMSE {best['rmse']:.2f}, "

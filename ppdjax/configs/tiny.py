@@ -64,6 +64,27 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.eval_batches = 4  # validation batches per evaluation (0: the whole split)
   config.train.keep_checkpoints = 3
   config.train.prefetch = 2  # batches read ahead in a background thread
+  # The density estimator (ppdjax.nn.estimator; python -m ppdjax.train_estimator): reads
+  # the fitted boxes and the trajectories, trained on simulated towers (no rendering).
+  config.estimator = ml_collections.ConfigDict()
+  config.estimator.seed = 0
+  config.estimator.pool_size = 512  # simulated training towers (fresh geometry each)
+  config.estimator.val_size = 128
+  config.estimator.steps = 100
+  config.estimator.batch_size = 32
+  config.estimator.learning_rate = 1e-3  # AdamW, warm-up then cosine decay
+  config.estimator.warmup_steps = 10
+  config.estimator.weight_decay = 1e-4
+  config.estimator.clip_norm = 1.0
+  config.estimator.label_sigma = 1.0  # slots: Gaussian targets about the true slot
+  config.estimator.box_noise = 0.002  # m: face jitter of the boxes it reads (fitted boxes' error)
+  config.estimator.channels = (16, 16, 32, 32)  # 1-D convolutions over time, stride 2 each
+  config.estimator.hidden = 64
+  config.estimator.layers = 2
+  config.estimator.steps_in = config.data.steps
+  config.estimator.num_pushes = config.model.num_pushes
+  config.estimator.max_primitives = config.model.max_primitives
+  config.estimator.eval_every = 50
   # Evaluation and decomposition (python -m ppdjax.evaluate; the demo's last steps).
   config.eval = ml_collections.ConfigDict()
   config.eval.samples = 8  # density samples per object (the paper: 512)
@@ -74,4 +95,6 @@ def get_config() -> ml_collections.ConfigDict:
   config.eval.fit = False  # also the +Fit rows: boxes fitted to the voxels (infer.fit)
   config.eval.depth = False  # also the +Fit(depth) rows: then refined against the depth image
   config.eval.refine_prior = 1e-5  # with a fit, +Refine is a MAP step (refine.refine_densities)
+  config.eval.estimator = ""  # a trained density estimator's folder: adds the +Est rows
+  config.eval.estimator_weight = 1.0  # its log-probabilities' weight beside the network's
   return config

@@ -13,10 +13,12 @@ from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import density_prior, refine_if_closer
 from ppdjax.infer.sampling import select_densities
+from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
 from ppdjax.training import checkpoints
+from ppdjax.training import estimator as estimator_module
 
 
 @struct.dataclass
@@ -26,7 +28,9 @@ class Decomposition:
   Attributes:
     primitives: Primitives (B, K): the boxes (fitted to the voxels with `fit`, else the
       network's) with the selected (and refined) densities; `valid` marks the boxes.
-    density_logits: (B, K, 100) the network's density scores per box.
+    density_logits: (B, K, 100) the density scores per box that sampling and refinement
+      used: the network's, or with an estimator its log-probabilities and the network's
+      combined (`ppdjax.nn.estimator.combine_logits`).
     score: (B,) trajectory distance (metres) of the returned densities.
     scores: (B, S) every sampled candidate's distance (candidate 0: the arg-max).
     trajectories: (B, P, T, 7) the returned object simulated under the pushes.
@@ -77,7 +81,8 @@ def check_observation(obs: dict, config) -> bool:
 def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       camera: dict | None = None, refine: bool = False,
                       refine_steps: int = 12, prior_weight: float = 0.0,
-                      refine_prior: float = 0.0, pushes: Pushes | None = None,
+                      refine_prior: float = 0.0, estimator=None,
+                      estimator_weight: float = 1.0, pushes: Pushes | None = None,
                       settings: MjxSettings = DEFAULT_SETTINGS):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
 
@@ -96,6 +101,11 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     refine_prior: > 0 makes refinement a MAP step under the network's density scores
       (`refine.refine_densities`'s prior_weight; 1e-5: a one-σ move costs about 3 mm of
       trajectory residual); 0 is plain least squares.
+    estimator: a density estimator (its folder, or the model `training.estimator.load`
+      returns) that reads the fitted boxes and the trajectories; its log-probabilities,
+      times `estimator_weight`, join the network's for sampling and the MAP prior. Needs
+      `fit` and the paper's pushes.
+    estimator_weight: see `estimator`.
     pushes: the pushes the observations were recorded with (None: the paper's four).
     settings: MJX settings the observations were simulated with (the dataset's).
 
@@ -114,19 +124,29 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   if camera is not None:
     camera = check_camera(camera)
   keys = OBS_KEYS + (("depth",) if camera is not None else ())
+  if estimator is not None and not fit:
+    raise ValueError("the estimator reads fitted boxes: it needs fit=True")
+  if estimator is not None and pushes is not None:
+    raise ValueError("the estimator was trained on the paper's pushes: leave pushes None")
+  if isinstance(estimator, str):
+    estimator = estimator_module.load(estimator)[0]
   pushes = default_pushes() if pushes is None else pushes
   graphdef, state = nnx.split(model)
+  est_graphdef, est_state = nnx.split(estimator) if estimator is not None else (None, None)
 
   @jax.jit
-  def run(state, obs, key):
+  def run(state, est_state, obs, key):
     model = nnx.merge(graphdef, state)
     prims, raw = model.decode(obs)
     k = prims.num_slots
     logits = raw.density_logits[:, :k, :NUM_DENSITY_SLOTS]
+    traj = obs["trajectories"].astype(jnp.float32)
     if fit:
       prims = fit_boxes(obs["voxels"], init=prims, depth=obs.get("depth"),
                         camera=camera).replace(density=prims.density)
-    traj = obs["trajectories"].astype(jnp.float32)
+    if est_graphdef is not None:
+      logits = combine_logits(logits, nnx.merge(est_graphdef, est_state)(prims, traj),
+                              estimator_weight)
     keys = jax.random.split(key, traj.shape[0])
     sel = jax.vmap(lambda p, l, o, kk: select_densities(
         p, l, o, pushes, num_samples=num_samples, key=kk, prior_weight=prior_weight,
@@ -153,7 +173,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     obs = {k: jnp.asarray(observation[k]) for k in keys}
     if not batched:
       obs = jax.tree.map(lambda x: x[None], obs)
-    out = run(state, obs, key)
+    out = run(state, est_state, obs, key)
     return out if batched else jax.tree.map(lambda x: x[0], out)
 
   return decompose

@@ -15,6 +15,10 @@ from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
   PPD+Fit..., PPD+Fit(depth)...  the same on boxes fitted to the voxels (`fit`), or to
                   the voxels and then the depth image (`depth`); refinement starts from
                   the most precise boxes evaluated (depth, else voxels, else the network's);
+  PPD+Fit(depth)+Est...  with a density estimator (`ppdjax.nn.estimator`): the same
+                  boxes scored by the network's and the estimator's log-probabilities
+                  together (`combine_logits`); it is then the group refinement starts
+                  from, under that prior; "Estimator" is its arg-max alone;
   Frequent, Nearest, Oracle (`ppdjax.infer.baselines`), on the true shape.
 MAE is the paper's trajectory MAE in mm (`metrics.trajectory_mae`).
 """
@@ -39,10 +43,12 @@ from ppdjax.infer import baselines, depth_fit, rows, sampling
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import density_prior, refine_if_closer
 from ppdjax.infer.tables import BASELINES, PREFIXES, model_switches, summarize
+from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
 from ppdjax.training import checkpoints
+from ppdjax.training import estimator as estimator_module
 
 
 def simultaneous_candidates() -> int:
@@ -52,21 +58,28 @@ def simultaneous_candidates() -> int:
   return 2048 if jax.default_backend() == "cpu" else 16384
 
 
-def fit_groups(fit: bool, depth: bool) -> tuple[str, ...]:
-  """The fitted-box groups an evaluation has, least precise first."""
-  return (("fit",) if fit else ()) + (("fit_depth",) if depth else ())
+def fit_groups(fit: bool, depth: bool, estimator: bool = False) -> tuple[str, ...]:
+  """The fitted-box groups an evaluation has, least precise first; with an estimator, the
+  most precise fit again, scored with it ("fit_est" or "fit_depth_est")."""
+  fits = (("fit",) if fit else ()) + (("fit_depth",) if depth else ())
+  if estimator and not fits:
+    raise ValueError("the estimator reads fitted boxes: it needs fit or depth")
+  return fits + ((fits[-1] + "_est",) if estimator else ())
 
 
-def _decode(graphdef, state, obs, true, *, groups, camera, depth_iterations=15):
+def _decode(graphdef, state, obs, true, est_state=None, *, groups, camera, est_graphdef=None,
+            est_weight=1.0, depth_iterations=15):
   """The network's boxes and slot logits, and per fit group the fitted boxes
   (`fit.fit_boxes` from the network's; with depth, then refined against the depth image,
-  `depth_fit`; the k-th logits go to the k-th fitted box from the bottom); shape counts
+  `depth_fit`; the k-th logits go to the k-th fitted box from the bottom) and their logits
+  ("group_logits": the network's, or with the estimator combined with its); shape counts
   of each ("shape", "shape_fit", "shape_fit_depth")."""
   model = nnx.merge(graphdef, state)
   pred, raw = model.decode(obs)
   logits = raw.density_logits[:, :pred.num_slots, :NUM_DENSITY_SLOTS]
   out = {"pred": pred, "logits": logits, "shape": metrics.shape_counts(pred, true),
-         "fitted": {}, "faces": {"ppd": metrics.face_errors(bottom_to_top(pred), true)}}
+         "fitted": {}, "faces": {"ppd": metrics.face_errors(bottom_to_top(pred), true)},
+         "group_logits": {g: logits for g in groups}}
   if groups:
     fitted = fit_boxes(obs["voxels"], init=pred)
     if "fit_depth" in groups:
@@ -74,10 +87,17 @@ def _decode(graphdef, state, obs, true, *, groups, camera, depth_iterations=15):
           fitted, obs["depth"].astype(jnp.float32), camera, iterations=depth_iterations)
     if "fit" in groups:
       out["fitted"]["fit"] = fitted
-  for g, boxes in out["fitted"].items():
+  for g, boxes in list(out["fitted"].items()):
     out["fitted"][g] = boxes.replace(density=pred.density)
     out["shape_" + g] = metrics.shape_counts(boxes, true)
     out["faces"][g] = metrics.face_errors(bottom_to_top(boxes), true)
+  if est_graphdef is not None:  # the estimator reads the most precise fitted boxes
+    g = groups[-1]
+    boxes = out["fitted"][g[:-len("_est")]]
+    est = nnx.merge(est_graphdef, est_state)(boxes, obs["trajectories"].astype(jnp.float32))
+    out["fitted"][g], out["shape_" + g] = boxes, out["shape_" + g[:-len("_est")]]
+    out["est_logits"] = est
+    out["group_logits"][g] = combine_logits(logits, est, est_weight)
   return out
 
 
@@ -85,7 +105,8 @@ def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) 
   """Where each group of candidates sits along an object's candidate axis: name -> slice.
 
   "ppd": the network's samples on its boxes; "fit" / "fit_depth" (`fits`): the network's
-  samples on the fitted boxes; "uniform" / "shapes": Table 4's sampling baselines;
+  samples on the fitted boxes ("..._est": the combined scores' samples on them);
+  "uniform" / "shapes": Table 4's sampling baselines;
   "baselines": Table 2's three.
   """
   sizes = [("ppd", samples)] + [(g, samples) for g in fits]
@@ -98,21 +119,22 @@ def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) 
   return out
 
 
-def _simulate(pred, fitted, logits, true, base_slots, pool, obs_traj, key, *, samples,
-              with_baselines, chunk, pushes, settings):
+def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj, key, *,
+              samples, with_baselines, chunk, pushes, settings):
   """Per object: (distance, MAE) of every candidate (`candidate_layout`), the network's
   candidate slots on its boxes, and a tuple of them on each of `fitted` (a tuple of the
-  fit groups' boxes, in layout order)."""
+  fit groups' boxes, in layout order, scored by `fit_logits`, a tuple alike)."""
   b, k = pred.density.shape
   keys = jax.random.split(key, (b, 4))
 
   def one(args):
-    p, fs, lg, t, bs, traj, kk = args
+    p, fs, lg, flg, t, bs, traj, kk = args
     slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
     cands = [sampling.with_slots(p, slots)]
     fit_slots = []
-    for f in fs:  # one key for every fit group: their rows differ by the boxes alone
-      fit_slots.append(sampling.candidate_slots(lg, f.valid, samples, kk[3])[0])
+    for f, fl in zip(fs, flg):  # one key for every fit group: rows with the same scores
+      # differ by the boxes alone
+      fit_slots.append(sampling.candidate_slots(fl, f.valid, samples, kk[3])[0])
       cands.append(sampling.with_slots(f, fit_slots[-1]))
     if with_baselines:
       uniform, _ = sampling.candidate_slots(jnp.zeros_like(lg), t.valid, samples, kk[1],
@@ -125,7 +147,7 @@ def _simulate(pred, fitted, logits, true, base_slots, pool, obs_traj, key, *, sa
     dist, mae = sampling.score_candidates(cands, traj, pushes, settings)
     return dist, mae, slots, tuple(fit_slots)
 
-  return jax.lax.map(one, (pred, fitted, logits, true, base_slots, obs_traj, keys),
+  return jax.lax.map(one, (pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys),
                      batch_size=chunk)
 
 
@@ -149,22 +171,26 @@ class Evaluator:
   def __init__(self, model, config, *, samples: int, refine: bool, refine_steps: int = 12,
                baselines_on: bool = True, prior_weight: float = 0.0, fit: bool = False,
                depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
-               pushes=None, settings=DEFAULT_SETTINGS):
+               estimator=None, estimator_weight: float = 1.0, pushes=None,
+               settings=DEFAULT_SETTINGS):
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:
       raise ValueError("the +Fit(depth) rows need the depth images' camera "
                        "(storage.Dataset.camera)")
     self.config, self.samples, self.refine = config, samples, refine
-    self.fits = fit_groups(fit, depth)
+    self.fits = fit_groups(fit, depth, estimator is not None)
     self.baselines_on, self.prior_weight = baselines_on, prior_weight
     pushes = default_pushes() if pushes is None else pushes
     self.layout = candidate_layout(samples, self.fits, baselines_on)
     per_object = max(s.stop for s in self.layout.values())
     chunk = max(1, simultaneous_candidates() // per_object)
     self.graphdef, self.state = nnx.split(model)
+    est_graphdef, self.est_state = (nnx.split(estimator) if estimator is not None
+                                    else (None, None))
     self._decode = jax.jit(functools.partial(_decode, self.graphdef, groups=self.fits,
-                                             camera=camera))
+                                             camera=camera, est_graphdef=est_graphdef,
+                                             est_weight=estimator_weight))
     self._simulate = jax.jit(functools.partial(
         _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
         settings=settings))
@@ -179,23 +205,24 @@ class Evaluator:
     obs = {k: jnp.asarray(batch[k])
            for k in OBS_KEYS + (("depth",) if "fit_depth" in self.fits else ())}
     true = bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
-    decoded = self._decode(self.state, obs, true)
+    decoded = self._decode(self.state, obs, true, self.est_state)
     pred, logits = decoded["pred"], decoded["logits"]
     fitted = tuple(decoded["fitted"][g] for g in self.fits)
+    fit_logits = tuple(decoded["group_logits"][g] for g in self.fits)
     b, k = true.density.shape
     base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
                   else np.zeros((b, len(BASELINES), k), np.int32))
     pool = baselines.random_shapes(int(jax.random.randint(key, (), 0, 2**31 - 1)),
                                    self.samples, num_slots=k)
     dist, mae, slots, fit_slots = self._simulate(
-        pred, fitted, logits, true, jnp.asarray(base_slots), jax.tree.map(jnp.asarray, pool),
+        pred, fitted, logits, fit_logits, true, jnp.asarray(base_slots), jax.tree.map(jnp.asarray, pool),
         obs["trajectories"], key)
     out = jax.device_get({**decoded, "dist": dist, "mae": mae, "slots": slots})
     out["logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, jnp.asarray(out["slots"]),
                                                           pred.valid))
     out["fit_slots"] = {g: np.asarray(s) for g, s in zip(self.fits, fit_slots)}
-    out["fit_logp"] = {g: np.asarray(jax.vmap(sampling.log_prior)(logits, s, f.valid))
-                       for g, s, f in zip(self.fits, fit_slots, fitted)}
+    out["fit_logp"] = {g: np.asarray(jax.vmap(sampling.log_prior)(fl, s, f.valid))
+                       for g, s, f, fl in zip(self.fits, fit_slots, fitted, fit_logits)}
     if self.refine:  # from the best sample, on the most precise boxes evaluated
       group = self.fits[-1] if self.fits else "ppd"
       boxes = decoded["fitted"][group] if self.fits else pred
@@ -206,18 +233,20 @@ class Evaluator:
       start = np.take_along_axis(cand_slots, best[:, None, None], 1)[:, 0]
       prims = boxes.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
       rows = np.arange(len(best))
+      prior = decoded["group_logits"][group] if self.fits else logits
       out["refine"] = jax.device_get(self._refine(
-          prims, logits, obs["trajectories"], d[rows, best], m[rows, best]))
+          prims, prior, obs["trajectories"], d[rows, best], m[rows, best]))
     return out
 
 
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
-                 "depth", "refine_prior")
+                 "depth", "refine_prior", "estimator", "estimator_weight")
 
 
 def eval_settings(config, **overrides) -> dict:
   """`evaluate`'s settings from a preset's `eval` section; overrides that are not None win."""
-  defaults = {"fit": False, "depth": False, "refine_prior": 0.0}  # older presets lack them
+  defaults = {"fit": False, "depth": False, "refine_prior": 0.0, "estimator": "",
+              "estimator_weight": 1.0}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -242,7 +271,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              refine: bool = False, refine_steps: int = 12, batch_size: int = 16,
              max_objects: int = 0, with_baselines: bool = True, seed: int = 0,
              prior_weight: float = 0.0, subset: str = "first", fit: bool = False,
-             depth: bool = False, refine_prior: float = 0.0, progress: bool = True) -> dict:
+             depth: bool = False, refine_prior: float = 0.0, estimator: str = "",
+             estimator_weight: float = 1.0, progress: bool = True) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
@@ -252,7 +282,9 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
   split ("spread": many towers, since a tower's 8 configurations are stored together).
   `fit` adds the +Fit rows (boxes fitted to the voxels), `depth` the +Fit(depth) rows
-  (then refined against the dataset's depth images, through its camera).
+  (then refined against the dataset's depth images, through its camera). `estimator` (a
+  folder `ppdjax.train_estimator` wrote) adds the +Est rows on the most precise fitted
+  boxes, its log-probabilities weighted by `estimator_weight` beside the network's.
 
   Raises:
     CheckpointError for a workdir without a checkpoint, DatasetError for a dataset
@@ -260,6 +292,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   """
   t_start = time.perf_counter()
   model, config = checkpoints.load(trained) if isinstance(trained, str) else trained
+  est_model = estimator_module.load(estimator)[0] if estimator else None
   test = storage.open_dataset(data_dir, split)
   objects = evaluation_objects(len(test), max_objects, subset)
   n = len(objects)
@@ -268,7 +301,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                                 progress=progress) if with_baselines else None
   ev = Evaluator(model, config, samples=samples, refine=refine, refine_steps=refine_steps,
                  baselines_on=with_baselines, prior_weight=prior_weight, fit=fit, depth=depth,
-                 camera=test.camera if depth else None, refine_prior=refine_prior)
+                 camera=test.camera if depth else None, refine_prior=refine_prior,
+                 estimator=est_model, estimator_weight=estimator_weight)
   prefixes = sorted({p for p in PREFIXES if p <= samples} | {samples})
   records = collections.defaultdict(list)
   key = jax.random.key(seed)
@@ -304,5 +338,6 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       "refine_steps": refine_steps if refine else 0, "baselines": with_baselines,
       "prior_weight": prior_weight, "subset": subset, "fit": fit, "depth": depth,
       "refine_prior": refine_prior if (fit or depth) and refine else 0.0,
+      "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
       "seconds": round(time.perf_counter() - t_start, 1)})
   return results

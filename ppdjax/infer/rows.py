@@ -93,20 +93,23 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     name = FIT_ROWS[group]
     rec.update({("shape_" + group, k): np.asarray(v) for k, v in out["shape_" + group].items()})
     fvalid = np.asarray(out["fitted"][group].valid)
+    glogits = out["group_logits"][group].astype(np.float64)
     fd, fm = out["dist"][:, layout[group]], out["mae"][:, layout[group]]
     f_objective = lambda tau, fd=fd, g=group: sampling.selection_objective(
         fd, out["fit_logp"][g], tau)
     f_obj = f_objective(prior_weight)
     f_best = np.argmin(f_obj, -1)
-    scores[name] = logits
+    scores[name] = glogits
     mae[name] = fm[:, 0]
-    scores[name + "+Sample"] = sample_scores(logits, out["fit_slots"][group], f_obj, fvalid)
+    scores[name + "+Sample"] = sample_scores(glogits, out["fit_slots"][group], f_obj, fvalid)
     mae[name + "+Sample"] = fm[rows, f_best]
     sample_row, refined_from, pvalid = name + "+Sample", fd[rows, f_best], fvalid
-    rec.update(_sweep(sample_row, logits, out["fit_slots"][group], f_objective, fm, fvalid,
+    rec.update(_sweep(sample_row, glogits, out["fit_slots"][group], f_objective, fm, fvalid,
                       slot, valid))
     for p in prefixes:
       rec[("prefix", name, p)] = fm[rows, np.argmin(fd[:, :p], -1)]
+  if "est_logits" in out:  # the estimator alone, on the boxes it read
+    scores["Estimator"] = out["est_logits"].astype(np.float64)  # no MAE: nothing simulated
   if refine:
     r = out["refine"]
     scores[sample_row + "+Refine"] = refine_scores(logits, r["density"], pvalid)
@@ -116,5 +119,6 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   for name, sc in scores.items():
     rec.update({("counts", name, k): v for k, v in _row_counts(sc, slot, valid).items()})
     rec[("guess", name)] = np.argmax(sc, -1)
-    rec[("mae", name)] = mae[name]
+    if name in mae:
+      rec[("mae", name)] = mae[name]
   return rec

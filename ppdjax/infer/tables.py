@@ -14,9 +14,12 @@ from ppdjax.plots import plot_confusion
 # Row and column names of one model's evaluation.
 BASELINES = ("Frequent", "Nearest", "Oracle")
 # Boxes fitted at test time (`evaluation.fit_groups`): group -> the prefix of its rows.
-FIT_ROWS = {"fit": "PPD+Fit", "fit_depth": "PPD+Fit(depth)"}
+# "..._est": the same boxes scored with the density estimator too (evaluation.fit_groups).
+FIT_ROWS = {"fit": "PPD+Fit", "fit_depth": "PPD+Fit(depth)", "fit_est": "PPD+Fit+Est",
+            "fit_depth_est": "PPD+Fit(depth)+Est"}
 PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine") + tuple(
-    f + s for f in FIT_ROWS.values() for s in ("", "+Sample", "+Sample+Refine"))
+    f + s for f in FIT_ROWS.values() for s in ("", "+Sample", "+Sample+Refine")) + (
+        "Estimator",)
 PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
 PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)  # τ swept for +Sample (m/nat)
 
@@ -125,8 +128,9 @@ def summarize(switches: dict, rec: dict) -> dict:
   for name in [r for r in BASELINES + PPD_ROWS if r in names]:
     counts = {k: np.asarray(v) for k, v in group("counts", name).items()}
     row = metrics.summarize(counts)
-    row["mae"] = float(np.mean(rec[("mae", name)]))
-    row["ci95"] = intervals(counts, np.asarray(rec[("mae", name)]))
+    mae = rec.get(("mae", name))  # None for a row that simulates nothing (Estimator)
+    row["mae"] = None if mae is None else float(np.mean(mae))
+    row["ci95"] = intervals(counts, None if mae is None else np.asarray(mae))
     results["table2"][name] = row
     results["table5_ci95"][name] = {
         str(b): metrics.bootstrap_interval(
@@ -180,6 +184,8 @@ def _sign(on: bool) -> str:
 def with_ci(row: dict, key: str, digits: int = 1) -> str:
   """'12.3 [11.0, 13.5]' (a value and its 95 % interval when the row has one)."""
   ci = row.get("ci95", {}).get(key)
+  if row.get(key) is None:
+    return "–"
   v = f"{row[key]:.{digits}f}"
   return v if ci is None else f"{v} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}]"
 

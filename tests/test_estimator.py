@@ -1,0 +1,131 @@
+"""The density estimator: its training data, the model, training, saving and evaluation."""
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ppdjax.configs import tiny
+from ppdjax.dataset import physics_stream
+from ppdjax.dataset.materials import MATERIAL_NAMES, material_slots
+from ppdjax.nn.estimator import DensityEstimator, combine_logits, slot_targets
+from ppdjax.primitives import Primitives
+from ppdjax.sim.simulate import simulate
+from ppdjax.training import estimator as est
+from ppdjax.training.checkpoints import CheckpointError
+
+STEPS_IN = 32  # short pools keep the CPU simulation cheap
+
+
+def small_config(steps_in=STEPS_IN, **overrides):
+  config = tiny.get_config()
+  e = config.estimator
+  e.pool_size, e.val_size, e.steps, e.eval_every, e.steps_in = 64, 64, 12, 6, steps_in
+  e.batch_size, e.warmup_steps = 16, 2
+  e.update(overrides)
+  return config
+
+
+@pytest.fixture(scope="module")
+def batch():
+  return physics_stream.physics_batch(jax.random.key(3), 8, steps=STEPS_IN)
+
+
+def test_slots_follow_the_materials():
+  valid = jnp.ones((400, 5), bool).at[:, 3:].set(False)
+  mats, slots = physics_stream.sample_slots_jax(jax.random.key(0), valid)
+  mats, slots = np.asarray(mats), np.asarray(slots)
+  assert set(np.unique(mats[:, :3])) == set(range(len(MATERIAL_NAMES)))
+  assert np.all(mats[:, 3:] == -1) and np.all(slots[:, 3:] == 0)
+  for m, s in zip(mats[:, :3].ravel(), slots[:, :3].ravel()):
+    assert s in material_slots(MATERIAL_NAMES[m])
+
+
+def test_physics_batch_is_the_simulation_of_its_boxes(batch):
+  prims, traj = batch["primitives"], batch["trajectories"]
+  assert traj.shape == (8, 4, STEPS_IN, 7) and np.all(np.isfinite(traj))
+  np.testing.assert_allclose(prims.density[prims.valid],
+                             (batch["slots"][prims.valid] + 1) * 100.0)
+  again = simulate(jax.tree.map(lambda x: x[:2], prims), steps=STEPS_IN)
+  np.testing.assert_allclose(again, traj[:2], atol=1e-5)
+
+
+def test_estimator_reads_boxes_in_any_order(batch):
+  e = small_config().estimator
+  model = DensityEstimator(e, rngs=__import__("flax").nnx.Rngs(params=0))
+  prims, traj = batch["primitives"], batch["trajectories"]
+  logits = model(prims, traj)
+  assert logits.shape == (8, 5, 100)
+  assert np.all(np.asarray(logits)[~np.asarray(prims.valid)] == 0)
+  perm = jnp.array([4, 2, 0, 3, 1])
+  shuffled = jax.tree.map(lambda x: x[:, perm], prims)
+  np.testing.assert_allclose(model(shuffled, traj), logits[:, perm], atol=1e-5)
+  with pytest.raises(ValueError, match="trajectories"):
+    model(prims, traj[:, :, :-1])
+
+
+def test_targets_and_combination():
+  t = slot_targets(jnp.array([[0, 50]]), 1.0)
+  np.testing.assert_allclose(t.sum(-1), 1.0, rtol=1e-6)
+  assert int(jnp.argmax(t[0, 1])) == 50 and float(t[0, 1, 49]) > 0.1
+  np.testing.assert_array_equal(slot_targets(jnp.array([3]), 0.0)[0], jax.nn.one_hot(3, 100))
+  a, b = jax.random.normal(jax.random.key(0), (2, 5, 100))
+  np.testing.assert_allclose(combine_logits(a, b, 0.0), jax.nn.log_softmax(a), atol=1e-6)
+
+
+def test_train_resume_save_and_load(tmp_path):
+  config = small_config()
+  work = str(tmp_path / "est")
+  first = est.train_estimator(config, work, max_seconds=1e-9, progress=False)
+  assert not first["done"] and first["step"] < config.estimator.steps
+  assert os.path.exists(os.path.join(work, est.RESUME))
+  with pytest.raises(CheckpointError, match="did not finish"):
+    est.load(work)
+  done = est.train_estimator(config, work, progress=False)
+  assert done["done"] and done["step"] == config.estimator.steps
+  rows = [json.loads(line) for line in open(os.path.join(work, est.METRICS))]
+  assert rows[0]["step"] == first["step"] and rows[-1]["step"] == config.estimator.steps
+  assert {"val_top1", "val_rmse", "loss"} <= set(rows[-1])
+  model, e = est.load(work)
+  assert tuple(e.channels) == tuple(config.estimator.channels)
+  b = physics_stream.physics_batch(jax.random.key(5), 4, steps=STEPS_IN)
+  assert np.all(np.isfinite(model(b["primitives"], b["trajectories"])))
+  other = small_config(hidden=32)
+  with pytest.raises(ValueError, match="another config"):
+    est.train_estimator(other, work, progress=False)
+  with open(os.path.join(work, est.WEIGHTS), "r+b") as f:
+    f.seek(100)
+    f.write(b"\0" * 16)
+  with pytest.raises(CheckpointError, match="corrupt"):
+    est.load(work)
+  with pytest.raises(CheckpointError, match="no trained density estimator"):
+    est.load(str(tmp_path))
+  with pytest.raises(ValueError, match="box_noise"):
+    est.train_estimator(small_config(box_noise=-1.0), str(tmp_path / "bad"), progress=False)
+
+
+@pytest.mark.slow
+def test_evaluation_adds_the_estimator_rows(tiny_run, tiny_dataset, tmp_path):
+  """A tiny estimator (the dataset's 256 steps) joins the evaluation: the +Est rows on the
+  fitted boxes, refinement from them, and the estimator's own arg-max row."""
+  from ppdjax.infer import evaluation
+  config = small_config(steps_in=tiny.get_config().data.steps, pool_size=32, val_size=32,
+                        steps=4, eval_every=4)
+  work = str(tmp_path / "est")
+  est.train_estimator(config, work, progress=False)
+  with pytest.raises(ValueError, match="needs fit or depth"):
+    evaluation.fit_groups(False, False, estimator=True)
+  assert evaluation.fit_groups(True, True, True) == ("fit", "fit_depth", "fit_depth_est")
+  results = evaluation.evaluate(tiny_run[0], tiny_dataset, samples=4, max_objects=4,
+                                fit=True, refine=True, refine_steps=1, with_baselines=False,
+                                estimator=work, estimator_weight=0.5, progress=False)
+  rows = results["table2"]
+  for name in ("PPD+Fit+Est", "PPD+Fit+Est+Sample", "PPD+Fit+Est+Sample+Refine", "Estimator"):
+    assert name in rows, name
+  assert rows["Estimator"]["mae"] is None and rows["PPD+Fit+Est+Sample"]["mae"] > 0
+  assert "PPD+Fit+Sample+Refine" not in rows  # refinement starts from the +Est group
+  assert results["f1_fit_est"] == results["f1_fit"]
+  assert results["estimator"] == work and results["estimator_weight"] == 0.5
