@@ -7,8 +7,9 @@ Steps (each resumes or is skipped once done; `--step=all` runs them in order):
   train     the estimator of the preset (`python -m ppdjax.train_estimator`);
   validate  the shipped model (--model) + the estimator on the val split, no refinement: the
             τ of every +Sample row swept (free: candidates are simulated once);
-  test      the test split with refinement, at the τ that gave the +Est+Sample row its best
-            validation top-1;
+  test      the test split with refinement: the reference without the estimator (the
+            preset's τ), then the estimator at each of --weights, at the τ that gave the
+            +Est+Sample row its best validation top-1 (validated at the first weight);
   report    experiments/results/estimator.{json,md} and estimator_training.png.
 
   python experiments/estimator_study.py --config=ppdjax/configs/paper.py --step=all
@@ -41,12 +42,20 @@ _MODEL = flags.DEFINE_string("model", "assets/blocks_model", "The PPD model (wor
 _SEED = flags.DEFINE_integer("seed", 20261123, "The fresh towers' seed (never trained on).")
 _TOWERS = flags.DEFINE_integer("towers", 768, "Fresh towers (one configuration each).")
 _OUT = flags.DEFINE_string("out", "experiments/results", "Where the report goes.")
+_WEIGHTS = flags.DEFINE_list("weights", ["1.0", "0.3"], "Estimator weights tested (the first "
+                             "is validated).")
 
 
-def paths(root):
-  return {"data": os.path.join(root, "data"), "est": os.path.join(root, "estimator"),
-          "val": os.path.join(root, "eval_val"), "test": os.path.join(root, "eval_test"),
-          "steps": os.path.join(root, "steps.jsonl")}
+def paths(root, weights=()):
+  """Where each step writes: data, estimator, eval_val, eval_test_reference and one
+  eval_test_w<weight> per tested weight."""
+  out = {"data": os.path.join(root, "data"), "est": os.path.join(root, "estimator"),
+         "val": os.path.join(root, "eval_val"),
+         "test_reference": os.path.join(root, "eval_test_reference"),
+         "steps": os.path.join(root, "steps.jsonl")}
+  out.update({f"test_w{float(w)}": os.path.join(root, f"eval_test_w{float(w)}")
+              for w in weights})
+  return out
 
 
 def _log(p, step, seconds):
@@ -55,8 +64,10 @@ def _log(p, step, seconds):
                         "device": jax.devices()[0].device_kind}) + "\n")
 
 
-def run_eval(config, p, split, *, refine, prior_weight):
-  out = p[split]
+def run_eval(config, p, name, split, *, refine, prior_weight, weight):
+  """The shipped model's evaluation with depth-fitted boxes (and the estimator at `weight`
+  unless it is None) into p[name], unless it is there."""
+  out = p[name]
   if os.path.exists(os.path.join(out, "results.json")):
     with open(os.path.join(out, "results.json")) as f:
       return json.load(f)
@@ -65,7 +76,8 @@ def run_eval(config, p, split, *, refine, prior_weight):
       _MODEL.value, p["data"], split=split, samples=e.samples, refine=refine,
       refine_steps=e.refine_steps, batch_size=e.batch_size, with_baselines=False,
       prior_weight=prior_weight, fit=False, depth=True, refine_prior=e.refine_prior,
-      estimator=p["est"], estimator_weight=e.estimator_weight)
+      estimator="" if weight is None else p["est"],
+      estimator_weight=1.0 if weight is None else weight)
   tables.write_results(results, out, "python " + " ".join(sys.argv))
   return results
 
@@ -78,7 +90,8 @@ def chosen_tau(val: dict) -> float:
 
 def main(_):
   config = _CONFIG.value
-  p = paths(_ROOT.value)
+  weights = [float(w) for w in _WEIGHTS.value]
+  p = paths(_ROOT.value, weights)
   os.makedirs(_ROOT.value, exist_ok=True)
   todo = STEPS if _STEP.value == "all" else (_STEP.value,)
   for step in todo:
@@ -92,15 +105,23 @@ def main(_):
     elif step == "train":
       print(json.dumps(est.train_estimator(config, p["est"])))
     elif step == "validate":
-      run_eval(config, p, "val", refine=False, prior_weight=config.eval.prior_weight)
+      run_eval(config, p, "val", "val", refine=False, prior_weight=config.eval.prior_weight,
+               weight=weights[0])
     elif step == "test":
       with open(os.path.join(p["val"], "results.json")) as f:
         tau = chosen_tau(json.load(f))
       print(f"tau chosen on validation: {tau}")
-      run_eval(config, p, "test", refine=config.eval.refine, prior_weight=tau)
+      run_eval(config, p, "test_reference", "test", refine=config.eval.refine,
+               prior_weight=config.eval.prior_weight, weight=None)
+      for w in weights:
+        run_eval(config, p, f"test_w{w}", "test", refine=config.eval.refine, prior_weight=tau,
+                 weight=w)
     else:
-      from experiments import estimator_report
-      estimator_report.write(p, _OUT.value, config)
+      import estimator_report  # beside this script
+      estimator_report.write(p, weights, _OUT.value,
+                             "python experiments/estimator_study.py --step=all "
+                             f"--config=ppdjax/configs/{config.name}.py "
+                             f"--weights={','.join(map(str, weights))}")
     _log(p, step, time.perf_counter() - t0)
 
 

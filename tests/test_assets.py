@@ -73,3 +73,19 @@ def test_the_example_keeps_its_depth_and_camera(tmp_path):
   decompose_example.save_example(sample, str(tmp_path / "plain.npz"))
   assert decompose_example.load_camera(str(tmp_path / "plain.npz")) is None
   assert "depth" not in decompose_example.load_example(str(tmp_path / "plain.npz"))[0]
+
+
+ESTIMATOR = os.path.join(ROOT, "assets", "density_estimator")
+
+
+def test_shipped_estimator_loads_and_reads_the_example():
+  """The shipped density estimator (experiments/results/estimator.md) is within the size
+  limits, loads (sha256 checked) and scores the example's true boxes from its motion."""
+  from ppdjax.training import estimator
+  assert os.path.getsize(os.path.join(ESTIMATOR, estimator.WEIGHTS)) <= 16 * 2 ** 20
+  model, e = estimator.load(ESTIMATOR)
+  obs, true = decompose_example.load_example(EXAMPLE)
+  prims = jax.tree.map(lambda x: jnp.asarray(x)[None], true)
+  logits = np.asarray(model(prims, jnp.asarray(obs["trajectories"], jnp.float32)[None]))[0]
+  assert logits.shape == (5, 100) and np.all(np.isfinite(logits))
+  assert np.all(logits[~np.asarray(true.valid)] == 0)
