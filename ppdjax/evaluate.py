@@ -40,6 +40,8 @@ _ESTIMATOR = flags.DEFINE_string("estimator", None, "A trained density estimator
 _ESTIMATOR_WEIGHT = flags.DEFINE_float("estimator_weight", None, "Weight of the estimator's "
                                        "log-probabilities beside the network's "
                                        "(default: eval.estimator_weight).")
+_JOINT = flags.DEFINE_bool("joint", None, "With --fit or --depth, also +Joint: faces and "
+                           "densities fitted together from +Refine's start (default: eval.joint).")
 _MAX_OBJECTS = flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")
 _SUBSET = flags.DEFINE_enum("subset", "first", ["first", "spread"],
                             "With --max_objects: the first N objects, or N spread over the split.")
@@ -62,7 +64,8 @@ def main(argv):
                                         prior_weight=_PRIOR_WEIGHT.value, fit=_FIT.value,
                                         depth=_DEPTH.value, refine_prior=_REFINE_PRIOR.value,
                                         estimator=_ESTIMATOR.value,
-                                        estimator_weight=_ESTIMATOR_WEIGHT.value)
+                                        estimator_weight=_ESTIMATOR_WEIGHT.value,
+                                        joint=_JOINT.value)
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,
                                   with_baselines=_BASELINES.value, seed=_SEED.value, **settings)

@@ -131,12 +131,15 @@ def test_evaluation_adds_the_estimator_rows(tiny_run, tiny_dataset, tmp_path):
   assert evaluation.fit_groups(True, True, True) == ("fit", "fit_depth", "fit_depth_est")
   results = evaluation.evaluate(tiny_run[0], tiny_dataset, samples=4, max_objects=4,
                                 fit=True, refine=True, refine_steps=1, with_baselines=False,
-                                estimator=work, estimator_weight=0.5, progress=False)
+                                estimator=work, estimator_weight=0.5, joint=True,
+                                progress=False)
   rows = results["table2"]
   for name in ("PPD+Fit+Est", "PPD+Fit+Est+Sample", "PPD+Fit+Est+Sample+Refine", "Estimator"):
     assert name in rows, name
   assert rows["Estimator"]["mae"] is None and rows["PPD+Fit+Est+Sample"]["mae"] > 0
   assert "PPD+Fit+Sample+Refine" not in rows  # refinement starts from the +Est group
+  assert rows["PPD+Fit+Est+Sample+Joint"]["mae"] > 0  # so does +Joint
+  assert results["face_error_mm"]["joint"]["faces"] > 0
   assert results["f1_fit_est"] == results["f1_fit"]
   assert results["estimator"] == work and results["estimator_weight"] == 0.5
 

@@ -97,4 +97,5 @@ def get_config() -> ml_collections.ConfigDict:
   config.eval.refine_prior = 1e-5  # with a fit, +Refine is a MAP step (refine.refine_densities)
   config.eval.estimator = ""  # a trained density estimator's folder: adds the +Est rows
   config.eval.estimator_weight = 1.0  # its log-probabilities' weight beside the network's
+  config.eval.joint = False  # also +Joint: faces and densities fitted together (infer.joint)
   return config

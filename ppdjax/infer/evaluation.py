@@ -19,6 +19,8 @@ from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
                   boxes scored by the network's and the estimator's log-probabilities
                   together (`combine_logits`); it is then the group refinement starts
                   from, under that prior; "Estimator" is its arg-max alone;
+  ...+Sample+Joint  with `joint`: faces and densities fitted together from the same start
+                  as +Refine (`joint.refine_joint`; with depth, on the depth image too);
   Frequent, Nearest, Oracle (`ppdjax.infer.baselines`), on the true shape.
 MAE is the paper's trajectory MAE in mm (`metrics.trajectory_mae`).
 """
@@ -41,6 +43,7 @@ from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
 from ppdjax.dataset import storage
 from ppdjax.infer import baselines, depth_fit, rows, sampling
 from ppdjax.infer.fit import fit_boxes
+from ppdjax.infer.joint import refine_joint
 from ppdjax.infer.refine import density_prior, refine_if_closer
 from ppdjax.infer.tables import BASELINES, PREFIXES, model_switches, summarize
 from ppdjax.nn.estimator import combine_logits
@@ -165,21 +168,42 @@ def _refine(prims, logits, obs_traj, sample_dist, sample_mae, *, steps, prior_we
   return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae)
 
 
+def _joint(prims, logits, obs_traj, depth, true, *, steps, prior_weight, camera, pushes,
+           settings):
+  """+Joint (`joint.refine_joint`) from the best sample: faces and densities together, on
+  the motion and (with `camera`) the depth image; face errors of the result."""
+  def one(p, lg, traj, d):
+    prior = density_prior(lg) if prior_weight > 0 else None
+    kw = ({} if camera is None else
+          {"depth": d, "intrinsics": jnp.asarray(camera["intrinsics"], jnp.float32),
+           "camera_from_world": jnp.asarray(camera["camera_from_world"], jnp.float32)})
+    j = refine_joint(p, traj, pushes, prior=prior, prior_weight=prior_weight, steps=steps,
+                     settings=settings, **kw)
+    return j.primitives, metrics.trajectory_mae(j.trajectories, traj), j.cost_start, j.cost
+  with jax.default_matmul_precision("highest"):  # the ray cast, as depth_fit
+    boxes, mae, c0, c1 = jax.lax.map(lambda a: one(*a), (prims, logits, obs_traj, depth),
+                                     batch_size=8)
+  return {"density": boxes.density, "mae": mae, "cost_start": c0, "cost": c1,
+          "faces": metrics.face_errors(bottom_to_top(boxes), true)}
+
+
 class Evaluator:
   """Compiles the per-batch calls once for a model, batch size and sample count."""
 
   def __init__(self, model, config, *, samples: int, refine: bool, refine_steps: int = 12,
                baselines_on: bool = True, prior_weight: float = 0.0, fit: bool = False,
                depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
-               estimator=None, estimator_weight: float = 1.0, pushes=None,
-               settings=DEFAULT_SETTINGS):
+               estimator=None, estimator_weight: float = 1.0, joint: bool = False,
+               pushes=None, settings=DEFAULT_SETTINGS):
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:
       raise ValueError("the +Fit(depth) rows need the depth images' camera "
                        "(storage.Dataset.camera)")
-    self.config, self.samples, self.refine = config, samples, refine
+    self.config, self.samples, self.refine, self.joint = config, samples, refine, joint
     self.fits = fit_groups(fit, depth, estimator is not None)
+    if joint and not self.fits:
+      raise ValueError("+Joint moves fitted boxes' faces: it needs fit or depth")
     self.baselines_on, self.prior_weight = baselines_on, prior_weight
     pushes = default_pushes() if pushes is None else pushes
     self.layout = candidate_layout(samples, self.fits, baselines_on)
@@ -199,6 +223,9 @@ class Evaluator:
     self._refine = jax.jit(functools.partial(
         _refine, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
         pushes=pushes, settings=settings))
+    self._joint = jax.jit(functools.partial(
+        _joint, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
+        camera=camera if depth else None, pushes=pushes, settings=settings))
 
   def batch(self, batch: dict, base_scores: np.ndarray | None, key) -> dict:
     """Per-object arrays for one batch (see `evaluate` for what they become)."""
@@ -223,7 +250,7 @@ class Evaluator:
     out["fit_slots"] = {g: np.asarray(s) for g, s in zip(self.fits, fit_slots)}
     out["fit_logp"] = {g: np.asarray(jax.vmap(sampling.log_prior)(fl, s, f.valid))
                        for g, s, f, fl in zip(self.fits, fit_slots, fitted, fit_logits)}
-    if self.refine:  # from the best sample, on the most precise boxes evaluated
+    if self.refine or self.joint:  # from the best sample, on the most precise boxes
       group = self.fits[-1] if self.fits else "ppd"
       boxes = decoded["fitted"][group] if self.fits else pred
       cand_slots = out["fit_slots"][group] if self.fits else out["slots"]
@@ -234,19 +261,24 @@ class Evaluator:
       prims = boxes.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
       rows = np.arange(len(best))
       prior = decoded["group_logits"][group] if self.fits else logits
-      out["refine"] = jax.device_get(self._refine(
-          prims, prior, obs["trajectories"], d[rows, best], m[rows, best]))
+      if self.refine:
+        out["refine"] = jax.device_get(self._refine(
+            prims, prior, obs["trajectories"], d[rows, best], m[rows, best]))
+      if self.joint:
+        depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((len(best),))
+        out["joint"] = jax.device_get(self._joint(prims, prior, obs["trajectories"], depth,
+                                                  true))
     return out
 
 
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
-                 "depth", "refine_prior", "estimator", "estimator_weight")
+                 "depth", "refine_prior", "estimator", "estimator_weight", "joint")
 
 
 def eval_settings(config, **overrides) -> dict:
   """`evaluate`'s settings from a preset's `eval` section; overrides that are not None win."""
   defaults = {"fit": False, "depth": False, "refine_prior": 0.0, "estimator": "",
-              "estimator_weight": 1.0}  # older presets lack them
+              "estimator_weight": 1.0, "joint": False}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -272,7 +304,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              max_objects: int = 0, with_baselines: bool = True, seed: int = 0,
              prior_weight: float = 0.0, subset: str = "first", fit: bool = False,
              depth: bool = False, refine_prior: float = 0.0, estimator: str = "",
-             estimator_weight: float = 1.0, progress: bool = True) -> dict:
+             estimator_weight: float = 1.0, joint: bool = False,
+             progress: bool = True) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
@@ -302,7 +335,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   ev = Evaluator(model, config, samples=samples, refine=refine, refine_steps=refine_steps,
                  baselines_on=with_baselines, prior_weight=prior_weight, fit=fit, depth=depth,
                  camera=test.camera if depth else None, refine_prior=refine_prior,
-                 estimator=est_model, estimator_weight=estimator_weight)
+                 estimator=est_model, estimator_weight=estimator_weight, joint=joint)
   prefixes = sorted({p for p in PREFIXES if p <= samples} | {samples})
   records = collections.defaultdict(list)
   key = jax.random.key(seed)
@@ -339,5 +372,6 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       "prior_weight": prior_weight, "subset": subset, "fit": fit, "depth": depth,
       "refine_prior": refine_prior if (fit or depth) and refine else 0.0,
       "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
+      "joint": joint,
       "seconds": round(time.perf_counter() - t_start, 1)})
   return results

@@ -110,6 +110,11 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
       rec[("prefix", name, p)] = fm[rows, np.argmin(fd[:, :p], -1)]
   if "est_logits" in out:  # the estimator alone, on the boxes it read
     scores["Estimator"] = out["est_logits"].astype(np.float64)  # no MAE: nothing simulated
+  if "joint" in out:  # faces and densities together, from the same start as +Refine
+    j = out["joint"]
+    scores[sample_row + "+Joint"] = refine_scores(logits, j["density"], pvalid)
+    mae[sample_row + "+Joint"] = j["mae"]
+    rec[("faces", "joint")] = np.asarray(j["faces"])
   if refine:
     r = out["refine"]
     scores[sample_row + "+Refine"] = refine_scores(logits, r["density"], pvalid)

@@ -18,8 +18,8 @@ BASELINES = ("Frequent", "Nearest", "Oracle")
 FIT_ROWS = {"fit": "PPD+Fit", "fit_depth": "PPD+Fit(depth)", "fit_est": "PPD+Fit+Est",
             "fit_depth_est": "PPD+Fit(depth)+Est"}
 PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine") + tuple(
-    f + s for f in FIT_ROWS.values() for s in ("", "+Sample", "+Sample+Refine")) + (
-        "Estimator",)
+    f + s for f in FIT_ROWS.values() for s in ("", "+Sample", "+Sample+Refine",
+                                                 "+Sample+Joint")) + ("Estimator",)
 PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
 PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)  # τ swept for +Sample (m/nat)
 
@@ -98,7 +98,8 @@ def face_summary(errors_BxKx6) -> dict:
 
 def face_md(face_error_mm: dict) -> list[str]:
   """Markdown lines: the face-error table (mm) of the network's and the fitted boxes."""
-  names = {"ppd": "network's boxes", "fit": "+Fit (voxels)", "fit_depth": "+Fit(depth)"}
+  names = {"ppd": "network's boxes", "fit": "+Fit (voxels)", "fit_depth": "+Fit(depth)",
+           "joint": "+Joint (faces and densities)"}
   lines = ["| boxes | faces | median | p90 | max | median by face: "
            + " / ".join(metrics.FACE_NAMES) + " |", "|---|--:|--:|--:|--:|---|"]
   for g in [g for g in names if g in face_error_mm]:
