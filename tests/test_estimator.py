@@ -13,7 +13,6 @@ from ppdjax.configs import tiny
 from ppdjax.dataset import physics_stream
 from ppdjax.dataset.materials import MATERIAL_NAMES, material_slots
 from ppdjax.nn.estimator import DensityEstimator, combine_logits, slot_targets
-from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
 from ppdjax.sim.simulate import simulate

@@ -16,6 +16,12 @@ Jacobian of all 7K parameters comes from `jax.jacfwd` through the MJX rollout an
 cast: one batched forward pass per iteration. As `refine_densities`, the first half of
 the iterations fit a short horizon (`warmup_steps`), where the motion is smooth, and a
 step is kept only if it lowers the cost.
+
+Measured so far (docs/inference.md): from boxes a few millimetres off their true faces,
+with the depth image rendered from the true boxes, it recovers faces and densities
+exactly (tests/test_joint.py). From a depth fit's optimum on fresh towers, the depth
+residual left on edge pixels (rays grazing an edge) outweighs the trajectory residual
+near the truth by ~10⁴, and the fit does not improve on +Refine: not yet a row to use.
 """
 
 from __future__ import annotations
