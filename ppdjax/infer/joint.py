@@ -19,9 +19,10 @@ step is kept only if it lowers the cost.
 
 Measured so far (docs/inference.md): from boxes a few millimetres off their true faces,
 with the depth image rendered from the true boxes, it recovers faces and densities
-exactly (tests/test_joint.py). From a depth fit's optimum on fresh towers, the depth
-residual left on edge pixels (rays grazing an edge) outweighs the trajectory residual
-near the truth by ~10⁴, and the fit does not improve on +Refine: not yet a row to use.
+exactly (tests/test_joint.py). From a depth fit's start on fresh towers it halves the
+median box's density error of +Refine but not the RMSE, and the faces' tail grows: the
+depth residual left on edge pixels (rays grazing an edge) outweighs the trajectory
+residual near the truth by ~10⁴ (experiments/results/joint_study.md).
 """
 
 from __future__ import annotations

@@ -240,7 +240,7 @@ def results_md(results: dict, command: str = "") -> str:
   """A results.md laid out like the paper's tables, with the paper's numbers beside."""
   m = results["model"]
   observes = {name: (False, False) if name == "Frequent" else (False, True)
-              if name == "Nearest" else (True, False) if name == "Oracle"
+              if name in ("Nearest", "Estimator") else (True, False) if name == "Oracle"
               else (m["use_image"], m["use_trajectory"]) for name in results["table2"]}
   lines = [f"# Evaluation on `{results['split']}` ({results['objects']} objects)", ""]
   if command:
