@@ -68,12 +68,13 @@ def test_estimator_reads_boxes_in_any_order():
   model = DensityEstimator(e, rngs=nnx.Rngs(params=0))
   prims = physics_stream.sample_towers_jax(jax.random.key(1), 8)  # no simulation needed:
   traj = jax.random.normal(jax.random.key(2), (8, 4, STEPS_IN, 7))  # any motion will do
-  logits = model(prims, traj)
+  run = nnx.jit(lambda m, p, t: m(p, t))  # one compilation instead of op-by-op dispatch
+  logits = run(model, prims, traj)
   assert logits.shape == (8, 5, 100)
   assert np.all(np.asarray(logits)[~np.asarray(prims.valid)] == 0)
   perm = jnp.array([4, 2, 0, 3, 1])
   shuffled = jax.tree.map(lambda x: x[:, perm], prims)
-  np.testing.assert_allclose(model(shuffled, traj), logits[:, perm], atol=1e-5)
+  np.testing.assert_allclose(run(model, shuffled, traj), logits[:, perm], atol=1e-5)
   with pytest.raises(ValueError, match="trajectories"):
     model(prims, traj[:, :, :-1])
 
