@@ -43,8 +43,8 @@ from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
 from ppdjax.dataset import storage
 from ppdjax.infer import baselines, depth_fit, rows, sampling
 from ppdjax.infer.fit import fit_boxes
-from ppdjax.infer.joint import refine_joint
-from ppdjax.infer.refine import density_prior, refine_if_closer
+from ppdjax.infer.joint import joint_batch
+from ppdjax.infer.refine import refine_batch
 from ppdjax.infer.tables import BASELINES, PREFIXES, model_switches, summarize
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import bottom_to_top
@@ -154,39 +154,6 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj
                      batch_size=chunk)
 
 
-def _refine(prims, logits, obs_traj, sample_dist, sample_mae, *, steps, prior_weight, pushes,
-            settings):
-  """Refined densities where kept (`refine_if_closer`, as `decompose`); a MAP step under
-  the network's prior when prior_weight > 0."""
-  def one(p, lg, traj, d0, m0):
-    prior = density_prior(lg) if prior_weight > 0 else None
-    r = refine_if_closer(p, traj, d0, pushes, steps=steps, prior=prior,
-                         prior_weight=prior_weight, settings=settings)
-    mae = jnp.where(r.closer, metrics.trajectory_mae(r.trajectories, traj), m0)
-    return {"density": r.primitives.density, "cost_start": r.cost_start, "cost": r.cost,
-            "dist": r.distance, "mae": mae}
-  return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae)
-
-
-def _joint(prims, logits, obs_traj, depth, true, *, steps, prior_weight, camera, pushes,
-           settings):
-  """+Joint (`joint.refine_joint`) from the best sample: faces and densities together, on
-  the motion and (with `camera`) the depth image; face errors of the result."""
-  def one(p, lg, traj, d):
-    prior = density_prior(lg) if prior_weight > 0 else None
-    kw = ({} if camera is None else
-          {"depth": d, "intrinsics": jnp.asarray(camera["intrinsics"], jnp.float32),
-           "camera_from_world": jnp.asarray(camera["camera_from_world"], jnp.float32)})
-    j = refine_joint(p, traj, pushes, prior=prior, prior_weight=prior_weight, steps=steps,
-                     settings=settings, **kw)
-    return j.primitives, metrics.trajectory_mae(j.trajectories, traj), j.cost_start, j.cost
-  with jax.default_matmul_precision("highest"):  # the ray cast, as depth_fit
-    boxes, mae, c0, c1 = jax.lax.map(lambda a: one(*a), (prims, logits, obs_traj, depth),
-                                     batch_size=8)
-  return {"density": boxes.density, "mae": mae, "cost_start": c0, "cost": c1,
-          "faces": metrics.face_errors(bottom_to_top(boxes), true)}
-
-
 class Evaluator:
   """Compiles the per-batch calls once for a model, batch size and sample count."""
 
@@ -221,10 +188,10 @@ class Evaluator:
     # without a fit, the network's boxes are refined as the paper's least squares; with a
     # fit, the fitted boxes by the MAP step (refine_prior)
     self._refine = jax.jit(functools.partial(
-        _refine, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
+        refine_batch, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
         pushes=pushes, settings=settings))
     self._joint = jax.jit(functools.partial(
-        _joint, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
+        joint_batch, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
         camera=camera if depth else None, pushes=pushes, settings=settings))
 
   def batch(self, batch: dict, base_scores: np.ndarray | None, key) -> dict:

@@ -36,7 +36,8 @@ from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY
 from ppdjax.dataset.depth import camera_rays
 from ppdjax.infer import depth as depth_lib
 from ppdjax.infer.depth_fit import MIN_HALF, ROBUST, TIE_WEIGHT, VOXEL, _boxes, _ties
-from ppdjax.primitives import Primitives, quat_to_mat
+from ppdjax.infer.refine import density_prior
+from ppdjax.primitives import Primitives, bottom_to_top, quat_to_mat
 from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
 from ppdjax.sim.simulate import simulate
@@ -185,3 +186,24 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
   better = c1 < c0
   _, _, boxes = unpack(jnp.where(better, x, x0))
   return JointFit(boxes, c0, jnp.minimum(c0, c1), accepted, jnp.where(better, sim, sim0))
+
+
+def joint_batch(prims, logits, obs_traj, depth, true, *, steps, prior_weight, camera, pushes,
+                settings):
+  """`refine_joint` over a batch (B, K) from the best samples, as the evaluation runs it:
+  the prior from each object's slot logits (when prior_weight > 0), the depth image with
+  `camera` (else motion only; `depth` is then ignored), 8 objects at a time; returns the
+  densities, trajectory MAE (mm), costs and face errors against `true` (bottom to top)."""
+  def one(p, lg, traj, d):
+    prior = density_prior(lg) if prior_weight > 0 else None
+    kw = ({} if camera is None else
+          {"depth": d, "intrinsics": jnp.asarray(camera["intrinsics"], jnp.float32),
+           "camera_from_world": jnp.asarray(camera["camera_from_world"], jnp.float32)})
+    j = refine_joint(p, traj, pushes, prior=prior, prior_weight=prior_weight, steps=steps,
+                     settings=settings, **kw)
+    return j.primitives, metrics.trajectory_mae(j.trajectories, traj), j.cost_start, j.cost
+  with jax.default_matmul_precision("highest"):  # the ray cast, as depth_fit
+    boxes, mae, c0, c1 = jax.lax.map(lambda a: one(*a), (prims, logits, obs_traj, depth),
+                                     batch_size=8)
+  return {"density": boxes.density, "mae": mae, "cost_start": c0, "cost": c1,
+          "faces": metrics.face_errors(bottom_to_top(boxes), true)}

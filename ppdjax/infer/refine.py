@@ -185,3 +185,18 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
   kept = jax.tree.map(lambda a, b: jnp.where(closer, a, b), refined, prims)
   return Refinement(kept, jnp.where(closer, new, distance), sim, closer, info["cost_start"],
                     info["cost"])
+
+
+def refine_batch(prims, logits, obs_traj, sample_dist, sample_mae, *, steps, prior_weight,
+                 pushes, settings):
+  """`refine_if_closer` over a batch (B, K), as the evaluation runs it: refined densities
+  where kept, a MAP step under each object's slot logits when prior_weight > 0; returns
+  the densities, costs, distance and trajectory MAE (mm; the sample's where not kept)."""
+  def one(p, lg, traj, d0, m0):
+    prior = density_prior(lg) if prior_weight > 0 else None
+    r = refine_if_closer(p, traj, d0, pushes, steps=steps, prior=prior,
+                         prior_weight=prior_weight, settings=settings)
+    mae = jnp.where(r.closer, metrics.trajectory_mae(r.trajectories, traj), m0)
+    return {"density": r.primitives.density, "cost_start": r.cost_start, "cost": r.cost,
+            "dist": r.distance, "mae": mae}
+  return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae)
