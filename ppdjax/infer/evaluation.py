@@ -95,10 +95,10 @@ def _decode(graphdef, state, obs, true, est_state=None, *, groups, camera, est_g
     out["shape_" + g] = metrics.shape_counts(boxes, true)
     out["faces"][g] = metrics.face_errors(bottom_to_top(boxes), true)
   if est_graphdef is not None:  # the estimator reads the most precise fitted boxes
-    g = groups[-1]
-    boxes = out["fitted"][g[:-len("_est")]]
+    g, base = groups[-1], groups[-1].removesuffix("_est")
+    boxes = out["fitted"][base]
     est = nnx.merge(est_graphdef, est_state)(boxes, obs["trajectories"].astype(jnp.float32))
-    out["fitted"][g], out["shape_" + g] = boxes, out["shape_" + g[:-len("_est")]]
+    out["fitted"][g], out["shape_" + g] = boxes, out["shape_" + base]
     out["est_logits"] = est
     out["group_logits"][g] = combine_logits(logits, est, est_weight)
   return out
