@@ -42,6 +42,9 @@ _ESTIMATOR_WEIGHT = flags.DEFINE_float("estimator_weight", None, "Weight of the 
                                        "(default: eval.estimator_weight).")
 _JOINT = flags.DEFINE_bool("joint", None, "With --fit or --depth, also +Joint: faces and "
                            "densities fitted together from +Refine's start (default: eval.joint).")
+_TRUE_SHAPES = flags.DEFINE_bool("true_shapes", None, "Also the oracle rows on the true boxes "
+                                 "(PPD+True boxes, +Sample, +Sample+Refine): what perfect "
+                                 "boxes would give (default: eval.true_shapes).")
 _MAX_OBJECTS = flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")
 _SUBSET = flags.DEFINE_enum("subset", "first", ["first", "spread"],
                             "With --max_objects: the first N objects, or N spread over the split.")
@@ -65,7 +68,7 @@ def main(argv):
                                         depth=_DEPTH.value, refine_prior=_REFINE_PRIOR.value,
                                         estimator=_ESTIMATOR.value,
                                         estimator_weight=_ESTIMATOR_WEIGHT.value,
-                                        joint=_JOINT.value)
+                                        joint=_JOINT.value, true_shapes=_TRUE_SHAPES.value)
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,
                                   with_baselines=_BASELINES.value, seed=_SEED.value, **settings)

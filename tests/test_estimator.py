@@ -135,7 +135,7 @@ def test_evaluation_adds_the_estimator_rows(tiny_run, tiny_dataset, tmp_path):
   results = evaluation.evaluate(tiny_run[0], tiny_dataset, samples=4, max_objects=4,
                                 fit=True, refine=True, refine_steps=1, with_baselines=False,
                                 estimator=work, estimator_weight=0.5, joint=True,
-                                progress=False)
+                                true_shapes=True, progress=False)
   rows = results["table2"]
   for name in ("PPD+Fit+Est", "PPD+Fit+Est+Sample", "PPD+Fit+Est+Sample+Refine", "Estimator"):
     assert name in rows, name
@@ -143,6 +143,9 @@ def test_evaluation_adds_the_estimator_rows(tiny_run, tiny_dataset, tmp_path):
   assert "PPD+Fit+Sample+Refine" not in rows  # refinement starts from the +Est group
   assert rows["PPD+Fit+Est+Sample+Joint"]["mae"] > 0  # so does +Joint
   assert results["face_error_mm"]["joint"]["faces"] > 0
+  # the oracle rows on the true boxes, refined alike; F1 100 by construction
+  assert rows["PPD+True boxes+Sample+Refine"]["mae"] > 0 and results["f1_true"] == 100.0
+  assert rows["PPD+True boxes"]["top1"] == rows["PPD"]["top1"]  # the network's scores
   assert results["f1_fit_est"] == results["f1_fit"]
   assert results["estimator"] == work and results["estimator_weight"] == 0.5
 

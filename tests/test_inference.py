@@ -227,22 +227,24 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
 
 @pytest.mark.slow  # the fits compile inside the evaluation: about a minute more on 2 cores
 def test_evaluate_cli_with_the_fit_rows(tiny_run, tiny_dataset, tmp_path):
-  results, _ = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--fit", "--depth")
+  results, _ = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--fit", "--depth",
+                             "--true_shapes")
   rows = results["table2"]
   assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample", "PPD+Fit",
-                       "PPD+Fit+Sample", "PPD+Fit(depth)", "PPD+Fit(depth)+Sample"}
+                       "PPD+Fit+Sample", "PPD+Fit(depth)", "PPD+Fit(depth)+Sample",
+                       "PPD+True boxes", "PPD+True boxes+Sample"}
   # the fits read the tiny towers' boxes exactly; densities are the network's either way
   for key in ("shape_fit", "shape_fit_depth"):
     assert results[key]["f1"] == 100.0 and results[key]["count_exact"] == 100.0
-  for name in ("PPD+Fit", "PPD+Fit(depth)"):
+  for name in ("PPD+Fit", "PPD+Fit(depth)", "PPD+True boxes"):
     assert {k: rows[name][k] for k in ("top1", "rmse")} == {
         k: rows["PPD"][k] for k in ("top1", "rmse")}
   lo, hi = rows["PPD"]["ci95"]["rmse"]
   assert lo <= rows["PPD"]["rmse"] <= hi
-  assert set(results["table4"]) == {"PPD", "PPD+Fit", "PPD+Fit(depth)", "Sample Phys.",
-                                    "Sample Phys.+Shape"}
+  assert set(results["table4"]) == {"PPD", "PPD+Fit", "PPD+Fit(depth)", "PPD+True boxes",
+                                    "Sample Phys.", "Sample Phys.+Shape"}
   assert results["table4"]["PPD+Fit"]["1"] == pytest.approx(rows["PPD+Fit"]["mae"])
-  assert results["depth"] and results["fit"]
+  assert results["depth"] and results["fit"] and results["true_shapes"]
   faces = results["face_error_mm"]  # the fits' faces lie within half a voxel (15.6 mm)
   assert set(faces) == {"ppd", "fit", "fit_depth"} and faces["fit"]["max"] <= 15.7
   assert faces["fit_depth"]["max"] <= 31.3  # and the depth moves them by half a voxel at most

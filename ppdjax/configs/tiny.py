@@ -98,4 +98,5 @@ def get_config() -> ml_collections.ConfigDict:
   config.eval.estimator = ""  # a trained density estimator's folder: adds the +Est rows
   config.eval.estimator_weight = 1.0  # its log-probabilities' weight beside the network's
   config.eval.joint = False  # also +Joint: faces and densities fitted together (infer.joint)
+  config.eval.true_shapes = False  # also the oracle rows on the true boxes
   return config

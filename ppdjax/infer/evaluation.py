@@ -42,6 +42,7 @@ from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
                                 slot_to_density_jax)
 from ppdjax.dataset import storage
 from ppdjax.infer import baselines, depth_fit, rows, sampling
+from ppdjax.infer.rows import candidate_layout, fit_groups
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
@@ -61,22 +62,14 @@ def simultaneous_candidates() -> int:
   return 2048 if jax.default_backend() == "cpu" else 16384
 
 
-def fit_groups(fit: bool, depth: bool, estimator: bool = False) -> tuple[str, ...]:
-  """The fitted-box groups an evaluation has, least precise first; with an estimator, the
-  most precise fit again, scored with it ("fit_est" or "fit_depth_est")."""
-  fits = (("fit",) if fit else ()) + (("fit_depth",) if depth else ())
-  if estimator and not fits:
-    raise ValueError("the estimator reads fitted boxes: it needs fit or depth")
-  return fits + ((fits[-1] + "_est",) if estimator else ())
-
-
 def _decode(graphdef, state, obs, true, est_state=None, *, groups, camera, est_graphdef=None,
-            est_weight=1.0, depth_iterations=15):
+            est_weight=1.0, true_shapes=False, depth_iterations=15):
   """The network's boxes and slot logits, and per fit group the fitted boxes
   (`fit.fit_boxes` from the network's; with depth, then refined against the depth image,
   `depth_fit`; the k-th logits go to the k-th fitted box from the bottom) and their logits
   ("group_logits": the network's, or with the estimator combined with its); shape counts
-  of each ("shape", "shape_fit", "shape_fit_depth")."""
+  of each ("shape", "shape_fit", "shape_fit_depth"). With `true_shapes`, the true boxes
+  too, as group "true" with the network's logits."""
   model = nnx.merge(graphdef, state)
   pred, raw = model.decode(obs)
   logits = raw.density_logits[:, :pred.num_slots, :NUM_DENSITY_SLOTS]
@@ -101,24 +94,9 @@ def _decode(graphdef, state, obs, true, est_state=None, *, groups, camera, est_g
     out["fitted"][g], out["shape_" + g] = boxes, out["shape_" + base]
     out["est_logits"] = est
     out["group_logits"][g] = combine_logits(logits, est, est_weight)
-  return out
-
-
-def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) -> dict:
-  """Where each group of candidates sits along an object's candidate axis: name -> slice.
-
-  "ppd": the network's samples on its boxes; "fit" / "fit_depth" (`fits`): the network's
-  samples on the fitted boxes ("..._est": the combined scores' samples on them);
-  "uniform" / "shapes": Table 4's sampling baselines;
-  "baselines": Table 2's three.
-  """
-  sizes = [("ppd", samples)] + [(g, samples) for g in fits]
-  if with_baselines:
-    sizes += [("uniform", samples), ("shapes", samples), ("baselines", len(BASELINES))]
-  out, start = {}, 0
-  for name, n in sizes:
-    out[name] = slice(start, start + n)
-    start += n
+  if true_shapes:  # the oracle column: the network's k-th logits on the k-th true box
+    out["fitted"]["true"] = true.replace(density=pred.density)
+    out["shape_true"], out["group_logits"]["true"] = metrics.shape_counts(true, true), logits
   return out
 
 
@@ -161,7 +139,7 @@ class Evaluator:
                baselines_on: bool = True, prior_weight: float = 0.0, fit: bool = False,
                depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
                estimator=None, estimator_weight: float = 1.0, joint: bool = False,
-               pushes=None, settings=DEFAULT_SETTINGS):
+               true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS):
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:
@@ -173,7 +151,9 @@ class Evaluator:
       raise ValueError("+Joint moves fitted boxes' faces: it needs fit or depth")
     self.baselines_on, self.prior_weight = baselines_on, prior_weight
     pushes = default_pushes() if pushes is None else pushes
-    self.layout = candidate_layout(samples, self.fits, baselines_on)
+    # every group sampled and scored; "true" (the oracle boxes) after the fits
+    self.groups = self.fits + (("true",) if true_shapes else ())
+    self.layout = candidate_layout(samples, self.groups, baselines_on)
     per_object = max(s.stop for s in self.layout.values())
     chunk = max(1, simultaneous_candidates() // per_object)
     self.graphdef, self.state = nnx.split(model)
@@ -181,7 +161,8 @@ class Evaluator:
                                     else (None, None))
     self._decode = jax.jit(functools.partial(_decode, self.graphdef, groups=self.fits,
                                              camera=camera, est_graphdef=est_graphdef,
-                                             est_weight=estimator_weight))
+                                             est_weight=estimator_weight,
+                                             true_shapes=true_shapes))
     self._simulate = jax.jit(functools.partial(
         _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
         settings=settings))
@@ -201,8 +182,8 @@ class Evaluator:
     true = bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
     decoded = self._decode(self.state, obs, true, self.est_state)
     pred, logits = decoded["pred"], decoded["logits"]
-    fitted = tuple(decoded["fitted"][g] for g in self.fits)
-    fit_logits = tuple(decoded["group_logits"][g] for g in self.fits)
+    fitted = tuple(decoded["fitted"][g] for g in self.groups)
+    fit_logits = tuple(decoded["group_logits"][g] for g in self.groups)
     b, k = true.density.shape
     base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
                   else np.zeros((b, len(BASELINES), k), np.int32))
@@ -214,38 +195,50 @@ class Evaluator:
     out = jax.device_get({**decoded, "dist": dist, "mae": mae, "slots": slots})
     out["logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, jnp.asarray(out["slots"]),
                                                           pred.valid))
-    out["fit_slots"] = {g: np.asarray(s) for g, s in zip(self.fits, fit_slots)}
+    out["fit_slots"] = {g: np.asarray(s) for g, s in zip(self.groups, fit_slots)}
     out["fit_logp"] = {g: np.asarray(jax.vmap(sampling.log_prior)(fl, s, f.valid))
-                       for g, s, f, fl in zip(self.fits, fit_slots, fitted, fit_logits)}
+                       for g, s, f, fl in zip(self.groups, fit_slots, fitted, fit_logits)}
     if self.refine or self.joint:  # from the best sample, on the most precise boxes
       group = self.fits[-1] if self.fits else "ppd"
-      boxes = decoded["fitted"][group] if self.fits else pred
-      cand_slots = out["fit_slots"][group] if self.fits else out["slots"]
-      d, m = out["dist"][:, self.layout[group]], out["mae"][:, self.layout[group]]
-      logp = out["fit_logp"][group] if self.fits else out["logp"]
-      best = np.argmin(sampling.selection_objective(d, logp, self.prior_weight), -1)
-      start = np.take_along_axis(cand_slots, best[:, None, None], 1)[:, 0]
-      prims = boxes.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
-      rows = np.arange(len(best))
-      prior = decoded["group_logits"][group] if self.fits else logits
+      prims, prior, d0, m0 = self._best_sample(out, decoded, group)
       if self.refine:
-        out["refine"] = jax.device_get(self._refine(
-            prims, prior, obs["trajectories"], d[rows, best], m[rows, best]))
+        out["refine"] = jax.device_get(self._refine(prims, prior, obs["trajectories"], d0, m0))
       if self.joint:
-        depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((len(best),))
+        depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((len(d0),))
         out["joint"] = jax.device_get(self._joint(prims, prior, obs["trajectories"], depth,
                                                   true))
+    if self.refine and "true" in self.groups:  # the oracle column refined alike
+      prims, prior, d0, m0 = self._best_sample(out, decoded, "true")
+      out["refine_true"] = jax.device_get(self._refine(prims, prior, obs["trajectories"], d0,
+                                                       m0))
     return out
+
+  def _best_sample(self, out: dict, decoded: dict, group: str):
+    """A group's best candidate (by the +Sample objective at τ = prior_weight) as boxes
+    with its densities, the group's logits (the MAP prior), and its distance and MAE."""
+    fitted = group != "ppd"
+    boxes = decoded["fitted"][group] if fitted else decoded["pred"]
+    cand_slots = out["fit_slots"][group] if fitted else out["slots"]
+    d, m = out["dist"][:, self.layout[group]], out["mae"][:, self.layout[group]]
+    logp = out["fit_logp"][group] if fitted else out["logp"]
+    best = np.argmin(sampling.selection_objective(d, logp, self.prior_weight), -1)
+    start = np.take_along_axis(cand_slots, best[:, None, None], 1)[:, 0]
+    prims = boxes.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
+    rows = np.arange(len(best))
+    prior = decoded["group_logits"][group] if fitted else decoded["logits"]
+    return prims, prior, d[rows, best], m[rows, best]
 
 
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
-                 "depth", "refine_prior", "estimator", "estimator_weight", "joint")
+                 "depth", "refine_prior", "estimator", "estimator_weight", "joint",
+                 "true_shapes")
 
 
 def eval_settings(config, **overrides) -> dict:
   """`evaluate`'s settings from a preset's `eval` section; overrides that are not None win."""
   defaults = {"fit": False, "depth": False, "refine_prior": 0.0, "estimator": "",
-              "estimator_weight": 1.0, "joint": False}  # older presets lack them
+              "estimator_weight": 1.0, "joint": False,
+              "true_shapes": False}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -271,7 +264,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              max_objects: int = 0, with_baselines: bool = True, seed: int = 0,
              prior_weight: float = 0.0, subset: str = "first", fit: bool = False,
              depth: bool = False, refine_prior: float = 0.0, estimator: str = "",
-             estimator_weight: float = 1.0, joint: bool = False,
+             estimator_weight: float = 1.0, joint: bool = False, true_shapes: bool = False,
              progress: bool = True) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
@@ -285,6 +278,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   (then refined against the dataset's depth images, through its camera). `estimator` (a
   folder `ppdjax.train_estimator` wrote) adds the +Est rows on the most precise fitted
   boxes, its log-probabilities weighted by `estimator_weight` beside the network's.
+  `true_shapes` adds the oracle rows "PPD+True boxes" (+Sample, +Sample+Refine): the
+  network's k-th density scores on the k-th true box, sampled and refined alike.
 
   Raises:
     CheckpointError for a workdir without a checkpoint, DatasetError for a dataset
@@ -302,7 +297,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   ev = Evaluator(model, config, samples=samples, refine=refine, refine_steps=refine_steps,
                  baselines_on=with_baselines, prior_weight=prior_weight, fit=fit, depth=depth,
                  camera=test.camera if depth else None, refine_prior=refine_prior,
-                 estimator=est_model, estimator_weight=estimator_weight, joint=joint)
+                 estimator=est_model, estimator_weight=estimator_weight, joint=joint,
+                 true_shapes=true_shapes)
   prefixes = sorted({p for p in PREFIXES if p <= samples} | {samples})
   records = collections.defaultdict(list)
   key = jax.random.key(seed)
@@ -339,6 +335,6 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       "prior_weight": prior_weight, "subset": subset, "fit": fit, "depth": depth,
       "refine_prior": refine_prior if (fit or depth) and refine else 0.0,
       "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
-      "joint": joint,
+      "joint": joint, "true_shapes": true_shapes,
       "seconds": round(time.perf_counter() - t_start, 1)})
   return results

@@ -13,9 +13,9 @@ on one residual vector
 with faces kept within `bound` of the start (half a voxel: where the voxels allow them,
 once the start is the voxel or depth fit) and densities within the slot range. The
 Jacobian of all 7K parameters comes from `jax.jacfwd` through the MJX rollout and the ray
-cast: one batched forward pass per iteration. As `refine_densities`, the first half of
-the iterations fit a short horizon (`warmup_steps`), where the motion is smooth, and a
-step is kept only if it lowers the cost.
+cast: one batched forward pass per iteration. As `refine_densities`, the iterations fit
+a growing horizon (`refine.horizon_schedule`), and a step is kept only if it lowers the
+cost.
 
 Measured so far (docs/inference.md): from boxes a few millimetres off their true faces,
 with the depth image rendered from the true boxes, it recovers faces and densities
@@ -36,7 +36,7 @@ from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY
 from ppdjax.dataset.depth import camera_rays
 from ppdjax.infer import depth as depth_lib
 from ppdjax.infer.depth_fit import MIN_HALF, ROBUST, TIE_WEIGHT, VOXEL, _boxes, _ties
-from ppdjax.infer.refine import density_prior
+from ppdjax.infer.refine import density_prior, horizon_schedule
 from ppdjax.primitives import Primitives, bottom_to_top, quat_to_mat
 from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
@@ -67,7 +67,7 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
                  depth=None, intrinsics=None, camera_from_world=None,
                  prior: tuple | None = None, prior_weight: float = 0.0,
                  depth_weight: float = 1.0, bound: float = VOXEL / 2, steps: int = 12,
-                 warmup_steps: int = 64, damping: float = 1e-3,
+                 warmup_steps: int = 8, damping: float = 1e-3,
                  settings: MjxSettings = DEFAULT_SETTINGS) -> JointFit:
   """Fits one object's faces and densities to its motion (and depth image).
 
@@ -83,7 +83,7 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
     depth_weight: weight of the depth residual beside the trajectory's (both metres).
     bound: how far (m) a face may move from the start.
     steps: LM iterations, each one forward-mode rollout with 7K tangents.
-    warmup_steps: the horizon of the first steps // 2 iterations.
+    warmup_steps: the first horizon of `refine.horizon_schedule`.
     damping: the starting LM damping.
     settings: MJX solver settings (the observations').
   """
@@ -173,7 +173,7 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
     proposal = project(x - jnp.where(free, jnp.linalg.solve(a, g), 0.0))
     return (proposal, x, r, jac, sim, lam, accepted + (take & ~first), r0, sim0), None
 
-  horizon = jnp.where(jnp.arange(steps + 1) < steps // 2, min(warmup_steps, t), t)
+  horizon = horizon_schedule(steps, warmup_steps, t)
   horizons = (jnp.concatenate([horizon[:1], horizon[:-1]]), horizon)
   r_size = jax.eval_shape(lambda y: residual(y)[0], x0).shape[0]
   p = observed.shape[0]

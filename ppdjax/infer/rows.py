@@ -1,9 +1,11 @@
 """The rows of one model's evaluation: how each ranks density slots, and its per-object records.
 
-`evaluation.Evaluator` simulates every candidate once per batch; `batch_records` turns
-one batch's candidates into the records of Table 2's rows (PPD, +Sample, +Sample+Refine,
-the +Fit and +Fit(depth) rows, the baselines), Table 4's prefixes, the τ sweep and the refinement
-statistics, which `tables.summarize` reduces (with bootstrap intervals) to the tables.
+`fit_groups` names the groups of boxes an evaluation samples on and `candidate_layout` where
+their candidates sit; `evaluation.Evaluator` simulates every candidate once per batch;
+`batch_records` turns one batch's candidates into the records of Table 2's rows (PPD,
++Sample, +Sample+Refine, the +Fit, +Fit(depth) and true-box rows, the baselines), Table
+4's prefixes, the τ sweep and the refinement statistics, which `tables.summarize` reduces
+(with bootstrap intervals) to the tables.
 """
 
 from __future__ import annotations
@@ -16,6 +18,34 @@ from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS, SLOT_DENSITY
 from ppdjax.infer import sampling
 from ppdjax.infer.tables import BASELINES, FIT_ROWS, PRIOR_WEIGHTS
+
+
+def fit_groups(fit: bool, depth: bool, estimator: bool = False) -> tuple[str, ...]:
+  """The fitted-box groups an evaluation has, least precise first; with an estimator, the
+  most precise fit again, scored with it ("fit_est" or "fit_depth_est")."""
+  fits = (("fit",) if fit else ()) + (("fit_depth",) if depth else ())
+  if estimator and not fits:
+    raise ValueError("the estimator reads fitted boxes: it needs fit or depth")
+  return fits + ((fits[-1] + "_est",) if estimator else ())
+
+
+def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) -> dict:
+  """Where each group of candidates sits along an object's candidate axis: name -> slice.
+
+  "ppd": the network's samples on its boxes; "fit" / "fit_depth" (`fits`): the network's
+  samples on the fitted boxes ("..._est": the combined scores' samples on them; "true":
+  on the true boxes);
+  "uniform" / "shapes": Table 4's sampling baselines;
+  "baselines": Table 2's three.
+  """
+  sizes = [("ppd", samples)] + [(g, samples) for g in fits]
+  if with_baselines:
+    sizes += [("uniform", samples), ("shapes", samples), ("baselines", len(BASELINES))]
+  out, start = {}, 0
+  for name, n in sizes:
+    out[name] = slice(start, start + n)
+    start += n
+  return out
 
 
 def sample_scores(logits, slots, objective, valid):
@@ -103,9 +133,10 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     mae[name] = fm[:, 0]
     scores[name + "+Sample"] = sample_scores(glogits, out["fit_slots"][group], f_obj, fvalid)
     mae[name + "+Sample"] = fm[rows, f_best]
-    sample_row, refined_from, pvalid = name + "+Sample", fd[rows, f_best], fvalid
-    rec.update(_sweep(sample_row, glogits, out["fit_slots"][group], f_objective, fm, fvalid,
-                      slot, valid))
+    rec.update(_sweep(name + "+Sample", glogits, out["fit_slots"][group], f_objective, fm,
+                      fvalid, slot, valid))
+    if group != "true":  # +Refine and +Joint start from the most precise fit
+      sample_row, refined_from, pvalid = name + "+Sample", fd[rows, f_best], fvalid
     for p in prefixes:
       rec[("prefix", name, p)] = fm[rows, np.argmin(fd[:, :p], -1)]
   if "est_logits" in out:  # the estimator alone, on the boxes it read
@@ -121,6 +152,10 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     mae[sample_row + "+Refine"] = r["mae"]
     rec.update({("refine", k): r[k] for k in ("cost_start", "cost", "dist")})
     rec[("refine", "sample_dist")] = refined_from
+  if "refine_true" in out:  # the oracle column, refined alike
+    scores[FIT_ROWS["true"] + "+Sample+Refine"] = refine_scores(
+        logits, out["refine_true"]["density"], np.asarray(out["fitted"]["true"].valid))
+    mae[FIT_ROWS["true"] + "+Sample+Refine"] = out["refine_true"]["mae"]
   for name, sc in scores.items():
     rec.update({("counts", name, k): v for k, v in _row_counts(sc, slot, valid).items()})
     rec[("guess", name)] = np.argmax(sc, -1)

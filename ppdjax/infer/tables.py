@@ -13,15 +13,18 @@ from ppdjax.plots import plot_confusion
 
 # Row and column names of one model's evaluation.
 BASELINES = ("Frequent", "Nearest", "Oracle")
-# Boxes fitted at test time (`evaluation.fit_groups`): group -> the prefix of its rows.
-# "..._est": the same boxes scored with the density estimator too (evaluation.fit_groups).
+# Boxes fitted at test time (`rows.fit_groups`): group -> the prefix of its rows.
+# "..._est": the same boxes scored with the density estimator too (rows.fit_groups).
+# "true": the network's density scores on the true boxes (the oracle shape column, a bound
+# on what better boxes can give; `evaluate(..., true_shapes=True)`).
 FIT_ROWS = {"fit": "PPD+Fit", "fit_depth": "PPD+Fit(depth)", "fit_est": "PPD+Fit+Est",
-            "fit_depth_est": "PPD+Fit(depth)+Est"}
+            "fit_depth_est": "PPD+Fit(depth)+Est", "true": "PPD+True boxes"}
 PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine") + tuple(
     f + s for f in FIT_ROWS.values() for s in ("", "+Sample", "+Sample+Refine",
                                                  "+Sample+Joint")) + ("Estimator",)
 PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
-PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)  # τ swept for +Sample (m/nat)
+# τ swept for +Sample (m per nat); the estimator study chose 0.1, so the sweep goes past it
+PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
 
 # --- the paper's published numbers (block towers), the one copy every report reads -------
 
