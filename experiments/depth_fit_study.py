@@ -1,5 +1,9 @@
 """Face error of boxes fitted to voxels alone and to voxels + depth, on fresh towers.
 
+"voxels + depth" is `ppdjax.fit_boxes(voxels, depth=, camera=)`; "LM alone" the same
+without its last step, the sweep that centres each face in the positions its pixels
+accept (`depth_fit.sweep_faces`).
+
 Towers of a seed nothing trains on, voxelized by `ppdjax.voxelize`, their depth rendered by
 MuJoCo through the dataset's camera (`dataset.render`, `dataset.camera`). Each true face is
 "seen" if the camera sees it in the true tower's own ray cast (some pixel's nearest hit
@@ -26,6 +30,7 @@ from ppdjax import metrics
 from ppdjax.dataset import camera as camera_lib
 from ppdjax.dataset import render
 from ppdjax.dataset import depth
+from ppdjax.infer import depth_fit
 from ppdjax.primitives import bottom_to_top
 
 _TOWERS = flags.DEFINE_integer("towers", 200, "fresh towers")
@@ -89,12 +94,16 @@ def main(_):
   t0 = time.perf_counter()
   with_depth = jax.block_until_ready(ppdjax.fit_boxes(voxels, depth=deps, camera=cam))
   t_depth = time.perf_counter() - t0
+  t0 = time.perf_counter()  # the same without the sweep that centres faces in their runs
+  lm_only = jax.block_until_ready(depth_fit.refine_batch(plain, deps, cam, sweep=False))
+  t_lm = time.perf_counter() - t0
   truth = faces_of(prims)
   valid = np.asarray(prims.valid)
   same_count = np.asarray(plain.valid).sum(-1) == valid.sum(-1)
   seen = np.stack([seen_faces(one(i), cam) for i in range(n)]) & valid[..., None]
   rows = {}
-  for name, fit in (("voxels", plain), ("voxels + depth", with_depth)):
+  for name, fit in (("voxels", plain), ("voxels + depth, LM alone", lm_only),
+                    ("voxels + depth", with_depth)):
     err = np.abs(faces_of(fit) - truth) * 1000.0
     ok = valid & same_count[:, None]
     s_ok, h_ok = seen & ok[..., None], ~seen & valid[..., None] & ok[..., None]
@@ -108,7 +117,8 @@ def main(_):
          "seed": _SEED.value, "towers": n, "image_size": size,
          "towers_with_every_box_found": int(same_count.sum()),
          "seen_fraction": float(seen.sum() / (valid.sum() * 6)),
-         "seconds": {"fit": round(t_plain, 1), "fit_with_depth": round(t_depth, 1)},
+         "seconds": {"fit": round(t_plain, 1), "fit_with_depth": round(t_depth, 1),
+                     "fit_with_depth_lm_alone": round(t_lm, 1)},
          "rows": rows}
   os.makedirs(os.path.dirname(_OUT.value) or ".", exist_ok=True)
   with open(_OUT.value, "w") as f:

@@ -29,6 +29,9 @@ TIE_WEIGHT = 30.0  # residual weight of a touching pair's gap (pixels weigh 1 ea
 MIN_HALF = 1e-3  # m
 CHUNK = 8  # objects refined together (224² pixels x 30 faces: about 2 GB per chunk)
 ROBUST = 0.03  # m: pixel residuals well beyond this saturate (arctan; see refine_with_depth)
+MISMATCH = 5e-4  # m: a pixel the boxes explain worse than this disagrees (`sweep_faces`)
+SWEEP_COARSE = 33  # offsets over a face's whole interval, then
+SWEEP_FINE = 9  # offsets across each end of its agreeing run (`sweep_faces`)
 
 
 def _boxes(prims: Primitives, faces_Kx6) -> Primitives:
@@ -60,34 +63,40 @@ def _ties(prims: Primitives):
   return touch & across & (same & valid)[..., None] & ~jnp.eye(len(lo), dtype=bool)[..., None]
 
 
-def refine_batch(prims: Primitives, depth_BxHxW, camera: dict, *, iterations: int = 15
-                 ) -> Primitives:
+def refine_batch(prims: Primitives, depth_BxHxW, camera: dict, *, iterations: int = 15,
+                 sweep: bool = True) -> Primitives:
   """`refine_with_depth` over a batch (B, K) of objects seen by one camera (jitted once per
   image size and iteration count; CHUNK objects at a time bound the Jacobians' memory)."""
   cam = check_camera(camera)
   return _refine_batch(prims, jnp.asarray(depth_BxHxW, jnp.float32),
                        jnp.asarray(cam["intrinsics"], jnp.float32),
                        jnp.asarray(cam["camera_from_world"], jnp.float32),
-                       iterations=iterations)
+                       iterations=iterations, sweep=sweep)
 
 
-@functools.partial(jax.jit, static_argnames="iterations")
-def _refine_batch(prims, depth_BxHxW, intrinsics, camera_from_world, iterations):
+@functools.partial(jax.jit, static_argnames=("iterations", "sweep"))
+def _refine_batch(prims, depth_BxHxW, intrinsics, camera_from_world, iterations, sweep):
   one = lambda p, d: refine_with_depth(p, d, intrinsics, camera_from_world,
-                                       iterations=iterations)
+                                       iterations=iterations, sweep=sweep)
   with jax.default_matmul_precision("highest"):  # GPUs' TF32 default: mm at 2.6 m
     return jax.lax.map(lambda a: one(*a), (prims, depth_BxHxW), batch_size=CHUNK)
 
 
 def refine_with_depth(prims: Primitives, depth_HW, intrinsics, camera_from_world, *,
                       bound: float = VOXEL / 2, iterations: int = 15,
-                      damping: float = 1e-3) -> Primitives:
+                      damping: float = 1e-3, sweep: bool = True) -> Primitives:
   """One object's boxes (K, object frame) refined against its depth image (H, W).
 
   Pixel residuals pass through ROBUST·arctan(r / ROBUST): a pixel where the rendering hits
   another box than the observation (a box's edge still a few millimetres short, so the ray
   goes on to a box behind) gives a large residual whose gradient moves the wrong box; the
   arctan makes such pixels count for little.
+
+  LM stops at the first position a silhouette edge's pixels accept, up to a pixel's
+  footprint from the face (several millimetres, and a face seen only by its edges, e.g.
+  a back face through the top face's far edge, has nothing else). `sweep` then moves
+  each face to the middle of the run of positions that every pixel accepts
+  (`sweep_faces`): many pixels along a slanted edge pin it finer than one pixel.
 
   Args:
     prims: the voxel fit (`fit.fit_boxes`); rotations are kept.
@@ -96,6 +105,7 @@ def refine_with_depth(prims: Primitives, depth_HW, intrinsics, camera_from_world
     bound: how far (m) a face may move from the start.
     iterations: Levenberg-Marquardt steps.
     damping: the starting Levenberg-Marquardt damping.
+    sweep: then centre each face in the positions its pixels accept (`sweep_faces`).
   """
   h, w = depth_HW.shape
   origin, dirs = camera_rays(intrinsics, camera_from_world, h, w)
@@ -136,10 +146,72 @@ def refine_with_depth(prims: Primitives, depth_HW, intrinsics, camera_from_world
   x0 = start.reshape(-1)
   (x, _, _), _ = jax.lax.scan(step, (x0, residual(x0), jnp.float32(damping)), None,
                               length=iterations)
-  out = _boxes(prims, x.reshape(k, 6))
+  faces = x.reshape(k, 6)
+  if sweep:
+    mismatch = lambda f: jnp.sum(jnp.abs(depth_lib.residuals(_boxes(prims, f), obs, mask,
+                                                             origin, dirs)) > MISMATCH)
+    faces = sweep_faces(faces, start - bound, start + bound, ties, prims.valid, mismatch)
+  out = _boxes(prims, faces)
   keep = prims.valid[:, None]
   return out.replace(half_size=jnp.where(keep, out.half_size, prims.half_size),
                      pos=jnp.where(keep, out.pos, prims.pos))
+
+
+def _tied_offsets(face, ties_KxKx3, valid):
+  """(K, 6) 0/1: which faces move when face `face` (index into the flattened K x 6) moves:
+  itself and the faces it touches (a hi face's touching lo faces, and back)."""
+  k = valid.shape[0]
+  box, col = face // 6, face % 6
+  axis, is_hi = col % 3, col >= 3
+  hi_partners = ties_KxKx3[box, :, axis]  # box's hi face touches these boxes' lo faces
+  lo_partners = ties_KxKx3[:, box, axis]  # these boxes' hi faces touch box's lo face
+  onehot = jax.nn.one_hot(axis, 3, dtype=jnp.float32)
+  partner = jnp.where(is_hi, hi_partners, lo_partners)[:, None] * onehot[None]
+  lo_move, hi_move = jnp.where(is_hi, partner, 0.0), jnp.where(is_hi, 0.0, partner)
+  own = jax.nn.one_hot(face, 6 * k, dtype=jnp.float32).reshape(k, 6)
+  return jnp.maximum(own, jnp.concatenate([lo_move, hi_move], -1))
+
+
+def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch):
+  """Each valid face in turn moved to the middle of the run of positions within
+  [lo, hi] around its own where `mismatch(faces)` (pixels the boxes fail to explain) is no
+  worse than at its own, touching faces moving with it. A coarse scan of the interval
+  finds the run; a finer scan across each end places that end. A face no pixel sees
+  keeps a flat count: it goes to the middle of its interval (the voxels' verdict)."""
+  k = faces_Kx6.shape[0]
+  coarse = jnp.linspace(0.0, 1.0, SWEEP_COARSE)
+  fine = jnp.linspace(0.0, 1.0, SWEEP_FINE)
+
+  def one(faces, face):
+    move = _tied_offsets(face, ties_KxKx3, valid_K)
+    lo, hi = lo_Kx6.reshape(-1)[face], hi_Kx6.reshape(-1)[face]
+    now = faces.reshape(-1)[face]
+    at = lambda value: faces + move * (value - now)
+    counts = lambda values: jax.vmap(lambda v: mismatch(at(v)))(values)
+    least = mismatch(faces)
+    grid = lo + (hi - lo) * coarse
+    worse = counts(grid) > least
+    idx = jnp.arange(SWEEP_COARSE)
+
+    def end(side):  # side -1: the run's lower end, +1: its upper end
+      ahead = side * (grid - now) > 0  # coarse offsets on this side of the face
+      # the nearest worse coarse offset on this side
+      block = -side * jnp.where(ahead & worse, -side * idx, -SWEEP_COARSE).max()
+      found = (ahead & worse).any()
+      inner_i = block - side  # the last agreeing coarse offset before it, or the face itself
+      inner = jnp.where(found & (side * (grid[jnp.clip(inner_i, 0, SWEEP_COARSE - 1)] - now) > 0),
+                        grid[jnp.clip(inner_i, 0, SWEEP_COARSE - 1)], now)
+      outer = grid[jnp.clip(block, 0, SWEEP_COARSE - 1)]
+      values = inner + (outer - inner) * fine
+      agree = jax.vmap(lambda v: mismatch(at(v)))(values) <= least
+      last = jnp.where(jnp.cumprod(agree) > 0, jnp.arange(SWEEP_FINE), 0).max()
+      return jnp.where(found, values[last], jnp.where(side < 0, lo, hi))
+
+    keep = valid_K[face // 6]
+    return jnp.where(keep, at(0.5 * (end(-1) + end(1))), faces), None
+
+  faces, _ = jax.lax.scan(one, faces_Kx6, jnp.arange(6 * k))
+  return faces
 
 
 def check_depth(depth, camera: dict, batch: tuple[int, ...]) -> None:

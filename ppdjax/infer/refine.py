@@ -55,6 +55,7 @@ def density_prior(logits_Kx100: jax.Array) -> tuple[jax.Array, jax.Array]:
 def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | None = None, *,
                      steps: int = 12, warmup_steps: int = 8, damping: float = 1e-3,
                      prior: tuple | None = None, prior_weight: float = 0.0,
+                     horizons=None,
                      settings: MjxSettings = DEFAULT_SETTINGS) -> tuple[Primitives, dict]:
   """Fits the densities of valid boxes to the observed trajectories (Levenberg–Marquardt).
 
@@ -79,6 +80,8 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
       z_k = (log ρ_k − mean_k) / std_k and n the number of residual entries at the
       horizon: a one-σ move costs as much as sqrt(prior_weight) metres of residual on every
       entry (1e-5: about 3 mm). 0 is a plain least-squares fit.
+    horizons: (steps + 1,) the trajectory steps each pass fits, instead of
+      `horizon_schedule(steps, warmup_steps, T)` (e.g. another continuation to compare).
     settings: MJX solver settings.
 
   Returns:
@@ -140,7 +143,11 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
              accepted + (take & ~first), r0, sim0)
     return carry, None
 
-  horizon = horizon_schedule(steps, warmup_steps, t)
+  horizon = (horizon_schedule(steps, warmup_steps, t) if horizons is None
+             else np.asarray(horizons, np.int32))
+  if horizon.shape != (steps + 1,):
+    raise ValueError(f"horizons must give each of the {steps + 1} passes a horizon, got "
+                     f"shape {horizon.shape}")
   horizons = (jnp.concatenate([horizon[:1], horizon[:-1]]), horizon)
   u0 = jnp.log(jnp.clip(prims.density, MIN_DENSITY, MAX_DENSITY))
   p, n, k = pushes.num, t, valid.shape[0]
