@@ -94,3 +94,27 @@ def test_depth_input_errors_are_named(towers):
   bad = dict(cam, camera_from_world=np.diag([1.0, 1.0, 2.0, 1.0]))
   with pytest.raises(ValueError, match="not a rotation"):
     ppdjax.fit_boxes(vox, depth=deps, camera=bad)
+
+
+def test_sweep_centres_each_face_in_the_positions_its_pixels_accept():
+  """A toy mismatch: box 0's x-hi face must lie in [0.10, 0.11] (pixels on either side
+  disagree otherwise); box 1 sits on box 0 (tied z faces); every other face is unseen."""
+  from ppdjax.infer import depth_fit
+  faces = jnp.asarray([[-0.1, -0.1, -0.1, 0.1, 0.1, 0.1],
+                       [-0.1, -0.1, 0.1, 0.1, 0.1, 0.3]], jnp.float32)
+  ties = jnp.zeros((2, 2, 3), bool).at[0, 1, 2].set(True)  # 0's z-hi touches 1's z-lo
+  lo, hi = faces - 0.015, faces + 0.015
+  pixels = jnp.linspace(0.08, 0.13, 26)  # a pixel every 2 mm along x
+  inside = (pixels >= 0.100) & (pixels <= 0.110)
+
+  def mismatch(f):  # pixels the x-hi face explains wrongly, plus the tie's gap
+    covered = pixels <= f[0, 3]
+    return jnp.sum(covered != (pixels <= 0.1105)) + jnp.sum(inside & ~covered)
+
+  out = np.asarray(depth_fit.sweep_faces(faces, lo, hi, ties, jnp.array([True, True]),
+                                         mismatch))
+  # the accepted run is [0.110, 0.112) (pixels at 0.110 in, 0.112 out): its middle
+  assert abs(out[0, 3] - 0.111) < 3e-4
+  np.testing.assert_allclose(np.delete(out, 3, axis=1)[0], np.delete(faces, 3, axis=1)[0],
+                             atol=1e-6)  # unseen faces: the middle of their intervals
+  assert out[0, 5] == pytest.approx(out[1, 2], abs=1e-6)  # the tie holds

@@ -174,10 +174,12 @@ def _tied_offsets(face, ties_KxKx3, valid):
 
 def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch):
   """Each valid face in turn moved to the middle of the run of positions within
-  [lo, hi] around its own where `mismatch(faces)` (pixels the boxes fail to explain) is no
-  worse than at its own, touching faces moving with it. A coarse scan of the interval
-  finds the run; a finer scan across each end places that end. A face no pixel sees
-  keeps a flat count: it goes to the middle of its interval (the voxels' verdict)."""
+  [lo, hi] where `mismatch(faces)` (pixels the boxes fail to explain) is least, touching
+  faces moving with it: the run around the face's own position, or around the nearest
+  coarse offset if one explains more pixels. A coarse scan of the interval finds the run
+  (the face's own position counts: a face seen head-on agrees at one point only); a finer
+  scan across each end places that end. A face no pixel sees keeps a flat count: it goes
+  to the middle of its interval (the voxels' verdict)."""
   k = faces_Kx6.shape[0]
   coarse = jnp.linspace(0.0, 1.0, SWEEP_COARSE)
   fine = jnp.linspace(0.0, 1.0, SWEEP_FINE)
@@ -188,19 +190,23 @@ def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch):
     now = faces.reshape(-1)[face]
     at = lambda value: faces + move * (value - now)
     counts = lambda values: jax.vmap(lambda v: mismatch(at(v)))(values)
-    least = mismatch(faces)
     grid = lo + (hi - lo) * coarse
-    worse = counts(grid) > least
+    grid_counts = counts(grid)
+    # the anchor: the face itself, or the nearest coarse offset that explains more pixels
+    nearest_best = grid[jnp.argmin(jnp.where(grid_counts == grid_counts.min(),
+                                             jnp.abs(grid - now), jnp.inf))]
+    least = jnp.minimum(mismatch(faces), grid_counts.min())
+    anchor = jnp.where(grid_counts.min() < mismatch(faces), nearest_best, now)
+    worse = grid_counts > least
     idx = jnp.arange(SWEEP_COARSE)
 
     def end(side):  # side -1: the run's lower end, +1: its upper end
-      ahead = side * (grid - now) > 0  # coarse offsets on this side of the face
+      ahead = side * (grid - anchor) > 0  # coarse offsets on this side of the anchor
       # the nearest worse coarse offset on this side
       block = -side * jnp.where(ahead & worse, -side * idx, -SWEEP_COARSE).max()
       found = (ahead & worse).any()
-      inner_i = block - side  # the last agreeing coarse offset before it, or the face itself
-      inner = jnp.where(found & (side * (grid[jnp.clip(inner_i, 0, SWEEP_COARSE - 1)] - now) > 0),
-                        grid[jnp.clip(inner_i, 0, SWEEP_COARSE - 1)], now)
+      inner_i = jnp.clip(block - side, 0, SWEEP_COARSE - 1)  # the last agreeing one before
+      inner = jnp.where(found & (side * (grid[inner_i] - anchor) > 0), grid[inner_i], anchor)
       outer = grid[jnp.clip(block, 0, SWEEP_COARSE - 1)]
       values = inner + (outer - inner) * fine
       agree = jax.vmap(lambda v: mismatch(at(v)))(values) <= least
