@@ -100,6 +100,18 @@ def test_sampling_finds_the_truth_when_the_prior_contains_it(tower):
   assert 7 <= len(distinct) == len({tuple(r) for r in distinct}) <= 9  # of the 9 in support
 
 
+def test_the_refinement_horizon_doubles_then_covers_the_trajectory():
+  h = refine.horizon_schedule(12, 8, 256)
+  assert h.tolist() == [8, 8, 16, 32, 64, 128] + [256] * 7  # 12 iterations: 13 passes
+  assert refine.horizon_schedule(4, 8, 16).tolist() == [8, 8, 16, 16, 16]
+  assert refine.horizon_schedule(6, 300, 256).tolist() == [256] * 7  # nothing to warm up
+  h = refine.horizon_schedule(24, 8, 256)
+  assert np.all(np.diff(h) >= 0) and np.sum(h == 256) == 13 and h[0] == 8
+  with pytest.raises(ValueError, match="each of the 3 passes"):
+    one = jax.tree.map(lambda x: jnp.asarray(x[0]), towers.sample_towers(0, 1))
+    refine.refine_densities(one, jnp.zeros((4, 16, 7)), steps=2, horizons=[8, 16])
+
+
 @pytest.mark.slow
 def test_refinement_from_thirty_percent_off_lands_within_five_percent():
   prims = jax.tree.map(jnp.asarray, towers.sample_towers(11, 24, num_blocks=2))
