@@ -6,7 +6,8 @@ fit put them (half a voxel: the voxelizer fills every voxel a box shares volume 
 face lies within half a voxel of the centre of its last filled voxel). Faces that touch in
 the voxel fit (a block standing on another: one's top, the other's bottom) stay touching,
 so a visible top carries the hidden bottom above it. Projected Levenberg-Marquardt over the
-6K faces on `depth.residuals`, with forward-mode Jacobians (one batched call per step).
+6K faces on `depth.residuals`, with forward-mode Jacobians (one batched call per step),
+then a sweep (`sweep_faces`) that centres each face in the positions its pixels accept.
 """
 
 from __future__ import annotations
@@ -195,8 +196,9 @@ def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch):
     # the anchor: the face itself, or the nearest coarse offset that explains more pixels
     nearest_best = grid[jnp.argmin(jnp.where(grid_counts == grid_counts.min(),
                                              jnp.abs(grid - now), jnp.inf))]
-    least = jnp.minimum(mismatch(faces), grid_counts.min())
-    anchor = jnp.where(grid_counts.min() < mismatch(faces), nearest_best, now)
+    own = mismatch(faces)
+    least = jnp.minimum(own, grid_counts.min())
+    anchor = jnp.where(grid_counts.min() < own, nearest_best, now)
     worse = grid_counts > least
     idx = jnp.arange(SWEEP_COARSE)
 
@@ -209,7 +211,7 @@ def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch):
       inner = jnp.where(found & (side * (grid[inner_i] - anchor) > 0), grid[inner_i], anchor)
       outer = grid[jnp.clip(block, 0, SWEEP_COARSE - 1)]
       values = inner + (outer - inner) * fine
-      agree = jax.vmap(lambda v: mismatch(at(v)))(values) <= least
+      agree = counts(values) <= least
       last = jnp.where(jnp.cumprod(agree) > 0, jnp.arange(SWEEP_FINE), 0).max()
       return jnp.where(found, values[last], jnp.where(side < 0, lo, hi))
 

@@ -19,10 +19,11 @@ cost.
 
 Measured so far (docs/inference.md): from boxes a few millimetres off their true faces,
 with the depth image rendered from the true boxes, it recovers faces and densities
-exactly (tests/test_joint.py). From a depth fit's start on fresh towers it halves the
-median box's density error of +Refine but not the RMSE, and the faces' tail grows: the
-depth residual left on edge pixels (rays grazing an edge) outweighs the trajectory
-residual near the truth by ~10⁴ (experiments/results/joint_study.md).
+exactly (tests/test_joint.py). From a depth fit's start on fresh towers (with the
+fit's sweep) it does worse than +Refine (48 % of boxes within 5 % of their density
+against 60 %): the faces' tail grows, because the depth residual left on edge pixels
+(rays grazing an edge) outweighs the trajectory residual near the truth by ~10⁴
+(experiments/results/joint_study.md).
 """
 
 from __future__ import annotations
