@@ -111,8 +111,9 @@ def main():
                           "{:.2f}"),
                          ("median distance ratio to the best sample", "median_distance_ratio",
                           "{:.3f}")):
-    md.append(f"| {name} | " + " | ".join(fmt.format(c[key])
-                                         for c in result["columns"].values()) + " |")
+    md.append(f"| {name} | " + " | ".join(
+        "–" if col == "best sample" and key in ("lowered_distance", "median_distance_ratio")
+        else fmt.format(c[key]) for col, c in result["columns"].items()) + " |")
   with open(args.out + ".md", "w") as f:
     f.write("\n".join(md) + "\n")
   print("\n".join(md))
