@@ -158,10 +158,10 @@ def refine_with_depth(prims: Primitives, depth_HW, intrinsics, camera_from_world
                      pos=jnp.where(keep, out.pos, prims.pos))
 
 
-def _tied_offsets(face, ties_KxKx3, valid):
+def _tied_offsets(face, ties_KxKx3):
   """(K, 6) 0/1: which faces move when face `face` (index into the flattened K x 6) moves:
   itself and the faces it touches (a hi face's touching lo faces, and back)."""
-  k = valid.shape[0]
+  k = ties_KxKx3.shape[0]
   box, col = face // 6, face % 6
   axis, is_hi = col % 3, col >= 3
   hi_partners = ties_KxKx3[box, :, axis]  # box's hi face touches these boxes' lo faces
@@ -186,7 +186,7 @@ def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch):
   fine = jnp.linspace(0.0, 1.0, SWEEP_FINE)
 
   def one(faces, face):
-    move = _tied_offsets(face, ties_KxKx3, valid_K)
+    move = _tied_offsets(face, ties_KxKx3)
     lo, hi = lo_Kx6.reshape(-1)[face], hi_Kx6.reshape(-1)[face]
     now = faces.reshape(-1)[face]
     at = lambda value: faces + move * (value - now)
