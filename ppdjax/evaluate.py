@@ -17,7 +17,7 @@ _OUT = flags.DEFINE_string("out", None, "Output directory (default WORKDIR/eval)
 _SPLIT = flags.DEFINE_string("split", "test", "Split to evaluate.")
 _SAMPLES = flags.DEFINE_integer("samples", None, "Density samples per object and baseline "
                                 "(default: the preset's eval.samples).")
-_REFINE = flags.DEFINE_bool("refine", None, "Refine the best sample's densities through MJX "
+_REFINE = flags.DEFINE_bool("refine", None, "Refine the closest sample's densities through MJX "
                             "(default: eval.refine).")
 _REFINE_STEPS = flags.DEFINE_integer("refine_steps", None, "Levenberg–Marquardt iterations "
                                      "(default: eval.refine_steps).")

@@ -50,7 +50,10 @@ def get_config():
   config.eval.prior_weight = 0.05
   config.eval.fit = True  # the +Fit rows (boxes fitted to the voxels, infer.fit)
   config.eval.depth = True  # the +Fit(depth) rows (then refined against depth, depth_fit)
-  config.eval.refine_prior = 1e-5  # +Fit+Sample+Refine: MAP under the network's prior
+  # +Refine as plain least squares from the closest sample: a MAP step under the network's
+  # density scores (weight > 0) refined worse on every weight tried on the validation
+  # split of unseen towers (experiments/results/prior_study_val.md)
+  config.eval.refine_prior = 0.0
   # The density estimator: 400k simulated towers (about a minute of MJX on an H100) and
   # 20k steps at batch 1,024 (51 epochs).
   config.estimator.pool_size = 400_000

@@ -190,10 +190,10 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
 
 
 def joint_batch(prims, logits, obs_traj, depth, true, *, steps, prior_weight, camera, pushes,
-                settings):
-  """`refine_joint` over a batch (B, K) from the best samples, as the evaluation runs it:
+                settings, at_once: int = 8):
+  """`refine_joint` over a batch (B, K) from the closest samples, as the evaluation runs it:
   the prior from each object's slot logits (when prior_weight > 0), the depth image with
-  `camera` (else motion only; `depth` is then ignored), 8 objects at a time; returns the
+  `camera` (else motion only; `depth` is then ignored), `at_once` objects at a time; returns the
   densities, trajectory MAE (mm), costs and face errors against `true` (bottom to top)."""
   def one(p, lg, traj, d):
     prior = density_prior(lg) if prior_weight > 0 else None
@@ -205,6 +205,6 @@ def joint_batch(prims, logits, obs_traj, depth, true, *, steps, prior_weight, ca
     return j.primitives, metrics.trajectory_mae(j.trajectories, traj), j.cost_start, j.cost
   with jax.default_matmul_precision("highest"):  # the ray cast, as depth_fit
     boxes, mae, c0, c1 = jax.lax.map(lambda a: one(*a), (prims, logits, obs_traj, depth),
-                                     batch_size=8)
+                                     batch_size=at_once)
   return {"density": boxes.density, "mae": mae, "cost_start": c0, "cost": c1,
           "faces": metrics.face_errors(bottom_to_top(boxes), true)}

@@ -194,7 +194,8 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
   LM lowers the squared pose residual (with a prior: the MAP cost); +Sample ranks by the
   mean residual norm (`metrics.trajectory_distance`). The refined densities replace the
   start only where that distance agrees (without a prior) or where the MAP cost fell
-  (with one: a MAP step may trade a little distance for a likelier density).
+  (with one, whatever its weight: a MAP step may trade a little distance for a likelier
+  density).
 
   Args:
     prims: one object with the starting densities (the best sample's).
@@ -208,7 +209,7 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
   sim = info["trajectories"]
   new = metrics.trajectory_distance(sim, observed)
   closer = new < distance
-  if prior is not None and prior_weight > 0:
+  if prior is not None:  # the MAP step (prior_weight may be traced: one compile for all)
     closer = info["cost"] < info["cost_start"]
   kept = jax.tree.map(lambda a, b: jnp.where(closer, a, b), refined, prims)
   return Refinement(kept, jnp.where(closer, new, distance), sim, closer, info["cost_start"],
@@ -219,12 +220,17 @@ def refine_batch(prims, logits, obs_traj, sample_dist, sample_mae, *, steps, pri
                  pushes, settings):
   """`refine_if_closer` over a batch (B, K), as the evaluation runs it: refined densities
   where kept, a MAP step under each object's slot logits when prior_weight > 0; returns
-  the densities, costs, distance and trajectory MAE (mm; the sample's where not kept)."""
-  def one(p, lg, traj, d0, m0):
-    prior = density_prior(lg) if prior_weight > 0 else None
-    r = refine_if_closer(p, traj, d0, pushes, steps=steps, prior=prior,
-                         prior_weight=prior_weight, settings=settings)
+  the densities, costs, distance and trajectory MAE (mm; the sample's where not kept).
+  `prior_weight` may also be (B,), one per object: then every object takes the MAP step
+  (even at weight 0, accepted by its cost), and many weights share one compiled call."""
+  use_prior = np.ndim(prior_weight) > 0 or prior_weight > 0
+  weights = jnp.broadcast_to(jnp.asarray(prior_weight, jnp.float32), sample_dist.shape)
+
+  def one(p, lg, traj, d0, m0, w):
+    prior = density_prior(lg) if use_prior else None
+    r = refine_if_closer(p, traj, d0, pushes, steps=steps, prior=prior, prior_weight=w,
+                         settings=settings)
     mae = jnp.where(r.closer, metrics.trajectory_mae(r.trajectories, traj), m0)
     return {"density": r.primitives.density, "cost_start": r.cost_start, "cost": r.cost,
             "dist": r.distance, "mae": mae}
-  return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae)
+  return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae, weights)
