@@ -13,7 +13,8 @@ its τ sweep on --val_objects validation objects (validate:full), and the ablati
 whole split (plain); then `report`: experiments/results/blocks.{json,md} and PNGs, the full model
 exported to assets/blocks_model and a decomposed example tower. Every step resumes:
 generation by shard, training from its last checkpoint (a training step stops itself
-after --step_seconds and the next call goes on); evaluations are skipped once written.
+after --step_seconds and the next call goes on); evaluations save each batch as it is made
+and stop after --step_seconds too (the next call goes on), and are skipped once written.
 ROOT/steps.jsonl records each call's wall time and device.
 """
 
@@ -22,6 +23,7 @@ from __future__ import annotations
 import datetime
 import json
 import os
+import shutil
 import sys
 import time
 
@@ -35,7 +37,7 @@ jax.config.update("jax_compilation_cache_dir",
 import blocks_common as common  # noqa: E402
 import blocks_report  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
-from ppdjax.infer import evaluation, tables  # noqa: E402
+from ppdjax.infer import evaluation, partial, tables  # noqa: E402
 from ppdjax.training import loop  # noqa: E402
 from ppdjax.training.state import total_steps  # noqa: E402
 
@@ -51,7 +53,8 @@ flags.DEFINE_enum("subset", "spread", ["first", "spread"],
                   "The first N test objects, or N spread over the split (many towers).")
 flags.DEFINE_integer("val_objects", 256, "Validation objects for the τ sweep of the full "
                      "model (0: no validation step).")
-flags.DEFINE_integer("step_seconds", 540, "A training call stops after this long.")
+flags.DEFINE_integer("step_seconds", 540, "A training or evaluation call stops after this "
+                     "long (an evaluation after the batch that passes it).")
 FLAGS = flags.FLAGS
 ORDER = ("full", "no_image", "no_trajectory", "no_voxels")
 GEOMETRY = "geometry"  # the voxel-only geometry stage the voxel-using variants start from
@@ -124,10 +127,12 @@ class Pipeline:
     with open(self.eval_path(variant)) as f:
       r = json.load(f)
     s = self.eval_settings(variant)
+    refine_prior = s["refine_prior"] if (s["fit"] or s["depth"]) and s["refine"] else 0.0
     return ((r["samples"], r["refine"], r.get("max_objects", 0), r.get("prior_weight", 0.0),
-             r.get("subset", "first"), r.get("fit", False), r.get("depth", False)) ==
+             r.get("subset", "first"), r.get("fit", False), r.get("depth", False),
+             r.get("refine_prior", 0.0)) ==
             (s["samples"], s["refine"], self.max_objects(variant), s["prior_weight"],
-             FLAGS.subset, s["fit"], s["depth"]))
+             FLAGS.subset, s["fit"], s["depth"], refine_prior))
 
   def val_path(self) -> str:
     return os.path.join(self.workdir("full"), "eval_val", "results.json")
@@ -160,11 +165,19 @@ class Pipeline:
         + f" --max_objects={FLAGS.val_objects} --subset=spread")
 
   def evaluate(self, variant: str) -> None:
+    """One call of an evaluation step: batches are saved as they are made (eval_partial/),
+    and the call stops after --step_seconds; the next call goes on from there."""
     s, e = self.eval_settings(variant), self.config.eval
     n = self.max_objects(variant)
-    results = evaluation.evaluate(self.workdir(variant), self.data,
-                                  refine_steps=e.refine_steps, batch_size=e.batch_size,
-                                  max_objects=n, subset=FLAGS.subset, **s)
+    saved = os.path.join(self.workdir(variant), "eval_partial")
+    try:
+      results = evaluation.evaluate(self.workdir(variant), self.data,
+                                    refine_steps=e.refine_steps, batch_size=e.batch_size,
+                                    max_objects=n, subset=FLAGS.subset, partial_dir=saved,
+                                    max_seconds=FLAGS.step_seconds, **s)
+    except partial.EvaluationPaused as paused:
+      print(f"[{variant}] {paused}", flush=True)
+      return
     results["max_objects"] = n
     tables.write_results(
         results, os.path.dirname(self.eval_path(variant)),
@@ -173,6 +186,7 @@ class Pipeline:
         + ("" if s["with_baselines"] else " --nobaselines")
         + (" --fit" if s["fit"] else "") + (" --depth" if s["depth"] else "")
         + (f" --max_objects={n} --subset={FLAGS.subset}" if n else ""))
+    shutil.rmtree(saved, ignore_errors=True)
 
   def report(self) -> None:
     blocks_report.write_all(self, FLAGS.results, FLAGS.assets,

@@ -6,6 +6,7 @@ OUT/results.json, results.md and confusion.png (OUT defaults to WORKDIR/eval).
 """
 
 import os
+import shutil
 import sys
 
 from absl import app, flags, logging
@@ -51,13 +52,18 @@ _SUBSET = flags.DEFINE_enum("subset", "first", ["first", "spread"],
 _BASELINES = flags.DEFINE_bool("baselines", True, "Also run Frequent, Nearest, Oracle and "
                                "Table 4's.")
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.")
+_MAX_SECONDS = flags.DEFINE_float("max_seconds", 0, "Stop after the batch that passes this "
+                                  "many seconds (exit status 3); run the same command again "
+                                  "to go on. 0: no limit. Either way, every batch's records "
+                                  "are kept in OUT/partial until the results are written, so "
+                                  "an interrupted evaluation resumes where it stopped.")
 
 
 def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
   from ppdjax.dataset.storage import DatasetError
-  from ppdjax.infer import evaluation, tables
+  from ppdjax.infer import evaluation, partial, tables
   from ppdjax.training import checkpoints
   try:
     model, config = checkpoints.load(_WORKDIR.value)
@@ -69,15 +75,21 @@ def main(argv):
                                         estimator=_ESTIMATOR.value,
                                         estimator_weight=_ESTIMATOR_WEIGHT.value,
                                         joint=_JOINT.value, true_shapes=_TRUE_SHAPES.value)
+    out = _OUT.value or os.path.join(_WORKDIR.value, "eval")
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,
-                                  with_baselines=_BASELINES.value, seed=_SEED.value, **settings)
-  except (checkpoints.CheckpointError, DatasetError) as e:
+                                  with_baselines=_BASELINES.value, seed=_SEED.value,
+                                  partial_dir=os.path.join(out, "partial"),
+                                  max_seconds=_MAX_SECONDS.value, **settings)
+  except (checkpoints.CheckpointError, DatasetError, partial.OtherEvaluation) as e:
     sys.exit(f"error: {e}")
+  except partial.EvaluationPaused as e:
+    print(f"paused: {e}")
+    sys.exit(3)
   results["workdir"] = _WORKDIR.value
   command = "python -m ppdjax.evaluate " + " ".join(sys.argv[1:])
-  paths = tables.write_results(results, _OUT.value or os.path.join(_WORKDIR.value, "eval"),
-                               command)
+  paths = tables.write_results(results, out, command)
+  shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)  # written: not needed
   rows = results["table2"]
   best = next(rows[r] for r in ("PPD+Fit(depth)+Est+Sample+Refine", "PPD+Fit+Est+Sample+Refine",
                                 "PPD+Fit(depth)+Sample+Refine", "PPD+Fit+Sample+Refine",

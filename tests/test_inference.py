@@ -15,7 +15,7 @@ from ppdjax import metrics
 from ppdjax.configs import tiny
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage, towers
-from ppdjax.infer import evaluation, refine, sampling, tables
+from ppdjax.infer import evaluation, partial, refine, sampling, tables
 from ppdjax.primitives import quat_mul
 from ppdjax.sim.rollout_mjx import MjxSettings
 from ppdjax.training import checkpoints
@@ -283,6 +283,41 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
                          f"--data={tiny_dataset}"], cwd=ROOT, capture_output=True, text=True,
                         env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)
   assert done.returncode != 0 and "not a training workdir" in done.stderr
+
+
+def test_a_paused_evaluation_resumes_to_the_same_results(tiny_run, tiny_dataset, tmp_path):
+  """Records are saved per batch; a call stopped by its time budget goes on where it
+  stopped, and the tables equal those of one uninterrupted call."""
+  kw = dict(samples=SAMPLES, batch_size=4, max_objects=8, with_baselines=False,
+            progress=False)
+  folder = str(tmp_path / "partial")
+  with pytest.raises(partial.EvaluationPaused, match="4 of 8 objects") as paused:
+    evaluation.evaluate(tiny_run[0], tiny_dataset, partial_dir=folder, max_seconds=1e-9, **kw)
+  assert paused.value.done == 4
+  assert sorted(os.listdir(folder)) == ["batch-0000000.npz", "settings.json"]
+  resumed = evaluation.evaluate(tiny_run[0], tiny_dataset, partial_dir=folder, **kw)
+  straight = evaluation.evaluate(tiny_run[0], tiny_dataset, **kw)
+  assert resumed["objects"] == straight["objects"] == 8
+  for name, row in straight["table2"].items():
+    for k in ("top1", "top5", "rmse", "mae"):
+      assert resumed["table2"][name][k] == pytest.approx(row[k]), (name, k)
+  with pytest.raises(partial.OtherEvaluation, match="samples"):
+    evaluation.evaluate(tiny_run[0], tiny_dataset, partial_dir=folder,
+                        **{**kw, "samples": SAMPLES + 1})
+
+
+def test_partial_records_round_trip_and_recompute_what_is_unreadable(tmp_path):
+  saved = partial.PartialRecords(str(tmp_path), {"samples": 8})
+  rec = {("blocks",): np.array([2, 3]), ("sweep", "PPD+Sample", 0.05, "top1"): np.ones(2)}
+  saved.save(0, rec)
+  back = saved.load(0)
+  assert set(back) == set(rec) and np.array_equal(back[("blocks",)], [2, 3])
+  assert saved.load(4) is None and saved.count() == 1
+  with open(os.path.join(str(tmp_path), "batch-0000004.npz"), "wb") as f:
+    f.write(b"truncated")
+  assert saved.load(4) is None  # recomputed, not a crash
+  with pytest.raises(partial.OtherEvaluation, match="samples"):
+    partial.PartialRecords(str(tmp_path), {"samples": 16})
 
 
 def test_density_prior_is_the_moments_of_the_networks_scores():

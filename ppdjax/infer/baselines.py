@@ -130,6 +130,16 @@ def oracle_scores(train: TrainingSet, materials_BxK: np.ndarray, prims: Primitiv
   return scores
 
 
+def baseline_scores(train: TrainingSet, batch: dict, oracle_seed: int) -> np.ndarray:
+  """(B, 3, K, 100) Frequent, Nearest and Oracle slot scores (`tables.BASELINES` order) for
+  a batch with "primitives", "trajectories" and "materials"."""
+  slot = true_slots(batch["primitives"])
+  return np.stack([frequent_scores(train, len(slot), slot.shape[1]),
+                   nearest_scores(train, batch["trajectories"], (slot >= 0).sum(-1)),
+                   oracle_scores(train, batch["materials"], batch["primitives"], oracle_seed)],
+                  1)
+
+
 def random_shapes(seed: int, count: int, num_slots: int = NUM_SLOTS) -> Primitives:
   """`count` tower shapes from the dataset's generator (2..K blocks; densities unset)."""
   return towers.sample_towers(seed, count, num_slots=num_slots)

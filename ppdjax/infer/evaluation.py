@@ -22,13 +22,17 @@ from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
   ...+Sample+Joint  with `joint`: faces and densities fitted together from the same start
                   as +Refine (`joint.refine_joint`; with depth, on the depth image too);
   Frequent, Nearest, Oracle (`ppdjax.infer.baselines`), on the true shape.
-MAE is the paper's trajectory MAE in mm (`metrics.trajectory_mae`).
+MAE is the paper's trajectory MAE in mm (`metrics.trajectory_mae`). Each batch's records
+can be saved as they are made and reused by a later call (`partial`): long evaluations
+resume.
 """
 
 from __future__ import annotations
 
 import collections
 import functools
+import hashlib
+import os
 import time
 
 import jax
@@ -37,17 +41,14 @@ import numpy as np
 from flax import nnx
 from tqdm.auto import tqdm
 
-from ppdjax import metrics
 from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
                                 slot_to_density_jax)
 from ppdjax.dataset import storage
-from ppdjax.infer import baselines, depth_fit, rows, sampling
-from ppdjax.infer.rows import candidate_layout, fit_groups
-from ppdjax.infer.fit import fit_boxes
+from ppdjax.infer import baselines, partial, rows, sampling
+from ppdjax.infer.groups import candidate_layout, decode_groups, fit_groups
 from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
 from ppdjax.infer.tables import BASELINES, PREFIXES, model_switches, summarize
-from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
@@ -60,44 +61,6 @@ def simultaneous_candidates() -> int:
   on an accelerator (65,536 rollouts run at ~10× the rate of 2,048, benchmarks.md), 2,048
   on a CPU."""
   return 2048 if jax.default_backend() == "cpu" else 16384
-
-
-def _decode(graphdef, state, obs, true, est_state=None, *, groups, camera, est_graphdef=None,
-            est_weight=1.0, true_shapes=False, depth_iterations=15):
-  """The network's boxes and slot logits, and per fit group the fitted boxes
-  (`fit.fit_boxes` from the network's; with depth, then refined against the depth image,
-  `depth_fit`; the k-th logits go to the k-th fitted box from the bottom) and their logits
-  ("group_logits": the network's, or with the estimator combined with its); shape counts
-  of each ("shape", "shape_fit", "shape_fit_depth"). With `true_shapes`, the true boxes
-  too, as group "true" with the network's logits."""
-  model = nnx.merge(graphdef, state)
-  pred, raw = model.decode(obs)
-  logits = raw.density_logits[:, :pred.num_slots, :NUM_DENSITY_SLOTS]
-  out = {"pred": pred, "logits": logits, "shape": metrics.shape_counts(pred, true),
-         "fitted": {}, "faces": {"ppd": metrics.face_errors(bottom_to_top(pred), true)},
-         "group_logits": {g: logits for g in groups}}
-  if groups:
-    fitted = fit_boxes(obs["voxels"], init=pred)
-    if "fit_depth" in groups:
-      out["fitted"]["fit_depth"] = depth_fit.refine_batch(
-          fitted, obs["depth"].astype(jnp.float32), camera, iterations=depth_iterations)
-    if "fit" in groups:
-      out["fitted"]["fit"] = fitted
-  for g, boxes in list(out["fitted"].items()):
-    out["fitted"][g] = boxes.replace(density=pred.density)
-    out["shape_" + g] = metrics.shape_counts(boxes, true)
-    out["faces"][g] = metrics.face_errors(bottom_to_top(boxes), true)
-  if est_graphdef is not None:  # the estimator reads the most precise fitted boxes
-    g, base = groups[-1], groups[-1].removesuffix("_est")
-    boxes = out["fitted"][base]
-    est = nnx.merge(est_graphdef, est_state)(boxes, obs["trajectories"].astype(jnp.float32))
-    out["fitted"][g], out["shape_" + g] = boxes, out["shape_" + base]
-    out["est_logits"] = est
-    out["group_logits"][g] = combine_logits(logits, est, est_weight)
-  if true_shapes:  # the oracle column: the network's k-th logits on the k-th true box
-    out["fitted"]["true"] = true.replace(density=pred.density)
-    out["shape_true"], out["group_logits"]["true"] = metrics.shape_counts(true, true), logits
-  return out
 
 
 def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj, key, *,
@@ -165,7 +128,7 @@ class Evaluator:
     self.graphdef, self.state = nnx.split(model)
     est_graphdef, self.est_state = (nnx.split(estimator) if estimator is not None
                                     else (None, None))
-    self._decode = jax.jit(functools.partial(_decode, self.graphdef, groups=self.fits,
+    self._decode = jax.jit(functools.partial(decode_groups, self.graphdef, groups=self.fits,
                                              camera=camera, est_graphdef=est_graphdef,
                                              est_weight=estimator_weight,
                                              true_shapes=true_shapes))
@@ -274,7 +237,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              prior_weight: float = 0.0, subset: str = "first", fit: bool = False,
              depth: bool = False, refine_prior: float = 0.0, estimator: str = "",
              estimator_weight: float = 1.0, joint: bool = False, true_shapes: bool = False,
-             progress: bool = True) -> dict:
+             progress: bool = True, partial_dir: str = "", max_seconds: float = 0.0) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
@@ -289,25 +252,32 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   boxes, its log-probabilities weighted by `estimator_weight` beside the network's.
   `true_shapes` adds the oracle rows "PPD+True boxes" (+Sample, +Sample+Refine): the
   network's k-th density scores on the k-th true box, sampled and refined alike.
+  `partial_dir` saves each batch's records as it is made and reuses those a previous call
+  with the same settings saved (`partial.PartialRecords`); with `max_seconds` > 0 the call
+  stops after the batch that passes it and raises `partial.EvaluationPaused`.
 
   Raises:
     CheckpointError for a workdir without a checkpoint, DatasetError for a dataset
-    without the split.
+    without the split, partial.OtherEvaluation for a `partial_dir` of another evaluation,
+    EvaluationPaused when `max_seconds` ran out first.
   """
   t_start = time.perf_counter()
   model, config = checkpoints.load(trained) if isinstance(trained, str) else trained
-  est_model = estimator_module.load(estimator)[0] if estimator else None
   test = storage.open_dataset(data_dir, split)
   objects = evaluation_objects(len(test), max_objects, subset)
   n = len(objects)
   batch_size = max(1, min(batch_size, n))
-  train = baselines.TrainingSet(storage.open_dataset(data_dir, "train"),
-                                progress=progress) if with_baselines else None
-  ev = Evaluator(model, config, samples=samples, refine=refine, refine_steps=refine_steps,
-                 baselines_on=with_baselines, fit=fit, depth=depth,
-                 camera=test.camera if depth else None, refine_prior=refine_prior,
-                 estimator=est_model, estimator_weight=estimator_weight, joint=joint,
-                 true_shapes=true_shapes)
+  settings = {"samples": samples, "refine": refine, "refine_steps": refine_steps,
+              "batch_size": batch_size, "baselines": with_baselines, "seed": seed,
+              "prior_weight": prior_weight, "fit": fit, "depth": depth,
+              "refine_prior": refine_prior if (fit or depth) and refine else 0.0,
+              "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
+              "joint": joint, "true_shapes": true_shapes}
+  saved = (partial.PartialRecords(partial_dir, {
+      **settings, "workdir": os.path.abspath(trained) if isinstance(trained, str) else None,
+      "data": os.path.abspath(data_dir), "split": split,
+      "objects": hashlib.sha1(objects.tobytes()).hexdigest()}) if partial_dir else None)
+  ev = train = None  # built (and compiled) only if a batch is not saved
   prefixes = sorted({p for p in PREFIXES if p <= samples} | {samples})
   records = collections.defaultdict(list)
   key = jax.random.key(seed)
@@ -315,35 +285,42 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   for start in range(0, n, batch_size):
     idx = objects[start:start + batch_size]
     keep = len(idx)
-    idx = np.pad(idx, (0, batch_size - keep), mode="edge")  # one compiled shape
-    batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials")
-                      + (("depth",) if depth else ()))
-    slot = baselines.true_slots(batch["primitives"])
-    base = None
-    if with_baselines:
-      nb = (slot >= 0).sum(-1)
-      base = np.stack([baselines.frequent_scores(train, batch_size, slot.shape[1]),
-                       baselines.nearest_scores(train, batch["trajectories"], nb),
-                       baselines.oracle_scores(train, batch["materials"], batch["primitives"],
-                                               seed * 1_000_003 + start)], 1)
-    out = ev.batch(batch, base, jax.random.fold_in(key, start))
-    out = jax.tree.map(lambda x: x[:keep], out)
-    rec = rows.batch_records(out, slot[:keep], slot[:keep] >= 0,
-                         None if base is None else base[:keep], samples=samples,
-                         prior_weight=prior_weight, prefixes=prefixes,
-                         with_baselines=with_baselines, refine=refine, layout=ev.layout)
+    rec = saved.load(start) if saved else None
+    if rec is None:
+      if ev is None:
+        train = baselines.TrainingSet(storage.open_dataset(data_dir, "train"),
+                                      progress=progress) if with_baselines else None
+        ev = Evaluator(model, config, samples=samples, refine=refine,
+                       refine_steps=refine_steps, baselines_on=with_baselines, fit=fit,
+                       depth=depth, camera=test.camera if depth else None,
+                       refine_prior=refine_prior,
+                       estimator=estimator_module.load(estimator)[0] if estimator else None,
+                       estimator_weight=estimator_weight, joint=joint, true_shapes=true_shapes)
+      idx = np.pad(idx, (0, batch_size - keep), mode="edge")  # one compiled shape
+      batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials")
+                        + (("depth",) if depth else ()))
+      slot = baselines.true_slots(batch["primitives"])
+      base = (baselines.baseline_scores(train, batch, seed * 1_000_003 + start)
+              if with_baselines else None)
+      out = ev.batch(batch, base, jax.random.fold_in(key, start))
+      out = jax.tree.map(lambda x: x[:keep], out)
+      rec = rows.batch_records(out, slot[:keep], slot[:keep] >= 0,
+                               None if base is None else base[:keep], samples=samples,
+                               prior_weight=prior_weight, prefixes=prefixes,
+                               with_baselines=with_baselines, refine=refine, layout=ev.layout)
+      if saved:
+        saved.save(start, rec)
     for k, v in rec.items():
       records[k].append(np.asarray(v))
     bar.update(keep)
+    if max_seconds and start + keep < n and time.perf_counter() - t_start > max_seconds:
+      bar.close()
+      raise partial.EvaluationPaused(start + keep, n, partial_dir or "(not saved)")
   bar.close()
   results = summarize(model_switches(config), {k: np.concatenate(v) for k, v in records.items()})
   results.update({
       "workdir": trained if isinstance(trained, str) else None, "data": data_dir,
-      "split": split, "objects": int(n), "samples": samples, "refine": refine,
-      "refine_steps": refine_steps if refine else 0, "baselines": with_baselines,
-      "prior_weight": prior_weight, "subset": subset, "fit": fit, "depth": depth,
-      "refine_prior": refine_prior if (fit or depth) and refine else 0.0,
-      "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
-      "joint": joint, "true_shapes": true_shapes,
+      "split": split, "objects": int(n), **settings,
+      "refine_steps": refine_steps if refine else 0, "subset": subset,
       "seconds": round(time.perf_counter() - t_start, 1)})
   return results

@@ -1,8 +1,7 @@
 """The rows of one model's evaluation: how each ranks density slots, and its per-object records.
 
-`fit_groups` names the groups of boxes an evaluation samples on and `candidate_layout` where
-their candidates sit; `evaluation.Evaluator` simulates every candidate once per batch;
-`batch_records` turns one batch's candidates into the records of Table 2's rows (PPD,
+`evaluation.Evaluator` simulates every candidate of every group of boxes (`groups`) once
+per batch; `batch_records` turns one batch's candidates into the records of Table 2's rows (PPD,
 +Sample, +Sample+Refine, the +Fit, +Fit(depth) and true-box rows, the baselines), Table
 4's prefixes, the τ sweep and the refinement statistics, which `tables.summarize` reduces
 (with bootstrap intervals) to the tables.
@@ -18,34 +17,6 @@ from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS, SLOT_DENSITY
 from ppdjax.infer import sampling
 from ppdjax.infer.tables import BASELINES, FIT_ROWS, PRIOR_WEIGHTS
-
-
-def fit_groups(fit: bool, depth: bool, estimator: bool = False) -> tuple[str, ...]:
-  """The fitted-box groups an evaluation has, least precise first; with an estimator, the
-  most precise fit again, scored with it ("fit_est" or "fit_depth_est")."""
-  fits = (("fit",) if fit else ()) + (("fit_depth",) if depth else ())
-  if estimator and not fits:
-    raise ValueError("the estimator reads fitted boxes: it needs fit or depth")
-  return fits + ((fits[-1] + "_est",) if estimator else ())
-
-
-def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) -> dict:
-  """Where each group of candidates sits along an object's candidate axis: name -> slice.
-
-  "ppd": the network's samples on its boxes; "fit" / "fit_depth" (`fits`): the network's
-  samples on the fitted boxes ("..._est": the combined scores' samples on them; "true":
-  on the true boxes);
-  "uniform" / "shapes": Table 4's sampling baselines;
-  "baselines": Table 2's three.
-  """
-  sizes = [("ppd", samples)] + [(g, samples) for g in fits]
-  if with_baselines:
-    sizes += [("uniform", samples), ("shapes", samples), ("baselines", len(BASELINES))]
-  out, start = {}, 0
-  for name, n in sizes:
-    out[name] = slice(start, start + n)
-    start += n
-  return out
 
 
 def sample_scores(logits, slots, objective, valid):

@@ -13,8 +13,8 @@ from ppdjax.plots import plot_confusion
 
 # Row and column names of one model's evaluation.
 BASELINES = ("Frequent", "Nearest", "Oracle")
-# Boxes fitted at test time (`rows.fit_groups`): group -> the prefix of its rows.
-# "..._est": the same boxes scored with the density estimator too (rows.fit_groups).
+# Boxes fitted at test time (`groups.fit_groups`): group -> the prefix of its rows.
+# "..._est": the same boxes scored with the density estimator too (groups.fit_groups).
 # "true": the network's density scores on the true boxes (the oracle shape column, a bound
 # on what better boxes can give; `evaluate(..., true_shapes=True)`).
 FIT_ROWS = {"fit": "PPD+Fit", "fit_depth": "PPD+Fit(depth)", "fit_est": "PPD+Fit+Est",
