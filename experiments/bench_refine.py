@@ -6,7 +6,8 @@ Takes the first --batch objects of a split (their true boxes, densities 30 % off
 depth image and its camera) and times, warm, the evaluation's two refinements as it runs
 them: `refine.refine_batch` (densities alone, 12 LM passes with K tangents) and
 `joint.joint_batch` (faces and densities, 7K tangents, the depth image too) with
---at_once objects per vectorised group (the evaluation's default is 8). Cost depends on the
+--at_once objects per vectorised group (the evaluation uses 64 on an accelerator, 8 on a
+CPU). Cost depends on the
 shapes and iteration count, not on the start. Prints a markdown table with the ratio to
 +Refine.
 """

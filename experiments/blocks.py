@@ -13,8 +13,9 @@ its τ sweep on --val_objects validation objects (validate:full), and the ablati
 whole split (plain); then `report`: experiments/results/blocks.{json,md} and PNGs, the full model
 exported to assets/blocks_model and a decomposed example tower. Every step resumes:
 generation by shard, training from its last checkpoint (a training step stops itself
-after --step_seconds and the next call goes on); evaluations save each batch as it is made
-and stop after --step_seconds too (the next call goes on), and are skipped once written.
+after --step_seconds and the next call goes on); the test-split evaluations save each batch
+as it is made and stop after --step_seconds too (the next call goes on); evaluations are
+skipped once written.
 ROOT/steps.jsonl records each call's wall time and device.
 """
 
@@ -170,11 +171,17 @@ class Pipeline:
     s, e = self.eval_settings(variant), self.config.eval
     n = self.max_objects(variant)
     saved = os.path.join(self.workdir(variant), "eval_partial")
+    run = lambda: evaluation.evaluate(self.workdir(variant), self.data,
+                                      refine_steps=e.refine_steps, batch_size=e.batch_size,
+                                      max_objects=n, subset=FLAGS.subset, partial_dir=saved,
+                                      max_seconds=FLAGS.step_seconds, **s)
     try:
-      results = evaluation.evaluate(self.workdir(variant), self.data,
-                                    refine_steps=e.refine_steps, batch_size=e.batch_size,
-                                    max_objects=n, subset=FLAGS.subset, partial_dir=saved,
-                                    max_seconds=FLAGS.step_seconds, **s)
+      try:
+        results = run()
+      except partial.OtherEvaluation as stale:  # this step's own folder: start it again
+        print(f"[{variant}] {stale}: starting again", flush=True)
+        shutil.rmtree(saved)
+        results = run()
     except partial.EvaluationPaused as paused:
       print(f"[{variant}] {paused}", flush=True)
       return

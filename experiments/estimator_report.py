@@ -95,8 +95,9 @@ def write(p: dict, weights, out: str, command: str) -> dict:
       f"One {device}. {card} Each figure carries a 95 % bootstrap interval over objects. "
       "The PPD model is the shipped one (`assets/blocks_model`); boxes are fitted to the "
       "voxels and the depth image (+Fit(depth)); 512 density candidates per row; "
-      "refinement: 12 Levenberg–Marquardt steps, a MAP step under each row's prior "
-      f"(weight {ref['refine_prior']}).", "",
+      "refinement: 12 Levenberg–Marquardt steps, "
+      + (f"a MAP step under each row's prior (weight {ref['refine_prior']})."
+         if ref["refine_prior"] else "plain least squares (no prior)."), "",
       "## The estimator", "",
       f"`ppdjax.nn.estimator.DensityEstimator`, {est_record['parameters'] / 1e6:.2f} M "
       "parameters: the boxes (extents, centre, volume, bottom to top) and the four "

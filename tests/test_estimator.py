@@ -124,14 +124,14 @@ def test_train_resume_save_and_load(tmp_path, batch):
 def test_evaluation_adds_the_estimator_rows(tiny_run, tiny_dataset, tmp_path):
   """A tiny estimator (the dataset's 256 steps) joins the evaluation: the +Est rows on the
   fitted boxes, refinement from them, and the estimator's own arg-max row."""
-  from ppdjax.infer import evaluation
+  from ppdjax.infer import evaluation, groups
   config = small_config(steps_in=tiny.get_config().data.steps, pool_size=32, val_size=32,
                         steps=4, eval_every=4)
   work = str(tmp_path / "est")
   est.train_estimator(config, work, progress=False)
   with pytest.raises(ValueError, match="needs fit or depth"):
-    evaluation.fit_groups(False, False, estimator=True)
-  assert evaluation.fit_groups(True, True, True) == ("fit", "fit_depth", "fit_depth_est")
+    groups.fit_groups(False, False, estimator=True)
+  assert groups.fit_groups(True, True, True) == ("fit", "fit_depth", "fit_depth_est")
   results = evaluation.evaluate(tiny_run[0], tiny_dataset, samples=4, max_objects=4,
                                 fit=True, refine=True, refine_steps=1, with_baselines=False,
                                 estimator=work, estimator_weight=0.5, joint=True,

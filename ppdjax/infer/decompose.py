@@ -7,7 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION
+from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION,
+                                slot_to_density_jax)
 from ppdjax.dataset.camera import check_camera
 from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.fit import fit_boxes
@@ -95,7 +96,10 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     camera: the depth images' camera (`open_dataset(DIR).camera`): the fitted boxes are
       then refined against observation["depth"] (`fit_boxes(..., depth=, camera=)`):
       faces the camera sees become sub-voxel. Needs `fit`.
-    refine: fit the best candidate's densities by Levenberg–Marquardt through MJX.
+    refine: fit the densities by Levenberg–Marquardt through MJX, from the candidate
+      closest in trajectory (whatever `prior_weight` selects: that start refines best,
+      docs/inference.md); the fit replaces the selection only where its trajectory
+      distance is below every candidate's.
     refine_steps: LM iterations.
     prior_weight: τ of `select_densities` (0: the closest trajectory wins).
     refine_prior: > 0 makes refinement a MAP step under the network's density scores
@@ -153,13 +157,19 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
         settings=settings))(prims, logits, traj, keys)
     prims = prims.replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
-    if refine:
+    if refine:  # from the closest candidate whatever τ chose, as the evaluation's +Refine
+      closest = jnp.argmin(sel.scores, -1)[:, None, None]
+      start = prims.replace(density=slot_to_density_jax(
+          jnp.take_along_axis(sel.slots, closest, 1)[:, 0]))
       ref = jax.vmap(lambda p, lg, o, d: refine_if_closer(
           p, o, d, pushes, steps=refine_steps,
           prior=density_prior(lg) if refine_prior > 0 else None, prior_weight=refine_prior,
-          settings=settings))(prims, logits, traj, score)
-      closer = ref.closer[:, None, None, None]
-      prims, score, sim = ref.primitives, ref.distance, jnp.where(closer, ref.trajectories, sim)
+          settings=settings))(start, logits, traj, sel.scores.min(-1))
+      # kept where it is closer than every candidate; else the +Sample answer stays
+      prims = prims.replace(density=jnp.where(ref.closer[:, None], ref.primitives.density,
+                                              prims.density))
+      score = jnp.where(ref.closer, ref.distance, score)
+      sim = jnp.where(ref.closer[:, None, None, None], ref.trajectories, sim)
     return Decomposition(prims, logits, score, sel.scores, sim)
 
   def decompose(observation: dict, key: jax.Array) -> Decomposition:

@@ -18,7 +18,8 @@ from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
   PPD+Fit(depth)+Est...  with a density estimator (`ppdjax.nn.estimator`): the same
                   boxes scored by the network's and the estimator's log-probabilities
                   together (`combine_logits`); it is then the group refinement starts
-                  from, under that prior; "Estimator" is its arg-max alone;
+                  from (under that prior when refine_prior > 0); "Estimator" is its
+                  arg-max alone;
   ...+Sample+Joint  with `joint`: faces and densities fitted together from the same start
                   as +Refine (`joint.refine_joint`; with depth, on the depth image too);
   Frequent, Nearest, Oracle (`ppdjax.infer.baselines`), on the true shape.
@@ -99,6 +100,15 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj
 # rows use: on the validation split of unseen towers that start refined best (top-1 62.6 %
 # against 59.9 % from τ = 0.05; experiments/results/prior_study_val.md).
 REFINE_FROM_TAU = 0.0
+RECORDS_VERSION = 1  # of `rows.batch_records`' layout: saved batches of another are not reused
+
+
+def _weights_hash(model) -> str:
+  """sha1 of a model's parameters: which model saved batch records (`partial`)."""
+  h = hashlib.sha1()
+  for leaf in jax.tree.leaves(nnx.state(model, nnx.Param)):
+    h.update(np.asarray(leaf).tobytes())
+  return h.hexdigest()
 
 
 class Evaluator:
@@ -175,6 +185,7 @@ class Evaluator:
       prims, prior, d0, m0 = self._best_sample(out, decoded, group, REFINE_FROM_TAU)
       if self.refine:
         out["refine"] = jax.device_get(self._refine(prims, prior, obs["trajectories"], d0, m0))
+        out["refine"]["sample_dist"] = d0  # the start's distance
       if self.joint:
         depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((len(d0),))
         out["joint"] = jax.device_get(self._joint(prims, prior, obs["trajectories"], depth,
@@ -273,10 +284,16 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "refine_prior": refine_prior if (fit or depth) and refine else 0.0,
               "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
               "joint": joint, "true_shapes": true_shapes}
+  if max_seconds and not partial_dir:
+    raise ValueError("max_seconds needs partial_dir: where the batches done are kept")
   saved = (partial.PartialRecords(partial_dir, {
-      **settings, "workdir": os.path.abspath(trained) if isinstance(trained, str) else None,
+      **settings, "weights": _weights_hash(model),
+      "estimator": os.path.abspath(estimator) if estimator else "",
       "data": os.path.abspath(data_dir), "split": split,
-      "objects": hashlib.sha1(objects.tobytes()).hexdigest()}) if partial_dir else None)
+      "objects": hashlib.sha1(objects.tobytes()).hexdigest(), "records": RECORDS_VERSION,
+      "refine_from_tau": REFINE_FROM_TAU, "backend": jax.default_backend()})
+           if partial_dir else None)
+  computed = 0  # batches this call computed (a call that pauses has made progress)
   ev = train = None  # built (and compiled) only if a batch is not saved
   prefixes = sorted({p for p in PREFIXES if p <= samples} | {samples})
   records = collections.defaultdict(list)
@@ -310,12 +327,14 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                                with_baselines=with_baselines, refine=refine, layout=ev.layout)
       if saved:
         saved.save(start, rec)
+      computed += 1
     for k, v in rec.items():
       records[k].append(np.asarray(v))
     bar.update(keep)
-    if max_seconds and start + keep < n and time.perf_counter() - t_start > max_seconds:
+    if (max_seconds and computed and start + keep < n
+        and time.perf_counter() - t_start > max_seconds):
       bar.close()
-      raise partial.EvaluationPaused(start + keep, n, partial_dir or "(not saved)")
+      raise partial.EvaluationPaused(start + keep, n, partial_dir)
   bar.close()
   results = summarize(model_switches(config), {k: np.concatenate(v) for k, v in records.items()})
   results.update({

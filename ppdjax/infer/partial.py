@@ -1,8 +1,10 @@
 """Resumable evaluation: each batch's records saved as it is made, reused when the same
 evaluation runs again (`evaluation.evaluate(partial_dir=...)`).
 
-A folder holds `settings.json` (what the records depend on: model, data, split, objects,
-batch size, samples, rows, seed) and one `batch-<first object>.npz` per batch. Records are
+A folder holds `settings.json` (what the records depend on: a hash of the model's weights,
+the data, split and objects, batch size, samples, rows, seed, the record layout's version
+and the backend), written with the first batch, and one `batch-<first object>.npz` per
+batch. Records are
 `rows.batch_records` dicts keyed by tuples; a file stores its keys as JSON beside the
 arrays, so nothing is pickled. Files are written to a temporary name and renamed, so an
 interrupted run never leaves a half-written batch; an unreadable batch file is recomputed.
@@ -10,6 +12,7 @@ interrupted run never leaves a half-written batch; an unreadable batch file is r
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import zipfile
@@ -36,19 +39,23 @@ class PartialRecords:
 
   def __init__(self, folder: str, settings: dict):
     self.folder = folder
-    os.makedirs(folder, exist_ok=True)
+    self.settings = json.loads(json.dumps(settings))  # as JSON reads it back
     path = os.path.join(folder, "settings.json")
-    settings = json.loads(json.dumps(settings))  # as JSON reads it back
     if os.path.exists(path):
-      with open(path) as f:
-        saved = json.load(f)
-      differ = sorted(k for k in set(saved) | set(settings) if saved.get(k) != settings.get(k))
+      try:
+        with open(path) as f:
+          saved = json.load(f)
+      except (OSError, ValueError):
+        saved = None  # unreadable: only a crash while writing it leaves one
+      if saved is None and self.count():
+        raise OtherEvaluation(f"{path} is unreadable and batch records lie beside it: "
+                              "delete the folder to start again")
+      differ = [] if saved is None else sorted(
+          k for k in set(saved) | set(self.settings) if saved.get(k) != self.settings.get(k))
       if differ:
-        raise OtherEvaluation(f"{folder} holds records of another evaluation (settings differ: "
-                         f"{', '.join(differ)}); delete the folder or choose another")
-    else:
-      with open(path, "w") as f:
-        json.dump(settings, f, indent=1)
+        raise OtherEvaluation(f"{folder} holds records of another evaluation (settings "
+                              f"differ: {', '.join(differ)}); delete the folder or choose "
+                              "another")
 
   def _path(self, start: int) -> str:
     return os.path.join(self.folder, f"batch-{start:07d}.npz")
@@ -63,16 +70,32 @@ class PartialRecords:
       with np.load(path) as f:
         keys = json.loads(str(f["__keys__"]))
         return {tuple(k): f[f"a{i}"] for i, k in enumerate(keys)}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
       return None
 
   def save(self, start: int, records: dict) -> None:
+    """Saves one batch (and, with the first, the settings): written whole or not at all."""
+    os.makedirs(self.folder, exist_ok=True)
+    settings = os.path.join(self.folder, "settings.json")
+    if not os.path.exists(settings):
+      _write_atomic(settings, json.dumps(self.settings, indent=1).encode())
     keys = list(records)
-    arrays = {f"a{i}": np.asarray(records[k]) for i, k in enumerate(keys)}
-    tmp = self._path(start) + ".tmp.npz"
-    np.savez(tmp, __keys__=np.asarray(json.dumps([list(k) for k in keys])), **arrays)
-    os.replace(tmp, self._path(start))
+    buf = io.BytesIO()
+    np.savez(buf, __keys__=np.asarray(json.dumps([list(k) for k in keys])),
+             **{f"a{i}": np.asarray(records[k]) for i, k in enumerate(keys)})
+    _write_atomic(self._path(start), buf.getvalue())
 
   def count(self) -> int:
+    if not os.path.isdir(self.folder):
+      return 0
     return sum(1 for f in os.listdir(self.folder) if f.startswith("batch-")
-               and f.endswith(".npz") and ".tmp" not in f)
+               and f.endswith(".npz"))
+
+
+def _write_atomic(path: str, data: bytes) -> None:
+  tmp = path + ".tmp"
+  with open(tmp, "wb") as f:
+    f.write(data)
+    f.flush()
+    os.fsync(f.fileno())
+  os.replace(tmp, path)

@@ -1,8 +1,9 @@
 """+Refine: densities fitted by Levenberg–Marquardt with Jacobians through MJX (forward mode).
 
-`refine_densities` treats the best sample's densities as continuous and fits them to the
-observed trajectories; `refine_if_closer` keeps the fit only where it also lowers the
-trajectory distance that +Sample ranks by (the one rule `decompose` and evaluation share).
+`refine_densities` treats a sample's densities (the closest one's, in the evaluation and
+`decompose`) as continuous and fits them to the observed trajectories; `refine_if_closer`
+keeps the fit only where it also lowers the trajectory distance that +Sample ranks by (the
+one rule `decompose` and evaluation share).
 """
 
 from __future__ import annotations
@@ -198,7 +199,7 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
   density).
 
   Args:
-    prims: one object with the starting densities (the best sample's).
+    prims: one object with the starting densities (the closest sample's).
     observed: (P, T, 7).
     distance: the start's trajectory distance (metres), as +Sample computed it.
     pushes, steps, prior, prior_weight, settings: as `refine_densities`.

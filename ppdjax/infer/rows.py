@@ -89,7 +89,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
       d, e = out["dist"][:, layout[group]], out["mae"][:, layout[group]]
       for p in prefixes:
         rec[("prefix", name, p)] = e[rows, np.argmin(d[:, :p], -1)]
-  sample_row, refined_from = "PPD+Sample", dist.min(-1)  # +Refine starts from the closest
+  sample_row = "PPD+Sample"
   for group in [g for g in FIT_ROWS if g in layout]:  # the same rows on fitted boxes
     name = FIT_ROWS[group]
     rec.update({("shape_" + group, k): np.asarray(v) for k, v in out["shape_" + group].items()})
@@ -107,7 +107,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     rec.update(_sweep(name + "+Sample", glogits, out["fit_slots"][group], f_objective, fm,
                       fvalid, slot, valid))
     if group != "true":  # +Refine and +Joint start from the most precise fit
-      sample_row, refined_from, pvalid = name + "+Sample", fd.min(-1), fvalid
+      sample_row, pvalid = name + "+Sample", fvalid
     for p in prefixes:
       rec[("prefix", name, p)] = fm[rows, np.argmin(fd[:, :p], -1)]
   if "est_logits" in out:  # the estimator alone, on the boxes it read
@@ -121,8 +121,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     r = out["refine"]
     scores[sample_row + "+Refine"] = refine_scores(logits, r["density"], pvalid)
     mae[sample_row + "+Refine"] = r["mae"]
-    rec.update({("refine", k): r[k] for k in ("cost_start", "cost", "dist")})
-    rec[("refine", "sample_dist")] = refined_from
+    rec.update({("refine", k): r[k] for k in ("cost_start", "cost", "dist", "sample_dist")})
   if "refine_true" in out:  # the oracle column, refined alike
     scores[FIT_ROWS["true"] + "+Sample+Refine"] = refine_scores(
         logits, out["refine_true"]["density"], np.asarray(out["fitted"]["true"].valid))

@@ -292,7 +292,7 @@ def shape_line(results: dict) -> str:
            f"{results['shape']['count_exact']:.1f} % of objects"
   for key, what in (("shape_fit", "the voxels (+Fit)"),
                     ("shape_fit_depth", "voxels and depth (+Fit(depth))")):
-    if key in results:
+    if results.get(key):
       s = results[key]
       out += (f"; boxes fitted to {what}: F1 **{s['f1']:.1f}** [{s['f1_ci95'][0]:.1f}, "
               f"{s['f1_ci95'][1]:.1f}], box count exact on {s['count_exact']:.1f} %")
