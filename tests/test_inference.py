@@ -17,7 +17,7 @@ from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage, towers
 from ppdjax.infer import evaluation, partial, refine, sampling, tables
 from ppdjax.primitives import quat_mul
-from ppdjax.sim.rollout_mjx import MjxSettings
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
 from ppdjax.training import checkpoints
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -110,6 +110,25 @@ def test_the_refinement_horizon_doubles_then_covers_the_trajectory():
   with pytest.raises(ValueError, match="each of the 3 passes"):
     one = jax.tree.map(lambda x: jnp.asarray(x[0]), towers.sample_towers(0, 1))
     refine.refine_densities(one, jnp.zeros((4, 16, 7)), steps=2, horizons=[8, 16])
+
+
+@pytest.mark.slow  # two compilations of the refinement: about 2 minutes on 2 cores
+def test_per_object_map_weights_match_one_weight_at_a_time():
+  """`refine_batch` with (B,) weights (one compiled call for a sweep, prior_study.py) gives
+  each object what a call with its weight alone gives; a heavy weight pulls to the prior."""
+  prims = jax.tree.map(lambda x: jnp.asarray(x[:2]), towers.sample_towers(11, 2, num_blocks=2))
+  observed = _simulate(prims)[:, :, :32]
+  start = prims.replace(density=prims.density * 1.3)
+  logits = jnp.zeros(prims.density.shape + (100,))
+  d0, m0 = jnp.full((2,), jnp.inf), jnp.zeros((2,))
+  kw = dict(steps=3, pushes=PUSHES, settings=DEFAULT_SETTINGS)
+  both = refine.refine_batch(start, logits, observed, d0, m0,
+                             prior_weight=jnp.asarray([1e-5, 1e3]), **kw)
+  one = refine.refine_batch(start, logits, observed, d0, m0, prior_weight=1e-5, **kw)
+  np.testing.assert_allclose(both["density"][0], one["density"][0], rtol=1e-5)
+  mean, _ = refine.density_prior(logits[1])
+  gap = lambda d: np.abs(np.log(np.asarray(d)) - np.asarray(mean))[:2]  # the two blocks
+  assert np.all(gap(both["density"][1]) < gap(start.density[1]))
 
 
 @pytest.mark.slow
