@@ -127,7 +127,7 @@ def test_per_object_map_weights_match_one_weight_at_a_time():
   one = refine.refine_batch(start, logits, observed, d0, m0, prior_weight=1e-5, **kw)
   np.testing.assert_allclose(both["density"][0], one["density"][0], rtol=1e-5)
   mean, _ = refine.density_prior(logits[1])
-  gap = lambda d: np.abs(np.log(np.asarray(d)) - np.asarray(mean))[:2]  # the two blocks
+  gap = lambda d: np.abs(np.log(np.asarray(d)[:2]) - np.asarray(mean)[:2])  # the two blocks
   assert np.all(gap(both["density"][1]) < gap(start.density[1]))
 
 
