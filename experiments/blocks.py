@@ -8,7 +8,8 @@ Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder
 generator on the stream of fresh towers, `train.stream_steps`), then the full model and
 the no-trajectory and no-image ablations starting from it, and the no-voxels ablation
 from scratch; evaluate the full model on --max_objects test objects spread over the split
-(+Sample, the +Fit and +Fit(depth) rows, +Fit(depth)+Sample+Refine and the baselines),
+(+Sample, the +Fit and +Fit(depth) rows, +Fit(depth)+Sample+Refine, with --joint
++Fit(depth)+Sample+Joint, with --true_shapes the true-box column, and the baselines),
 its τ sweep on --val_objects validation objects (validate:full), and the ablations on the
 whole split (plain); then `report`: experiments/results/blocks.{json,md} and PNGs, the full model
 exported to assets/blocks_model and a decomposed example tower. Every step resumes:
@@ -54,6 +55,11 @@ flags.DEFINE_enum("subset", "spread", ["first", "spread"],
                   "The first N test objects, or N spread over the split (many towers).")
 flags.DEFINE_integer("val_objects", 256, "Validation objects for the τ sweep of the full "
                      "model (0: no validation step).")
+flags.DEFINE_bool("joint", True, "The full model's evaluation also runs +Joint (faces and "
+                  "densities together; 4 s per batch of 64 on an H100, minutes to compile "
+                  "on a CPU).")
+flags.DEFINE_bool("true_shapes", True, "The full model's evaluation also runs the oracle "
+                  "column: the same rows on the true boxes.")
 flags.DEFINE_integer("step_seconds", 540, "A training or evaluation call stops after this "
                      "long (an evaluation after the batch that passes it).")
 FLAGS = flags.FLAGS
@@ -76,9 +82,11 @@ class Pipeline:
     if variant == "full":
       return {"samples": e.samples, "refine": e.refine, "with_baselines": True,
               "prior_weight": e.prior_weight, "fit": e.fit, "depth": e.get("depth", False),
-              "refine_prior": e.refine_prior}
+              "refine_prior": e.refine_prior, "joint": FLAGS.joint,
+              "true_shapes": FLAGS.true_shapes}
     return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0,
-            "fit": False, "depth": False, "refine_prior": 0.0}
+            "fit": False, "depth": False, "refine_prior": 0.0, "joint": False,
+            "true_shapes": False}
 
   def max_objects(self, variant: str) -> int:
     """The full model's evaluation (sampling, baselines, fit, refinement) covers
@@ -131,9 +139,9 @@ class Pipeline:
     refine_prior = s["refine_prior"] if (s["fit"] or s["depth"]) and s["refine"] else 0.0
     return ((r["samples"], r["refine"], r.get("max_objects", 0), r.get("prior_weight", 0.0),
              r.get("subset", "first"), r.get("fit", False), r.get("depth", False),
-             r.get("refine_prior", 0.0)) ==
+             r.get("refine_prior", 0.0), r.get("joint", False), r.get("true_shapes", False)) ==
             (s["samples"], s["refine"], self.max_objects(variant), s["prior_weight"],
-             FLAGS.subset, s["fit"], s["depth"], refine_prior))
+             FLAGS.subset, s["fit"], s["depth"], refine_prior, s["joint"], s["true_shapes"]))
 
   def val_path(self) -> str:
     return os.path.join(self.workdir("full"), "eval_val", "results.json")
@@ -192,6 +200,8 @@ class Pipeline:
         + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"
         + ("" if s["with_baselines"] else " --nobaselines")
         + (" --fit" if s["fit"] else "") + (" --depth" if s["depth"] else "")
+        + f" --refine_prior={s['refine_prior']}" + (" --joint" if s["joint"] else "")
+        + (" --true_shapes" if s["true_shapes"] else "")
         + (f" --max_objects={n} --subset={FLAGS.subset}" if n else ""))
     shutil.rmtree(saved, ignore_errors=True)
 
