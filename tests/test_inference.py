@@ -304,6 +304,21 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
   assert done.returncode != 0 and "not a training workdir" in done.stderr
 
 
+def test_saved_batch_records_give_back_the_same_tables(tiny_run, tiny_dataset, tmp_path):
+  """A rerun over saved batches computes (and compiles) nothing and reports the same; a
+  folder of another evaluation is refused, naming what differs."""
+  kw = dict(samples=SAMPLES, batch_size=4, max_objects=8, with_baselines=False,
+            progress=False, partial_dir=str(tmp_path / "partial"))
+  first = evaluation.evaluate(tiny_run[0], tiny_dataset, **kw)
+  again = evaluation.evaluate(tiny_run[0], tiny_dataset, max_seconds=1e-9, **kw)
+  for name, row in first["table2"].items():
+    for k in ("top1", "top5", "rmse", "mae"):
+      assert again["table2"][name][k] == row[k], (name, k)
+  with pytest.raises(partial.OtherEvaluation, match="samples"):
+    evaluation.evaluate(tiny_run[0], tiny_dataset, **{**kw, "samples": SAMPLES + 1})
+
+
+@pytest.mark.slow  # three evaluations: about 40 s on 2 cores
 def test_a_paused_evaluation_resumes_to_the_same_results(tiny_run, tiny_dataset, tmp_path):
   """Records are saved per batch; a call stopped by its time budget goes on where it
   stopped, and the tables equal those of one uninterrupted call."""
@@ -320,9 +335,6 @@ def test_a_paused_evaluation_resumes_to_the_same_results(tiny_run, tiny_dataset,
   for name, row in straight["table2"].items():
     for k in ("top1", "top5", "rmse", "mae"):
       assert resumed["table2"][name][k] == pytest.approx(row[k]), (name, k)
-  with pytest.raises(partial.OtherEvaluation, match="samples"):
-    evaluation.evaluate(tiny_run[0], tiny_dataset, partial_dir=folder,
-                        **{**kw, "samples": SAMPLES + 1})
 
 
 def test_partial_records_round_trip_and_recompute_what_is_unreadable(tmp_path):
