@@ -28,7 +28,6 @@ import numpy as np
 from absl import app, flags
 from tqdm.auto import tqdm
 
-from ppdjax import metrics
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage
 from ppdjax.infer import baselines, evaluation, rows, sampling, tables
@@ -55,17 +54,11 @@ def _stack(trees):
   return jax.tree.map(lambda *x: jnp.concatenate([jnp.asarray(a) for a in x]), *trees)
 
 
-def _counts(scores, slot, valid):
-  c = metrics.density_counts(jnp.asarray(scores, jnp.float32),
-                             jnp.asarray(np.maximum(slot, 0)), jnp.asarray(valid))
-  return {k: np.asarray(v) for k, v in c.items()}
-
-
 def _cell(counts: dict, mae, blocks) -> dict:
   idx = np.arange(len(mae))
-  out = {**tables._np_metrics(counts, idx), "mae_mm": float(np.mean(mae)),
+  out = {**tables.np_metrics(counts, idx), "mae_mm": float(np.mean(mae)),
          "ci95": tables.intervals(counts, mae, resamples=500)}
-  out["rmse_by_blocks"] = {str(b): tables._np_metrics(counts, idx[blocks == b])["rmse"]
+  out["rmse_by_blocks"] = {str(b): tables.np_metrics(counts, idx[blocks == b])["rmse"]
                            for b in np.unique(blocks)}
   return out
 
@@ -110,7 +103,7 @@ def main(argv):
         best = np.argmin(obj, -1)
         scores = rows.sample_scores(glogits, out["fit_slots"][g], obj, fvalid)
         records.setdefault((g, tau, None), []).append(
-            (_counts(scores, slot, valid), m[np.arange(batch_size), best]))
+            (rows.row_counts(scores, slot, valid), m[np.arange(batch_size), best]))
         starts.append(ev._best_sample(out, out, g, tau))
         cells.append((g, tau, fvalid))
     prims, prior, d0, m0 = (_stack([s[i] for s in starts]) for i in range(4))
@@ -132,7 +125,7 @@ def main(argv):
         scores = rows.refine_scores(out["group_logits"][g].astype(np.float64),
                                     res["density"][part], fvalid)
         records.setdefault((g, tau, wt), []).append(
-            (_counts(scores, slot, valid), res["mae"][part]))
+            (rows.row_counts(scores, slot, valid), res["mae"][part]))
     for key in records:  # drop the padding
       c, m = records[key][-1]
       records[key][-1] = ({k: v[:keep] for k, v in c.items()}, m[:keep])

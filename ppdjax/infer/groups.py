@@ -50,9 +50,8 @@ def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) 
   return out
 
 
-
-def decode_groups(graphdef, state, obs, true, est_state=None, *, groups, camera, est_graphdef=None,
-            est_weight=1.0, true_shapes=False, depth_iterations=15):
+def decode_groups(graphdef, state, obs, true, est_state=None, *, groups, camera,
+                  est_graphdef=None, est_weight=1.0, true_shapes=False, depth_iterations=15):
   """The network's boxes and slot logits, and per fit group the fitted boxes
   (`fit.fit_boxes` from the network's; with depth, then refined against the depth image,
   `depth_fit`; the k-th logits go to the k-th fitted box from the bottom) and their logits

@@ -41,7 +41,7 @@ def refine_scores(logits, density, valid):
   return np.where(valid[..., None], out, logits)
 
 
-def _row_counts(scores, slot, valid):
+def row_counts(scores, slot, valid):
   c = metrics.density_counts(jnp.asarray(scores, jnp.float32), jnp.asarray(np.maximum(slot, 0)),
                              jnp.asarray(valid))
   return {n: np.asarray(v) for n, v in c.items()}
@@ -53,7 +53,7 @@ def _sweep(row, logits, slots, objective, mae, pvalid, slot, valid) -> dict:
   out = {}
   for tau in PRIOR_WEIGHTS:
     pick = np.argmin(objective(tau), -1)
-    counts = _row_counts(sample_scores(logits, slots, objective(tau), pvalid), slot, valid)
+    counts = row_counts(sample_scores(logits, slots, objective(tau), pvalid), slot, valid)
     out.update({("sweep", row, tau, k): v for k, v in counts.items()})
     out[("sweep", row, tau, "mae")] = mae[np.arange(len(pick)), pick]
   return out
@@ -127,7 +127,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
         logits, out["refine_true"]["density"], np.asarray(out["fitted"]["true"].valid))
     mae[FIT_ROWS["true"] + "+Sample+Refine"] = out["refine_true"]["mae"]
   for name, sc in scores.items():
-    rec.update({("counts", name, k): v for k, v in _row_counts(sc, slot, valid).items()})
+    rec.update({("counts", name, k): v for k, v in row_counts(sc, slot, valid).items()})
     rec[("guess", name)] = np.argmax(sc, -1)
     if name in mae:
       rec[("mae", name)] = mae[name]

@@ -56,7 +56,7 @@ def model_switches(config) -> dict:
   return {k: bool(config.model[k]) for k in ("use_voxels", "use_image", "use_trajectory")}
 
 
-def _np_metrics(counts: dict, idx) -> dict:
+def np_metrics(counts: dict, idx) -> dict:
   """top-k (%) and RMSE (slots) of the objects `idx` (NumPy; the bootstrap's inner loop)."""
   n = max(float(counts["count"][idx].sum()), 1.0)
   out = {k: 100.0 * float(v[idx].sum()) / n for k, v in counts.items() if k.startswith("top")}
@@ -69,7 +69,7 @@ def intervals(counts: dict, mae, resamples: int = 1000) -> dict:
   n = len(counts["count"])
   out = {}
   for k in [k for k in counts if k.startswith("top")] + ["rmse"]:
-    out[k] = metrics.bootstrap_interval(lambda i, k=k: _np_metrics(counts, i)[k], n,
+    out[k] = metrics.bootstrap_interval(lambda i, k=k: np_metrics(counts, i)[k], n,
                                         resamples=resamples)
   if mae is not None:
     out["mae"] = metrics.bootstrap_interval(lambda i: float(np.mean(mae[i])), n,
@@ -138,7 +138,7 @@ def summarize(switches: dict, rec: dict) -> dict:
     results["table2"][name] = row
     results["table5_ci95"][name] = {
         str(b): metrics.bootstrap_interval(
-            lambda i, sel=np.flatnonzero(nb == b): _np_metrics(counts, sel[i])["rmse"],
+            lambda i, sel=np.flatnonzero(nb == b): np_metrics(counts, sel[i])["rmse"],
             int(np.sum(nb == b)))
         for b in range(2, nb.max() + 1) if np.any(nb == b)}
     results["table5"][name] = {
