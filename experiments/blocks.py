@@ -3,6 +3,7 @@
   python experiments/blocks.py                     # every step left, in order
   python experiments/blocks.py --step=next         # only the next step, then exit
   python experiments/blocks.py --list              # what is done and what is left
+  python experiments/blocks.py --jobs=3            # independent steps side by side
 
 Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder and
 generator on the stream of fresh towers, `train.stream_steps`), then the full model and
@@ -17,7 +18,8 @@ generation by shard, training from its last checkpoint (a training step stops it
 after --step_seconds and the next call goes on); the test-split evaluations save each batch
 as it is made and stop after --step_seconds too (the next call goes on); evaluations are
 skipped once written.
-ROOT/steps.jsonl records each call's wall time and device.
+ROOT/steps.jsonl records each call's wall time and device. With --jobs=N, up to N steps
+whose inputs are ready run at once, each in its own process (experiments/blocks_jobs.py).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
 import blocks_common as common  # noqa: E402
+import blocks_jobs  # noqa: E402
 import blocks_report  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
 from ppdjax.infer import evaluation, partial, tables  # noqa: E402
@@ -62,6 +65,13 @@ flags.DEFINE_bool("true_shapes", True, "The full model's evaluation also runs th
                   "column: the same rows on the true boxes.")
 flags.DEFINE_integer("step_seconds", 540, "A training or evaluation call stops after this "
                      "long (an evaluation after the batch that passes it).")
+flags.DEFINE_integer("jobs", 1, "Steps run at once, each in its own process on the same "
+                     "devices, as soon as the steps they need are done (with --step=all).")
+flags.DEFINE_list("variants", ["full", "no_image", "no_trajectory", "no_voxels"],
+                  "The model variants whose steps this call runs (the report needs full).")
+flags.DEFINE_bool("exported", False, "The report only: the model and example tower in "
+                  "--assets exist already (a report redone away from the run's machine, "
+                  "from ROOT's results and logs; no checkpoints or dataset needed).")
 FLAGS = flags.FLAGS
 ORDER = ("full", "no_image", "no_trajectory", "no_voxels")
 GEOMETRY = "geometry"  # the voxel-only geometry stage the voxel-using variants start from
@@ -114,7 +124,11 @@ class Pipeline:
   def steps(self) -> list[tuple[str, callable, callable]]:
     out = [("generate", lambda: os.path.exists(os.path.join(self.data, "manifest.json")),
             lambda: generation.generate(self.config, self.data))]
-    variants = ((GEOMETRY,) if self.config.train.stream_steps else ()) + ORDER
+    unknown = set(FLAGS.variants) - set(ORDER)
+    if unknown:
+      raise app.UsageError(f"--variants: unknown {sorted(unknown)}; choose from {ORDER}")
+    chosen = tuple(v for v in ORDER if v in FLAGS.variants)
+    variants = ((GEOMETRY,) if self.config.train.stream_steps else ()) + chosen
     for v in variants:  # each model is evaluated as soon as it is trained
       out.append((f"train:{v}", lambda v=v: loop.trained_steps(self.workdir(v))
                   >= total_steps(self.train_config(v).train), lambda v=v: self.train(v)))
@@ -123,8 +137,21 @@ class Pipeline:
                     lambda v=v: self.evaluate(v)))
       if v == "full" and FLAGS.val_objects:
         out.append(("validate:full", self.validated, self.validate))
-    out.append(("report", lambda: False, self.report))
+    if "full" in chosen:
+      out.append(("report", lambda: False, self.report))
     return out
+
+  def needs(self, name: str) -> tuple[str, ...]:
+    """The steps that must be done before `name` starts (the data flow of steps())."""
+    kind, _, variant = name.partition(":")
+    if kind == "generate":
+      return ()
+    if kind == "train":
+      init = self.train_config(variant).train.get("init_from", "")
+      return ("generate",) + ((f"train:{GEOMETRY}",) if init == self.workdir(GEOMETRY) else ())
+    if kind in ("evaluate", "validate"):
+      return (f"train:{variant}",)
+    return tuple(n for n, _, _ in self.steps() if n != "report")
 
   def train(self, variant: str) -> None:
     loop.train_and_evaluate(self.train_config(variant), self.data, self.workdir(variant),
@@ -206,14 +233,20 @@ class Pipeline:
     shutil.rmtree(saved, ignore_errors=True)
 
   def report(self) -> None:
+    args = [a for a in sys.argv[1:] if not a.startswith("--step=")]
+    if args[-1:] == ["--jobs=1"] and any(a.startswith("--jobs=") for a in args[:-1]):
+      args = args[:-1]  # the scheduler's own flags (blocks_jobs) are not the user's command
     blocks_report.write_all(self, FLAGS.results, FLAGS.assets,
-                            "python experiments/blocks.py " + " ".join(sys.argv[1:]))
+                            "python experiments/blocks.py " + " ".join(args),
+                            exported=FLAGS.exported)
 
   def log(self, step: str, seconds: float, finished: bool) -> None:
     os.makedirs(self.root, exist_ok=True)
     dev = jax.devices()[0]
+    end = time.time()  # start and end let the report count overlapping steps once
     with open(os.path.join(self.root, "steps.jsonl"), "a") as f:
       f.write(json.dumps({"step": step, "seconds": round(seconds, 1), "finished": finished,
+                          "start": round(end - seconds, 1), "end": round(end, 1),
                           "device": f"{jax.device_count()} x {dev.device_kind}",
                           "date": datetime.date.today().isoformat()}) + "\n")
 
@@ -242,6 +275,13 @@ def main(argv):
     return
   if FLAGS.step not in ("all", "next") and FLAGS.step not in names:
     raise app.UsageError(f"--step must be all, next or one of {', '.join(names)}")
+  if FLAGS.jobs < 1:
+    raise app.UsageError(f"--jobs must be at least 1, got {FLAGS.jobs}")
+  if FLAGS.jobs > 1 and FLAGS.step == "all":
+    jax.config.update("jax_platforms", "cpu")  # the devices are the children's
+    done = {name: d for name, d, _ in steps}
+    sys.exit(blocks_jobs.run(names, pipe.needs, lambda n: done[n](), FLAGS.jobs, sys.argv,
+                             os.path.join(pipe.root, "logs")))
   for name, done, action in steps:
     if FLAGS.step not in ("all", "next", name) or (done() and FLAGS.step != name):
       continue

@@ -60,3 +60,45 @@ def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
                   "no_trajectory.metrics.jsonl", "no_voxels.metrics.jsonl", "steps.jsonl"]
   listed = _blocks(*args, "--list")
   assert listed.stdout.count("done") == 10  # every step but the report (rerun each time)
+
+
+_FAKE_STEP = """
+import os, sys, time
+step = [a for a in sys.argv if a.startswith("--step=")][-1][len("--step="):]
+root = sys.argv[1]
+with open(os.path.join(root, "order"), "a") as f:
+  f.write(f"start {step}\\n")
+time.sleep(0.3)
+if step == "bad":
+  sys.exit(2)
+with open(os.path.join(root, "order"), "a") as f:
+  f.write(f"end {step}\\n")
+open(os.path.join(root, step), "w").close()
+"""
+
+
+def test_jobs_start_steps_when_their_inputs_are_done_and_stop_behind_a_failure(tmp_path,
+                                                                              capsys):
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import blocks_jobs
+  script = tmp_path / "step.py"
+  script.write_text(_FAKE_STEP)
+  needs = {"a": (), "b": ("a",), "c": ("a",), "d": ("b", "c"), "bad": (), "e": ("bad",)}
+  done = lambda n: os.path.exists(tmp_path / n)
+  rc = blocks_jobs.run(list(needs), needs.__getitem__, done, 2, [str(script), str(tmp_path)],
+                       str(tmp_path / "logs"))
+  assert rc == 1  # "bad" failed, so "e" never started
+  lines = (tmp_path / "order").read_text().split("\n")
+  started = [line.split()[1] for line in lines if line.startswith("start")]
+  assert set(started) == {"a", "b", "c", "d", "bad"}
+  for step, inputs in needs.items():
+    if step in started:
+      assert all(lines.index(f"end {i}") < lines.index(f"start {step}") for i in inputs), step
+  assert not done("e") and done("d")
+  said = capsys.readouterr().out
+  assert "-- bad: FAILED (exit 2)" in said and "-- e: not started (bad failed)" in said
+  again = blocks_jobs.run(["a", "b"], needs.__getitem__, done, 2, [str(script), str(tmp_path)],
+                          str(tmp_path / "logs"))
+  assert again == 0 and started == [ln.split()[1] for ln in
+                                    (tmp_path / "order").read_text().split("\n")
+                                    if ln.startswith("start")]  # done steps are not rerun
