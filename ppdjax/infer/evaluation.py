@@ -53,7 +53,7 @@ from ppdjax.infer.tables import BASELINES, PREFIXES, model_switches, summarize
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
-from ppdjax.training import checkpoints
+from ppdjax.training import checkpoints, sharding
 from ppdjax.training import estimator as estimator_module
 
 
@@ -64,13 +64,13 @@ def simultaneous_candidates() -> int:
   return 2048 if jax.default_backend() == "cpu" else 16384
 
 
-def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj, key, *,
+def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj, keys, *,
               samples, with_baselines, chunk, pushes, settings):
   """Per object: (distance, MAE) of every candidate (`candidate_layout`), the network's
   candidate slots on its boxes, and a tuple of them on each of `fitted` (a tuple of the
-  fit groups' boxes, in layout order, scored by `fit_logits`, a tuple alike)."""
-  b, k = pred.density.shape
-  keys = jax.random.split(key, (b, 4))
+  fit groups' boxes, in layout order, scored by `fit_logits`, a tuple alike). `keys`
+  (B, 4): each object's own, so that a batch split over devices draws the same."""
+  k = pred.density.shape[-1]
 
   def one(args):
     p, fs, lg, flg, t, bs, traj, kk = args
@@ -138,21 +138,24 @@ class Evaluator:
     self.graphdef, self.state = nnx.split(model)
     est_graphdef, self.est_state = (nnx.split(estimator) if estimator is not None
                                     else (None, None))
-    self._decode = jax.jit(functools.partial(decode_groups, self.graphdef, groups=self.fits,
-                                             camera=camera, est_graphdef=est_graphdef,
-                                             est_weight=estimator_weight,
-                                             true_shapes=true_shapes))
-    self._simulate = jax.jit(functools.partial(
+    # each call runs per object: on several local devices, each takes its share of the
+    # batch (`sharding.jit_over_local_devices`; the weights and the baselines' shape pool whole)
+    per_device = sharding.jit_over_local_devices
+    self._decode = per_device(functools.partial(
+        decode_groups, self.graphdef, groups=self.fits, camera=camera,
+        est_graphdef=est_graphdef, est_weight=estimator_weight, true_shapes=true_shapes),
+        replicated=(0, 3))
+    self._simulate = per_device(functools.partial(
         _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
-        settings=settings))
+        settings=settings), replicated=(6,))
     # without a fit, the network's boxes are refined as the paper's least squares; with a
     # fit, the fitted boxes, as a MAP step when refine_prior > 0 (the presets: 0)
-    self._refine = jax.jit(functools.partial(
+    self._refine = per_device(functools.partial(
         refine_batch, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
         pushes=pushes, settings=settings))
     # +Joint vectorised over 64 objects at once on an accelerator (a batch of 64 in 4.1 s
     # on an H100, 20.6 s 8 at once: benchmarks.md), 8 on a CPU
-    self._joint = jax.jit(functools.partial(
+    self._joint = per_device(functools.partial(
         joint_batch, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
         camera=camera if depth else None, pushes=pushes, settings=settings,
         at_once=8 if jax.default_backend() == "cpu" else 64))
@@ -172,8 +175,8 @@ class Evaluator:
     pool = baselines.random_shapes(int(jax.random.randint(key, (), 0, 2**31 - 1)),
                                    self.samples, num_slots=k)
     dist, mae, slots, fit_slots = self._simulate(
-        pred, fitted, logits, fit_logits, true, jnp.asarray(base_slots), jax.tree.map(jnp.asarray, pool),
-        obs["trajectories"], key)
+        pred, fitted, logits, fit_logits, true, jnp.asarray(base_slots),
+        jax.tree.map(jnp.asarray, pool), obs["trajectories"], jax.random.split(key, (b, 4)))
     out = jax.device_get({**decoded, "dist": dist, "mae": mae, "slots": slots})
     out["logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, jnp.asarray(out["slots"]),
                                                           pred.valid))
@@ -278,6 +281,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   objects = evaluation_objects(len(test), max_objects, subset)
   n = len(objects)
   batch_size = max(1, min(batch_size, n))
+  devices = jax.local_device_count()  # a batch splits over them: pad it to a multiple
+  batch_size = -(-batch_size // devices) * devices
   settings = {"samples": samples, "refine": refine, "refine_steps": refine_steps,
               "batch_size": batch_size, "baselines": with_baselines, "seed": seed,
               "prior_weight": prior_weight, "fit": fit, "depth": depth,

@@ -45,6 +45,40 @@ def check_batch_size(batch_size: int) -> int:
   return batch_size // processes
 
 
+def jit_over_local_devices(fn, replicated: tuple[int, ...] = ()):
+  """`jax.jit(fn)`, each local device running `fn` on its share of a batch (`jax.shard_map`):
+  every argument is split along its leading axis except those at the positions in
+  `replicated`, which each device gets whole; every output keeps the batch axis. On one
+  device, plain `jax.jit(fn)`.
+
+  For per-object work (the evaluation): the batch must split evenly over the devices.
+  """
+  devices = jax.local_devices()
+  if len(devices) == 1:
+    return jax.jit(fn)
+  mesh = Mesh(np.array(devices), (DATA_AXIS,))
+  # check_vma off: `fn` uses no collectives, and its scans' carries (MJX's solver) mix
+  # per-device and replicated values that the check would ask to mark by hand
+  compiled = {}
+
+  def run(*args):
+    specs = tuple(PartitionSpec() if i in replicated else PartitionSpec(DATA_AXIS)
+                  for i in range(len(args)))
+    if any(np.shape(x)[0] % len(devices) for a, p in zip(args, specs) if p != PartitionSpec()
+           for x in jax.tree.leaves(a)):
+      raise ValueError(f"a batch split over {len(devices)} devices must be a multiple of "
+                       f"{len(devices)} long")
+    if specs not in compiled:
+      compiled[specs] = jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=specs,
+                                              out_specs=PartitionSpec(DATA_AXIS),
+                                              check_vma=False))
+    # arguments committed to one device (the model's weights) move onto the mesh first
+    args = [jax.device_put(a, NamedSharding(mesh, p)) for a, p in zip(args, specs)]
+    return compiled[specs](*args)
+
+  return run
+
+
 def global_batch(local_tree, sharding: NamedSharding):
   """One global array per leaf from this process's rows (the whole batch on one host)."""
   return jax.tree.map(lambda x: jax.make_array_from_process_local_data(sharding, x),
