@@ -3,7 +3,7 @@
   python experiments/blocks.py                     # every step left, in order
   python experiments/blocks.py --step=next         # only the next step, then exit
   python experiments/blocks.py --list              # what is done and what is left
-  python experiments/blocks.py --jobs=3            # independent steps side by side
+  python experiments/blocks.py --jobs=2            # independent steps side by side
 
 Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder and
 generator on the stream of fresh towers, `train.stream_steps`), then the full model and
