@@ -233,9 +233,7 @@ class Pipeline:
     shutil.rmtree(saved, ignore_errors=True)
 
   def report(self) -> None:
-    args = [a for a in sys.argv[1:] if not a.startswith("--step=")]
-    if args[-1:] == ["--jobs=1"] and any(a.startswith("--jobs=") for a in args[:-1]):
-      args = args[:-1]  # the scheduler's own flags (blocks_jobs) are not the user's command
+    args = [a for a in sys.argv[1:] if not a.startswith("--step=")]  # blocks_jobs adds one
     blocks_report.write_all(self, FLAGS.results, FLAGS.assets,
                             "python experiments/blocks.py " + " ".join(args),
                             exported=FLAGS.exported)

@@ -3,10 +3,11 @@
 A step starts as soon as the steps it needs are done, at most N at once, in the order of
 the step list: e.g. an ablation trains while the full model's evaluation compiles (minutes
 of CPU in which the accelerator would sit idle) or samples. Each child is
-`blocks.py ARGS --step=NAME --jobs=1`, so it resumes exactly as a step run by hand does;
-its output goes to ROOT/logs/NAME.log. Children share the machine's devices and take
-accelerator memory as they need it (XLA_PYTHON_CLIENT_PREALLOCATE=false unless the caller
-set it), so N is bounded by memory: 3 fit one 80 GB H100 with the paper preset.
+`blocks.py ARGS --step=NAME` (--jobs acts only with --step=all), so it resumes exactly as a
+step run by hand does; its output goes to ROOT/logs/NAME.log. Children share the
+machine's devices and take accelerator memory as they need it
+(XLA_PYTHON_CLIENT_PREALLOCATE=false unless the caller set it), so N is bounded by memory:
+two trainings of the paper preset side by side held 35 GB of an 80 GB H100.
 
 If a step fails, the steps that need it are not started, the running ones finish, and
 the scheduler exits non-zero after naming the failed step and the end of its log.
@@ -70,7 +71,7 @@ def run(names: Sequence[str], needs: Callable[[str], Sequence[str]],
       elif len(running) < jobs and all(d in finished for d in needs(name)):
         pending.remove(name)
         log = open(os.path.join(log_dir, name.replace(":", "_") + ".log"), "w")
-        cmd = [sys.executable, *argv, f"--step={name}", "--jobs=1"]
+        cmd = [sys.executable, *argv, f"--step={name}"]
         running[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                           env=_child_env()), time.perf_counter(), log)
         print(f"-- {name}: started ({len(running)} running, "

@@ -57,24 +57,22 @@ def jit_over_local_devices(fn, replicated: tuple[int, ...] = ()):
   if len(devices) == 1:
     return jax.jit(fn)
   mesh = Mesh(np.array(devices), (DATA_AXIS,))
-  # check_vma off: `fn` uses no collectives, and its scans' carries (MJX's solver) mix
-  # per-device and replicated values that the check would ask to mark by hand
-  compiled = {}
+  compiled = None
 
   def run(*args):
+    nonlocal compiled
     specs = tuple(PartitionSpec() if i in replicated else PartitionSpec(DATA_AXIS)
                   for i in range(len(args)))
     if any(np.shape(x)[0] % len(devices) for a, p in zip(args, specs) if p != PartitionSpec()
            for x in jax.tree.leaves(a)):
       raise ValueError(f"a batch split over {len(devices)} devices must be a multiple of "
                        f"{len(devices)} long")
-    if specs not in compiled:
-      compiled[specs] = jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=specs,
-                                              out_specs=PartitionSpec(DATA_AXIS),
-                                              check_vma=False))
+    if compiled is None:  # check_vma off: `fn` uses no collectives, and its scans' carries
+      # (MJX's solver) mix per-device and replicated values the check would have us mark
+      compiled = jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=specs,
+                                       out_specs=PartitionSpec(DATA_AXIS), check_vma=False))
     # arguments committed to one device (the model's weights) move onto the mesh first
-    args = [jax.device_put(a, NamedSharding(mesh, p)) for a, p in zip(args, specs)]
-    return compiled[specs](*args)
+    return compiled(*[jax.device_put(a, NamedSharding(mesh, p)) for a, p in zip(args, specs)])
 
   return run
 
