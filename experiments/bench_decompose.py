@@ -1,12 +1,14 @@
-"""`decompose` speed: one object (latency) and a batch (objects/s), MJX vs MuJoCo C.
+"""`decompose` speed: one object (latency) and a batch (objects/s), MJX and the box-plane step
+vs MuJoCo C.
 
   python experiments/bench_decompose.py --samples 512 --batch 64 --out FILE.json
 
 Both engines run the same sampling in one process: the paper preset's network (random
 weights: the cost does not depend on them) decodes the objects on the accelerator and
 draws `samples` density assignments per object; then
-  * MJX: everything above plus simulation under the four pushes, scoring and selection is
-    the one jitted `ppdjax.make_decompose_fn` function;
+  * MJX, and the box-plane step (`ppdjax.sim.box_plane`): everything above plus
+    simulation under the four pushes, scoring and selection is the one jitted
+    `ppdjax.make_decompose_fn` function;
   * C (peer): the same decode and draws (jitted), then all candidates simulated with
     `mujoco.batch` on every CPU core, scored with the same distance and selected.
 Latency: median of --repeats warm calls for one object; throughput: objects / s of a
@@ -32,6 +34,11 @@ from ppdjax.configs import paper
 from ppdjax.conventions import NUM_DENSITY_SLOTS
 from ppdjax.infer import sampling
 from ppdjax.nn.model import PPD
+from ppdjax.sim import rollout_mjx
+from ppdjax.sim.box_plane import BoxPlaneSettings
+
+# The accelerator's engines, each at its package default settings.
+ENGINES = {"MJX": rollout_mjx.MjxSettings(), "box-plane step": BoxPlaneSettings()}
 
 
 def observations(seed: int, count: int, image_size: int) -> dict:
@@ -80,7 +87,9 @@ def main():
   parser.add_argument("--batch", type=int, default=64)
   parser.add_argument("--repeats", type=int, default=5)
   parser.add_argument("--refine", action="store_true", help="also time decompose(refine=True)")
-  parser.add_argument("--skip_c", action="store_true", help="MJX only")
+  parser.add_argument("--skip_c", action="store_true", help="the accelerator's engines only")
+  parser.add_argument("--engines", default=",".join(ENGINES),
+                      help=f"comma-separated, of {list(ENGINES)}")
   parser.add_argument("--skip_batch", action="store_true", help="one object only")
   parser.add_argument("--out", default="")
   args = parser.parse_args()
@@ -100,26 +109,31 @@ def main():
     print(f"{engine:28s} {what:22s} {seconds * 1e3:9.1f} ms  {n / seconds:8.2f} objects/s",
           flush=True)
 
-  decompose = ppdjax.make_decompose_fn((model, config), num_samples=args.samples)
-  block = lambda out: jax.block_until_ready(out.primitives.density)
-  t0 = time.perf_counter()
-  block(decompose(one, key))
-  meta["compile_one_s"] = time.perf_counter() - t0
-  _, s = timed(lambda: block(decompose(one, key)), args.repeats)
-  add("MJX (jitted decompose)", "1 object", 1, s)
-  if not args.skip_batch:
-    _, s = timed(lambda: block(decompose(obs, key)), max(1, args.repeats // 2))
-    add("MJX (jitted decompose)", f"batch of {args.batch}", args.batch, s)
-  physics_only = jax.jit(lambda c: ppdjax.simulate(c, ppdjax.default_pushes()))
-  cands = jax.tree.map(lambda x: jnp.broadcast_to(x[0], (args.samples,) + x.shape[1:]),
-                       jax.tree.map(jnp.asarray, ppdjax.sample_towers(1, 1)))
-  _, s = timed(lambda: jax.block_until_ready(physics_only(cands)), args.repeats)
-  add("MJX rollouts alone", f"{args.samples} candidates", 1, s)
-  if args.refine:
-    refined = ppdjax.make_decompose_fn((model, config), num_samples=args.samples,
-                                          refine=True)
-    _, s = timed(lambda: block(refined(one, key)), args.repeats)
-    add("MJX decompose + refine", "1 object", 1, s)
+  for engine, settings in ENGINES.items():
+    if engine not in args.engines.split(","):
+      continue
+    decompose = ppdjax.make_decompose_fn((model, config), num_samples=args.samples,
+                                         settings=settings)
+    block = lambda out: jax.block_until_ready(out.primitives.density)
+    t0 = time.perf_counter()
+    block(decompose(one, key))
+    meta[f"compile_one_s {engine}"] = time.perf_counter() - t0
+    _, s = timed(lambda: block(decompose(one, key)), args.repeats)
+    add(f"{engine} (jitted decompose)", "1 object", 1, s)
+    if not args.skip_batch:
+      _, s = timed(lambda: block(decompose(obs, key)), max(1, args.repeats // 2))
+      add(f"{engine} (jitted decompose)", f"batch of {args.batch}", args.batch, s)
+    physics_only = jax.jit(lambda c, s=settings: rollout_mjx.simulate(
+        c, ppdjax.default_pushes(), settings=s))
+    cands = jax.tree.map(lambda x: jnp.broadcast_to(x[0], (args.samples,) + x.shape[1:]),
+                         jax.tree.map(jnp.asarray, ppdjax.sample_towers(1, 1)))
+    _, s = timed(lambda: jax.block_until_ready(physics_only(cands)), args.repeats)
+    add(f"{engine} rollouts alone", f"{args.samples} candidates", 1, s)
+    if args.refine:
+      refined = ppdjax.make_decompose_fn((model, config), num_samples=args.samples,
+                                         refine=True, settings=settings)
+      _, s = timed(lambda: block(refined(one, key)), args.repeats)
+      add(f"{engine} decompose + refine", "1 object", 1, s)
   if not args.skip_c:
     peer = c_peer(model, args.samples)
     _, s = timed(lambda: peer(one, key), max(1, args.repeats // 2))

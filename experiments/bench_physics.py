@@ -1,11 +1,12 @@
-"""Benchmark: steps/s of ppdjax.simulate, MJX (accelerator) against MuJoCo C (all CPU cores).
+"""Benchmark: steps/s of ppdjax.simulate, MJX and the box-plane step (accelerator) against
+MuJoCo C (all CPU cores).
 
 Both engines run in this one process on the same random towers under the paper's four
 pushes (rollouts = towers x 4). Each MJX variant is timed after compilation and checked
 against the C trajectories of the same rollouts (the agreement columns, in mm of the
 object-frame origin). Prints a markdown table and writes JSON.
 
-  python experiments/bench_ppdjax.py --sizes 2048,65536 --out bench.json
+  python experiments/bench_physics.py --sizes 2048,65536 --out bench.json
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import jax
 import numpy as np
 
 import ppdjax
+from ppdjax.sim.box_plane import BoxPlaneSettings
 from ppdjax.sim.rollout_mjx import MjxSettings
 
 def _v(iterations, ls, contacts=-1, fixed=True, push=(100, 50), chol=False, unroll=1):
@@ -44,7 +46,17 @@ VARIANTS = {
     # explored, not in the ladder
     "Newton 2 / ls 4 (explored)": _v(2, 4, 8, push=(8, 4), chol=True),
     "scan unroll 2": _v(3, 2, 8, push=(8, 4), chol=True, unroll=2),
+    # the step written for this scene (ppdjax.sim.box_plane), MuJoCo C's box-plane contacts
+    "box-plane step: Newton 3 / ls 2 (all contacts)": BoxPlaneSettings(max_contacts=0),
+    "box-plane step: Newton 3 / ls 2 (8 deepest contacts; default)": BoxPlaneSettings(),
+    "box-plane step: Newton 2 / ls 2 (8 deepest contacts)": BoxPlaneSettings(
+        iterations=2, max_contacts=8),
+    "box-plane step: Newton 4 / ls 3": BoxPlaneSettings(iterations=4, ls_iterations=3),
+    "box-plane step: converged (Newton 10 / ls 6)": BoxPlaneSettings(
+        iterations=10, ls_iterations=6, push_iterations=10, push_ls_iterations=6,
+        max_contacts=0),
 }
+BOX_PLANE = [name for name in VARIANTS if name.startswith("box-plane")]
 assert VARIANTS["+ Newton 3 (default)"] == _v(3, 2, 8, push=(8, 4), chol=True)
 
 
@@ -74,8 +86,9 @@ def timed(fn, repeats):
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--sizes", default="2048,65536", help="rollout counts (multiples of 4)")
-  parser.add_argument("--variants", default=",".join(list(VARIANTS)[:8]),
-                      help="comma-separated MJX variants (default: the ladder)")
+  parser.add_argument("--variants", default=",".join(list(VARIANTS)[:8] + BOX_PLANE[:2]),
+                      help="comma-separated variants (default: the MJX ladder and the "
+                           "box-plane step's default)")
   parser.add_argument("--steps", type=int, default=256)
   parser.add_argument("--seed", type=int, default=0)
   parser.add_argument("--repeats", type=int, default=3)
@@ -105,13 +118,16 @@ def main():
     save()
     for name in args.variants.split(","):
       settings = VARIANTS[name]
-      run = lambda s=settings: ppdjax.simulate(prims, pushes, steps=args.steps, settings=s)
+      backend = "box_plane" if isinstance(settings, BoxPlaneSettings) else "mjx"
+      run = lambda s=settings, b=backend: ppdjax.simulate(prims, pushes, steps=args.steps,
+                                                          backend=b, settings=s)
       t0 = time.perf_counter()
       jax.block_until_ready(run())
       compile_s = time.perf_counter() - t0
       out, t = timed(run, args.repeats)
       rate = rollouts * args.steps / t
-      row = {"rollouts": rollouts, "engine": f"MJX {name}", "settings": dataclasses.asdict(settings),
+      engine = name if backend == "box_plane" else f"MJX {name}"
+      row = {"rollouts": rollouts, "engine": engine, "settings": dataclasses.asdict(settings),
              "seconds": t, "compile_s": compile_s, "steps_per_s": rate, "ratio": rate / c_rate,
              **agreement(out, ref)}
       rows.append(row)

@@ -22,8 +22,7 @@ from ppdjax.conventions import NUM_DENSITY_SLOTS, NUM_SLOTS, STEPS, slot_to_dens
 from ppdjax.dataset.materials import MATERIAL_NAMES, material_slots
 from ppdjax.dataset.stream import sample_towers_jax
 from ppdjax.sim.pushes import Pushes, default_pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
-from ppdjax.sim.simulate import simulate
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
 
 
 def material_slot_mask() -> np.ndarray:
@@ -45,7 +44,7 @@ def sample_slots_jax(key: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.A
 
 
 def physics_batch(key: jax.Array, batch: int, *, steps: int = STEPS,
-                  pushes: Pushes | None = None, settings: MjxSettings = DEFAULT_SETTINGS,
+                  pushes: Pushes | None = None, settings: Settings = DEFAULT_SETTINGS,
                   num_slots: int = NUM_SLOTS) -> dict:
   """`batch` fresh towers with densities, simulated: {"primitives" (B, K), "slots" (B, K),
   "materials" (B, K), "trajectories" (B, P, steps, 7)}. Jittable."""
@@ -69,7 +68,7 @@ def default_chunk() -> int:
 
 
 def simulate_pool(seed: int, count: int, *, steps: int = STEPS, chunk: int | None = None,
-                  pushes: Pushes | None = None, settings: MjxSettings = DEFAULT_SETTINGS,
+                  pushes: Pushes | None = None, settings: Settings = DEFAULT_SETTINGS,
                   progress: bool = True, desc: str = "simulating") -> dict:
   """`count` objects of `physics_batch`, deterministic in `seed`, on the default device.
 

@@ -17,7 +17,7 @@ from ppdjax.infer.sampling import select_densities
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings
 from ppdjax.training import checkpoints
 from ppdjax.training import estimator as estimator_module
 
@@ -84,7 +84,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       refine_steps: int = 12, prior_weight: float = 0.0,
                       refine_prior: float = 0.0, estimator=None,
                       estimator_weight: float = 1.0, pushes: Pushes | None = None,
-                      settings: MjxSettings = DEFAULT_SETTINGS):
+                      settings: Settings = DEFAULT_SETTINGS):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
 
   Args:

@@ -40,8 +40,7 @@ from ppdjax.infer.depth_fit import MIN_HALF, ROBUST, TIE_WEIGHT, VOXEL, _boxes, 
 from ppdjax.infer.refine import density_prior, horizon_schedule
 from ppdjax.primitives import Primitives, bottom_to_top, quat_to_mat
 from ppdjax.sim.pushes import Pushes, default_pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
-from ppdjax.sim.simulate import simulate
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
 
 
 @struct.dataclass
@@ -69,7 +68,7 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
                  prior: tuple | None = None, prior_weight: float = 0.0,
                  depth_weight: float = 1.0, bound: float = VOXEL / 2, steps: int = 12,
                  warmup_steps: int = 8, damping: float = 1e-3,
-                 settings: MjxSettings = DEFAULT_SETTINGS) -> JointFit:
+                 settings: Settings = DEFAULT_SETTINGS) -> JointFit:
   """Fits one object's faces and densities to its motion (and depth image).
 
   Args:

@@ -18,8 +18,7 @@ from ppdjax.conventions import (MAX_DENSITY, MIN_DENSITY, NUM_DENSITY_SLOTS,
                                 slot_to_density_jax)
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
-from ppdjax.sim.simulate import simulate
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
 
 
 def horizon_schedule(steps: int, warmup_steps: int, t: int) -> np.ndarray:
@@ -57,7 +56,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
                      steps: int = 12, warmup_steps: int = 8, damping: float = 1e-3,
                      prior: tuple | None = None, prior_weight: float = 0.0,
                      horizons=None,
-                     settings: MjxSettings = DEFAULT_SETTINGS) -> tuple[Primitives, dict]:
+                     settings: Settings = DEFAULT_SETTINGS) -> tuple[Primitives, dict]:
   """Fits the densities of valid boxes to the observed trajectories (Levenberg–Marquardt).
 
   Parameters are log densities, bounded to [100, 10,000] kg/m^3 (the slot range). The
@@ -189,7 +188,7 @@ class Refinement:
 def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array,
                      pushes: Pushes | None = None, *, steps: int = 12,
                      prior: tuple | None = None, prior_weight: float = 0.0,
-                     settings: MjxSettings = DEFAULT_SETTINGS) -> Refinement:
+                     settings: Settings = DEFAULT_SETTINGS) -> Refinement:
   """Refines one object's densities; keeps them only if the trajectory distance drops.
 
   LM lowers the squared pose residual (with a prior: the MAP cost); +Sample ranks by the

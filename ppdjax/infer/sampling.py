@@ -17,8 +17,7 @@ from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS, slot_to_density_jax
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
-from ppdjax.sim.simulate import simulate
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
 
 
 @struct.dataclass
@@ -92,7 +91,7 @@ def with_slots(prims: Primitives, slots: jax.Array) -> Primitives:
 
 
 def score_candidates(candidates: Primitives, observed_PTx7: jax.Array, pushes: Pushes,
-                     settings: MjxSettings = DEFAULT_SETTINGS, *,
+                     settings: Settings = DEFAULT_SETTINGS, *,
                      keep_trajectories: bool = False):
   """(distance (S,), MAE (S,)[, trajectories (S, P, T, 7)]) of candidates (S, K)."""
   steps = observed_PTx7.shape[-2]
@@ -114,7 +113,7 @@ def selection_objective(distance: jax.Array, log_prior_: jax.Array,
 def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax.Array,
                      pushes: Pushes | None = None, *, num_samples: int, key: jax.Array,
                      include_mode: bool = True, prior_weight: float = 0.0,
-                     settings: MjxSettings = DEFAULT_SETTINGS) -> Selection:
+                     settings: Settings = DEFAULT_SETTINGS) -> Selection:
   """Samples joint density assignments and keeps the one that best explains the motion.
 
   Args:

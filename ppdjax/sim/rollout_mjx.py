@@ -1,4 +1,9 @@
-"""Batched, jitted MJX rollouts: one compiled function serves every object of up to K boxes."""
+"""Batched, jitted rollouts in JAX: one compiled function serves every object of up to K boxes.
+
+The settings' type picks the step: `MjxSettings` runs MJX (`mjx.step` or
+`ppdjax.sim.mjx_step`), `BoxPlaneSettings` the step written for this scene
+(`ppdjax.sim.box_plane`).
+"""
 
 from __future__ import annotations
 
@@ -12,7 +17,8 @@ from mujoco import mjx
 
 from ppdjax.conventions import STEPS
 from ppdjax.primitives import Primitives, flatten, unflatten
-from ppdjax.sim import mjx_step, scene
+from ppdjax.sim import box_plane, mjx_step, scene
+from ppdjax.sim.box_plane import BoxPlaneSettings
 from ppdjax.sim.mass import mass_properties
 from ppdjax.sim.pushes import Pushes, push_wrenches
 
@@ -49,6 +55,7 @@ class MjxSettings:
 
 
 DEFAULT_SETTINGS = MjxSettings()
+Settings = MjxSettings | BoxPlaneSettings
 # Above this many push iterations the push step keeps MJX's while_loop (unrolling 100
 # iterations would take minutes to compile).
 MAX_UNROLLED_ITERATIONS = 16
@@ -81,8 +88,13 @@ def with_object(mx, fields: dict[str, jax.Array]):
 
 
 def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
-                   settings: MjxSettings = DEFAULT_SETTINGS) -> jax.Array:
-  """(P, steps, 7) trajectories of one object (K slots) under P pushes; traceable."""
+                   settings: Settings = DEFAULT_SETTINGS) -> jax.Array:
+  """(P, steps, 7) trajectories of one object (K slots) under P pushes; traceable.
+
+  `settings` picks the step: MjxSettings runs MJX, BoxPlaneSettings the box-plane step.
+  """
+  if isinstance(settings, BoxPlaneSettings):
+    return box_plane.rollout_object(prims, pushes, steps=steps, settings=settings)
   k = prims.density.shape[-1]
   mx = template(settings, k)
   fields = scene.object_fields(prims)
@@ -127,7 +139,7 @@ def _batched_fn(steps: int, settings: MjxSettings, duration: int):
 
 
 def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS,
-             settings: MjxSettings = DEFAULT_SETTINGS) -> jax.Array:
+             settings: Settings = DEFAULT_SETTINGS) -> jax.Array:
   """(B..., P, steps, 7) float32 trajectories; one jitted call for the whole batch."""
   flat, batch = flatten(jax.tree.map(jnp.asarray, prims))
   flat = flat.replace(half_size=flat.half_size.astype(jnp.float32),

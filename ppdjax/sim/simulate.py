@@ -8,9 +8,10 @@ import numpy as np
 from ppdjax.conventions import STEPS
 from ppdjax.primitives import Primitives, validate
 from ppdjax.sim import rollout_mjx, rollout_mujoco
+from ppdjax.sim.box_plane import BoxPlaneSettings
 from ppdjax.sim.pushes import Pushes, default_pushes
 
-BACKENDS = ("mjx", "mujoco")
+BACKENDS = ("mjx", "box_plane", "mujoco")
 
 
 def _is_traced(prims: Primitives) -> bool:
@@ -25,13 +26,17 @@ def simulate(prims: Primitives, pushes: Pushes | None = None, *, steps: int = ST
     prims: Primitives with leading batch axes B... (fields (B..., K, ...)).
     pushes: Pushes (P of them); None for the paper's four.
     steps: recorded steps of 1/300 s.
-    backend: "mjx" (jitted, batched JAX; differentiable in forward mode) or "mujoco"
-      (MuJoCo's C engine on all CPU cores: the reference, and the fast path on a CPU).
-    **options: backend settings (see `ppdjax.sim.rollout_mjx.MjxSettings` and
-      `ppdjax.sim.rollout_mujoco.simulate`).
+    backend: "mjx" (jitted, batched MJX; differentiable in forward mode), "box_plane"
+      (the same contact model in a step written for one body of boxes on a plane, with
+      MuJoCo C's box-plane contacts: faster, and differentiable in both modes; see
+      `ppdjax.sim.box_plane`) or "mujoco" (MuJoCo's C engine on all CPU cores: the
+      reference, and the fast path on a CPU).
+    **options: backend settings: `settings=` a `ppdjax.sim.rollout_mjx.MjxSettings`
+      ("mjx") or a `ppdjax.sim.box_plane.BoxPlaneSettings` ("box_plane"); for "mujoco"
+      see `ppdjax.sim.rollout_mujoco.simulate`.
 
   Returns:
-    (B..., P, steps, 7) object-frame poses after each step; float32 for "mjx",
+    (B..., P, steps, 7) object-frame poses after each step; float32 for "mjx" and "box_plane",
     float64 for "mujoco".
   """
   if backend not in BACKENDS:
@@ -44,7 +49,14 @@ def simulate(prims: Primitives, pushes: Pushes | None = None, *, steps: int = ST
   if not _is_traced(pushes):
     pushes.validate()
   if backend == "mjx":
+    if not isinstance(options.get("settings", rollout_mjx.MjxSettings()), rollout_mjx.MjxSettings):
+      raise ValueError('backend="mjx" takes settings=MjxSettings(...)')
     return rollout_mjx.simulate(prims, pushes, steps=steps, **options)
+  if backend == "box_plane":
+    settings = options.pop("settings", BoxPlaneSettings())
+    if options or not isinstance(settings, BoxPlaneSettings):
+      raise ValueError('backend="box_plane" takes only settings=BoxPlaneSettings(...)')
+    return rollout_mjx.simulate(prims, pushes, steps=steps, settings=settings)
   if _is_traced(prims):
     raise ValueError('backend="mujoco" runs on concrete arrays; it cannot be traced by jit')
   return rollout_mujoco.simulate(prims, pushes, steps=steps, **options)

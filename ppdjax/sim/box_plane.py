@@ -1,0 +1,419 @@
+"""A step built for this scene: one free rigid body of up to K boxes on a ground plane.
+
+`ppdjax.sim.mjx_step` runs MJX's general pipeline (kinematic tree scans, convex-mesh
+collision, constraint assembly) in many small kernels per step. Here every object is one
+free body, so the same physics is a handful of 6x6 and (K*8*4)x6 array expressions:
+
+- **Dynamics** of a free joint as MuJoCo defines it: qpos = (origin position, world;
+  orientation quaternion), qvel = (origin velocity, world; angular velocity, body axes).
+  The mass matrix, gravity, the velocity product terms and `xfrc_applied` (force and
+  torque at the centre of mass) are written in closed form.
+- **Contacts** by MuJoCo C's box-plane routine (`mjc_PlaneBox`): per box, the corners on
+  the lower half (relative to the box centre) that touch the ground, the first 4 in corner
+  order, each at the corner moved half its depth back along the normal.
+- **Constraints**: MuJoCo's soft contacts with a pyramidal cone (4 edges per contact,
+  friction 1, `solref`/`solimp` defaults, `impratio` 1) and the Newton solver with MJX's
+  line search, warm start and stopping test, each element frozen once it has converged,
+  as `mjx_step.solve` does, run a fixed number of iterations (no `while_loop`).
+- **Integration**: semi-implicit Euler, the quaternion by MuJoCo's `mju_quatIntegrate`.
+
+Pure JAX on one rollout; `jax.vmap` batches it. Differentiable in forward mode and, with
+its fixed iterations, in reverse mode. Tested against MuJoCo C and against plain MJX in
+tests/test_box_plane.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from ppdjax.conventions import TIMESTEP
+from ppdjax.primitives import Primitives, quat_to_mat
+from ppdjax.sim.mass import mass_properties
+from ppdjax.sim.pushes import Pushes, push_wrenches
+from ppdjax.sim.scene import rest_position
+
+GRAVITY = jnp.array([0.0, 0.0, -9.81])
+FRICTION = 1.0  # MuJoCo's default sliding friction (condim 3: sliding only)
+SOLREF = (0.02, 1.0)  # MuJoCo's default time constant and damping ratio
+SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)  # dmin, dmax, width, midpoint, power
+TOLERANCE, LS_TOLERANCE = 1e-8, 0.01  # MuJoCo's solver defaults
+MINVAL = 1e-15  # mjMINVAL
+CORNER_SIGNS = np.array([[1 if i & 1 else -1, 1 if i & 2 else -1, 1 if i & 4 else -1]
+                         for i in range(8)], np.float32)  # mjc_PlaneBox's corner order
+
+
+@dataclasses.dataclass(frozen=True)
+class BoxPlaneSettings:
+  """Solver settings of the box-plane step (docs/physics.md has the measurements).
+
+  Attributes:
+    iterations, ls_iterations: Newton and line-search iterations of every step after the
+      push (and `push_steps_extra` more).
+    push_iterations, push_ls_iterations: those of the steps while a push acts: a 1e5 N
+      push changes the contact state within one step, which few iterations do not
+      resolve; elements stop at convergence.
+    push_steps_extra: steps after the push that also use the push settings.
+    max_contacts: keep the deepest this many contacts (0: all, 4 per box, as MuJoCo C);
+      8 costs no agreement with C on the benchmark towers and halves the rows.
+  """
+
+  iterations: int = 3
+  ls_iterations: int = 2
+  push_iterations: int = 8
+  push_ls_iterations: int = 4
+  push_steps_extra: int = 0
+  max_contacts: int = 8
+
+
+@struct.dataclass
+class Body:
+  """What the step needs of one object: mass properties and boxes in the body frame."""
+
+  mass: jax.Array  # ()
+  com: jax.Array  # (3,)
+  inertia: jax.Array  # (3, 3) about the centre of mass, body axes
+  box_pos: jax.Array  # (K, 3)
+  box_rot: jax.Array  # (K, 3, 3)
+  half_size: jax.Array  # (K, 3)
+  valid: jax.Array  # (K,) bool
+
+
+@struct.dataclass
+class State:
+  qpos: jax.Array  # (7,) origin position (world), orientation quaternion (w, x, y, z)
+  qvel: jax.Array  # (6,) origin velocity (world), angular velocity (body axes)
+  qacc_warmstart: jax.Array  # (6,) the last step's acceleration
+
+
+def body_of(prims: Primitives) -> Body:
+  """The Body of one object (K slots); invalid slots never make contacts."""
+  props = mass_properties(prims)
+  quat = prims.quat / jnp.linalg.norm(prims.quat, axis=-1, keepdims=True)
+  return Body(mass=props.mass, com=props.com, inertia=props.inertia, box_pos=prims.pos,
+              box_rot=quat_to_mat(quat), half_size=prims.half_size, valid=prims.valid)
+
+
+def _skew(v: jax.Array) -> jax.Array:
+  z = jnp.zeros_like(v[0])
+  return jnp.stack([jnp.stack([z, -v[2], v[1]]), jnp.stack([v[2], z, -v[0]]),
+                    jnp.stack([-v[1], v[0], z])])
+
+
+def _mass_matrix(body: Body, rot: jax.Array) -> jax.Array:
+  """6x6 joint-space inertia of the free joint (MuJoCo's M)."""
+  m, c = body.mass, _skew(body.com)
+  top = jnp.concatenate([m * jnp.eye(3), -m * rot @ c], 1)
+  bottom = jnp.concatenate([m * c @ rot.T, body.inertia - m * c @ c], 1)
+  return jnp.concatenate([top, bottom], 0)
+
+
+def _smooth_force(body: Body, rot: jax.Array, qvel: jax.Array, wrench: jax.Array) -> jax.Array:
+  """Gravity, applied wrench (world force and torque at the centre of mass) minus the
+  velocity product terms, in joint space (MuJoCo's qfrc_smooth)."""
+  omega_b = qvel[3:]
+  omega = rot @ omega_b
+  r = rot @ body.com  # origin -> centre of mass, world
+  centripetal = body.mass * jnp.cross(omega, jnp.cross(omega, r))
+  force = body.mass * GRAVITY + wrench[:3] - centripetal
+  torque_b = rot.T @ (jnp.cross(r, force) + wrench[3:])
+  gyroscopic = jnp.cross(omega_b, body.inertia @ omega_b)
+  return jnp.concatenate([force, torque_b - gyroscopic])
+
+
+def _contacts(body: Body, qpos: jax.Array, max_contacts: int = 0):
+  """Box-plane contacts, 4 corner slots per box: (C,) depth, (C, 3) point, (C,) active.
+
+  Corners come in opposite pairs (i, 7 - i); at most one of each pair lies below the box
+  centre, so the 4 slots of a box hold the lower corner of each pair: the same contacts
+  as mjc_PlaneBox's "first 4 of the lower corners" except when a corner lies exactly at
+  the centre's height (a tie of measure zero, where C may take both of a pair).
+  """
+  rot = quat_to_mat(qpos[3:])
+  centre = qpos[:3] + body.box_pos @ rot.T  # (K, 3)
+  box_rot = jnp.einsum("ij,kjl->kil", rot, body.box_rot)  # (K, 3, 3)
+  local = CORNER_SIGNS[None, :4] * body.half_size[:, None, :]  # (K, 4, 3): pairs' first
+  corner = jnp.einsum("kij,knj->kni", box_rot, local)  # relative to the centre, world
+  corner = jnp.where(corner[..., 2:] <= 0.0, corner, -corner)
+  depth = centre[:, None, 2] + corner[..., 2]
+  active = (depth <= 0.0) & body.valid[:, None]
+  point = centre[:, None] + corner
+  point = point.at[..., 2].add(-0.5 * depth)
+  depth, point, active = depth.reshape(-1), point.reshape(-1, 3), active.reshape(-1)
+  if 0 < max_contacts < depth.shape[0]:
+    _, keep = jax.lax.top_k(jnp.where(active, -depth, -jnp.inf), max_contacts)
+    depth, point, active = depth[keep], point[keep], active[keep]
+  return depth, point, active
+
+
+def _impedance(depth: jax.Array):
+  """MuJoCo's stiffness, damping and impedance of a contact at this depth (`solimp`)."""
+  timeconst = max(SOLREF[0], 2 * TIMESTEP)
+  dmin, dmax, width, mid, power = SOLIMP
+  k = 1.0 / (dmax * dmax * timeconst * timeconst * SOLREF[1] * SOLREF[1])
+  b = 2.0 / (dmax * timeconst)
+  x = jnp.abs(depth) / width
+  y = jnp.where(x < mid, (1.0 / mid ** (power - 1)) * x ** power,
+                1 - (1.0 / (1 - mid) ** (power - 1)) * jnp.clip(1 - x, 0.0) ** power)
+  imp = jnp.where(x > 1.0, dmax, jnp.clip(dmin + y * (dmax - dmin), dmin, dmax))
+  return k, b, imp
+
+
+def _constraints(body: Body, qpos: jax.Array, qvel: jax.Array, max_contacts: int):
+  """Pyramidal contact rows: J (R, 6), D (R,), aref (R,); inactive rows are zero."""
+  depth, point, active = _contacts(body, qpos, max_contacts)
+  rot = quat_to_mat(qpos[3:])
+  arm = point - qpos[:3]  # (C, 3)
+  # d(point velocity)/d(qvel): [I | -skew(arm) rot], rows x, y, z of the world.
+  rot_part = -jnp.einsum("cij,jk->cik", jax.vmap(_skew)(arm), rot)  # (C, 3, 3)
+  jac = jnp.concatenate([jnp.broadcast_to(jnp.eye(3), rot_part.shape), rot_part], -1)
+  normal, tangent1, tangent2 = jac[:, 2], jac[:, 1], -jac[:, 0]  # mju_makeFrame of +z
+  edges = jnp.stack([normal + FRICTION * tangent1, normal - FRICTION * tangent1,
+                     normal + FRICTION * tangent2, normal - FRICTION * tangent2], 1)
+  edges = edges * active[:, None, None]  # (C, 4, 6)
+  k, b, imp = _impedance(depth)
+  pos = depth * active
+  invweight = (1.0 / body.mass) * (1 + FRICTION ** 2) * 2 * FRICTION ** 2  # / impratio 1
+  d = 1.0 / jnp.maximum(invweight * (1 - imp) / imp, MINVAL)  # (C,)
+  aref = -b * (edges @ qvel) - (k * imp * pos)[:, None]
+  return (edges.reshape(-1, 6), jnp.repeat(d, 4), aref.reshape(-1))
+
+
+@struct.dataclass
+class _Ctx:
+  qacc: jax.Array
+  ma: jax.Array
+  jaref: jax.Array
+  grad: jax.Array
+  mgrad: jax.Array
+  search: jax.Array
+  gauss: jax.Array
+  cost: jax.Array
+  prev_cost: jax.Array
+  active: jax.Array
+  qfrc_constraint: jax.Array
+
+
+@struct.dataclass
+class _Problem:
+  """The Newton problem of one step: min over qacc of the Gauss + constraint cost."""
+
+  m: jax.Array  # (6, 6)
+  qfrc_smooth: jax.Array
+  qacc_smooth: jax.Array
+  j: jax.Array  # (R, 6)
+  d: jax.Array  # (R,)
+  aref: jax.Array  # (R,)
+  trace_m: jax.Array
+
+
+def _update_constraint(p: _Problem, ctx: _Ctx) -> _Ctx:
+  active = ctx.jaref < 0
+  force = -p.d * ctx.jaref * active
+  gauss = 0.5 * jnp.dot(ctx.ma - p.qfrc_smooth, ctx.qacc - p.qacc_smooth)
+  cost = 0.5 * jnp.sum(p.d * ctx.jaref * ctx.jaref * active) + gauss
+  return ctx.replace(active=active, gauss=gauss, cost=cost, prev_cost=ctx.cost,
+                     qfrc_constraint=p.j.T @ force)
+
+
+def _cholesky_solve(a: jax.Array, b: jax.Array) -> jax.Array:
+  """x = a^-1 b for a 6x6 SPD matrix, unrolled (fuses into a few kernels)."""
+  n = a.shape[-1]
+  low = [[None] * n for _ in range(n)]
+  for j in range(n):
+    low[j][j] = jnp.sqrt(jnp.maximum(a[j, j] - sum(low[j][k] ** 2 for k in range(j)), 1e-30))
+    for i in range(j + 1, n):
+      low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
+  y = [None] * n
+  for i in range(n):
+    y[i] = (b[i] - sum(low[i][k] * y[k] for k in range(i))) / low[i][i]
+  x = [None] * n
+  for i in reversed(range(n)):
+    x[i] = (y[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))) / low[i][i]
+  return jnp.stack(x)
+
+
+def _update_gradient(p: _Problem, ctx: _Ctx) -> _Ctx:
+  grad = ctx.ma - p.qfrc_smooth - ctx.qfrc_constraint
+  h = p.m + (p.j.T * (p.d * ctx.active)) @ p.j
+  return ctx.replace(grad=grad, mgrad=_cholesky_solve(0.5 * (h + h.T), grad))
+
+
+def _context(p: _Problem, qacc: jax.Array, grad: bool = True) -> _Ctx:
+  zero = jnp.zeros(6, qacc.dtype)
+  ctx = _Ctx(qacc=qacc, ma=p.m @ qacc, jaref=p.j @ qacc - p.aref, grad=zero, mgrad=zero,
+             search=zero, gauss=jnp.zeros(()), cost=jnp.array(jnp.inf),
+             prev_cost=jnp.zeros(()), active=jnp.zeros(p.d.shape, bool),
+             qfrc_constraint=zero)
+  ctx = _update_constraint(p, ctx)
+  if grad:
+    ctx = _update_gradient(p, ctx)
+    ctx = ctx.replace(search=-ctx.mgrad)
+  return ctx
+
+
+def _linesearch(p: _Problem, ctx: _Ctx, ls_iterations: int) -> _Ctx:
+  """MJX's bracketing Newton line search on the piecewise quadratic cost (pyramidal)."""
+  gtol = TOLERANCE * LS_TOLERANCE * jnp.linalg.norm(ctx.search) * p.trace_m
+  mv, jv = p.m @ ctx.search, p.j @ ctx.search
+  quad_gauss = jnp.stack([ctx.gauss, jnp.dot(ctx.search, ctx.ma - p.qfrc_smooth),
+                          0.5 * jnp.dot(ctx.search, mv)])
+  quad = p.d[:, None] * jnp.stack([0.5 * ctx.jaref ** 2, jv * ctx.jaref, 0.5 * jv * jv], 1)
+
+  def point(alpha):
+    active = (ctx.jaref + alpha * jv) < 0
+    q = quad_gauss + jnp.sum(quad * active[:, None], 0)
+    return dict(alpha=alpha, cost=alpha * alpha * q[2] + alpha * q[1] + q[0],
+                d0=2 * alpha * q[2] + q[1], d1=2 * q[2] + (q[2] == 0) * MINVAL)
+
+  def pick(cond, a, b):
+    return jax.tree.map(lambda x, y: jnp.where(cond, x, y), a, b)
+
+  p0 = point(jnp.zeros(()))
+  rows_0 = jnp.maximum(p0["cost"] - quad_gauss[0], 0.0)
+  rows_2 = jnp.maximum(0.5 * p0["d1"] - quad_gauss[2], 0.0)
+  dmag = 2.0 * jnp.sqrt(jax.lax.stop_gradient(rows_0 * rows_2)) + jnp.abs(quad_gauss[1])
+  gtol_accept = jax.lax.stop_gradient(
+      jnp.maximum(gtol, 8 * jnp.finfo(dmag.dtype).eps * dmag))
+  first = point(p0["alpha"] - p0["d0"] / p0["d1"])
+  lo = pick(first["d0"] < p0["d0"], first, p0)
+  hi = pick(first["d0"] < p0["d0"], p0, first)
+  swap = jnp.array(True)
+
+  def good(x):
+    return (jnp.abs(x["d0"]) < gtol_accept) & (x["cost"] < p0["cost"])
+
+  def in_bracket(x, y):
+    return ((x < y) & (y < 0)) | ((x > y) & (y > 0))
+
+  for _ in range(ls_iterations):
+    go = swap & ~good(lo) & ~good(hi)
+    lo_next = point(lo["alpha"] - lo["d0"] / lo["d1"])
+    hi_next = point(hi["alpha"] - hi["d0"] / hi["d1"])
+    mid = point(0.5 * (lo["alpha"] + hi["alpha"]))
+    s1 = in_bracket(lo["d0"], lo_next["d0"])
+    new_lo = pick(s1, lo_next, lo)
+    s2 = in_bracket(new_lo["d0"], mid["d0"])
+    new_lo = pick(s2, mid, new_lo)
+    s3 = in_bracket(new_lo["d0"], hi_next["d0"])
+    new_lo = pick(s3, hi_next, new_lo)
+    s4 = in_bracket(hi["d0"], hi_next["d0"]) | ((hi["d0"] < 0) & (hi_next["d0"] > 0))
+    new_hi = pick(s4, hi_next, hi)
+    s5 = in_bracket(new_hi["d0"], mid["d0"])
+    new_hi = pick(s5, mid, new_hi)
+    s6 = in_bracket(new_hi["d0"], lo_next["d0"])
+    new_hi = pick(s6, lo_next, new_hi)
+    new_swap = s1 | s2 | s3 | s4 | s5 | s6
+    # accept the lowest-cost converged candidate
+    cands = (lo_next, hi_next, mid)
+    costs = jnp.stack([jnp.where(good(c), c["cost"], jnp.inf) for c in cands])
+    done = jnp.isfinite(costs).any()
+    best_i = jnp.argmin(costs)
+    best = jax.tree.map(lambda *xs: jnp.stack(xs)[best_i], *cands)
+    new_lo, new_hi = pick(done, best, new_lo), pick(done, best, new_hi)
+    new_swap = new_swap & ~done
+    lo, hi, swap = pick(go, new_lo, lo), pick(go, new_hi, hi), jnp.where(go, new_swap, swap)
+
+  improved = (lo["cost"] < p0["cost"]) | (hi["cost"] < p0["cost"])
+  alpha = jnp.where(lo["cost"] < hi["cost"], lo["alpha"], hi["alpha"]) * improved
+  return ctx.replace(qacc=ctx.qacc + alpha * ctx.search, ma=ctx.ma + alpha * mv,
+                     jaref=ctx.jaref + alpha * jv)
+
+
+def _solve(p: _Problem, qacc_warmstart: jax.Array, iterations: int,
+           ls_iterations: int) -> jax.Array:
+  """qacc by `iterations` Newton steps from the better of warm start and smooth."""
+  warm = _context(p, qacc_warmstart, grad=False)
+  smooth = _context(p, p.qacc_smooth, grad=False)
+  ctx = _context(p, jnp.where(warm.cost < smooth.cost, qacc_warmstart, p.qacc_smooth))
+  for _ in range(iterations):
+    improvement = (ctx.prev_cost - ctx.cost) / p.trace_m
+    gradient = jnp.linalg.norm(ctx.grad) / p.trace_m
+    go = (improvement >= TOLERANCE) & (gradient >= TOLERANCE)
+    # A converged element searches along a harmless unit direction (its result is
+    # discarded), so reverse mode sees no 0/0.
+    probe = ctx.replace(search=jnp.where(go, ctx.search, jnp.ones_like(ctx.search)))
+    new = _linesearch(p, probe, ls_iterations)
+    new = _update_gradient(p, _update_constraint(p, new))
+    new = new.replace(search=-new.mgrad)
+    ctx = jax.tree.map(lambda a, b: jnp.where(go, a, b), new, ctx)
+  return ctx.qacc
+
+
+def _quat_integrate(quat: jax.Array, omega_b: jax.Array, dt: float) -> jax.Array:
+  """MuJoCo's mju_quatIntegrate: rotate by omega_b * dt about body axes, renormalise."""
+  sq = jnp.sum(omega_b * omega_b)
+  safe = jnp.where(sq > 0, sq, 1.0)
+  norm = jnp.sqrt(safe)
+  half = 0.5 * dt * norm
+  # sin(half) / norm, with its limit dt / 2 at zero speed
+  scale = jnp.where(sq > 0, jnp.sin(half) / norm, 0.5 * dt)
+  w, v = jnp.cos(jnp.where(sq > 0, half, 0.0)), scale * omega_b
+  a0, a = quat[0], quat[1:]
+  out = jnp.concatenate([(a0 * w - jnp.dot(a, v))[None],
+                         a0 * v + w * a + jnp.cross(a, v)])
+  return out / jnp.linalg.norm(out)
+
+
+def step(body: Body, state: State, wrench: jax.Array, *, iterations: int,
+         ls_iterations: int, max_contacts: int = 0) -> State:
+  """One step of 1/300 s: contacts, constraint solve, semi-implicit Euler.
+
+  Products run in full float32 (`jax.default_matmul_precision`): on GPUs the default may
+  be TF32, whose 10-bit mantissa costs millimetres through the stiff contacts.
+  """
+  with jax.default_matmul_precision("float32"):
+    return _step(body, state, wrench, iterations, ls_iterations, max_contacts)
+
+
+def _step(body, state, wrench, iterations, ls_iterations, max_contacts):
+  qpos = state.qpos.at[3:].set(state.qpos[3:] / jnp.linalg.norm(state.qpos[3:]))
+  rot = quat_to_mat(qpos[3:])
+  m = _mass_matrix(body, rot)
+  qfrc_smooth = _smooth_force(body, rot, state.qvel, wrench)
+  qacc_smooth = _cholesky_solve(m, qfrc_smooth)
+  j, d, aref = _constraints(body, qpos, state.qvel, max_contacts)
+  problem = _Problem(m=m, qfrc_smooth=qfrc_smooth, qacc_smooth=qacc_smooth, j=j, d=d,
+                     aref=aref, trace_m=jnp.maximum(jnp.trace(m), MINVAL))
+  qacc = _solve(problem, state.qacc_warmstart, iterations, ls_iterations)
+  qvel = state.qvel + TIMESTEP * qacc
+  qpos = jnp.concatenate([qpos[:3] + TIMESTEP * qvel[:3],
+                          _quat_integrate(qpos[3:], qvel[3:], TIMESTEP)])
+  return State(qpos=qpos, qvel=qvel, qacc_warmstart=qacc)
+
+
+def rollout(body: Body, qpos0: jax.Array, wrench: jax.Array, *, steps: int, duration: int,
+            settings: BoxPlaneSettings) -> jax.Array:
+  """(steps, 7) poses after each step of one push: `wrench` acts for `duration` steps."""
+  state = State(qpos=qpos0, qvel=jnp.zeros(6, qpos0.dtype), qacc_warmstart=jnp.zeros(6, qpos0.dtype))
+  n_push = min(steps, duration + settings.push_steps_extra)
+
+  def stepper(iterations, ls_iterations):
+    def one(state, t):
+      applied = jnp.where(t < duration, wrench, 0.0)
+      state = step(body, state, applied, iterations=iterations, ls_iterations=ls_iterations,
+                   max_contacts=settings.max_contacts)
+      return state, state.qpos
+    return one
+
+  state, head = jax.lax.scan(stepper(settings.push_iterations, settings.push_ls_iterations),
+                             state, jnp.arange(n_push))
+  _, tail = jax.lax.scan(stepper(settings.iterations, settings.ls_iterations), state,
+                         jnp.arange(n_push, steps))
+  return jnp.concatenate([head, tail], 0)
+
+
+def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
+                   settings: BoxPlaneSettings) -> jax.Array:
+  """(P, steps, 7) trajectories of one object (K slots) under P pushes; traceable."""
+  body = body_of(prims)
+  wrenches = push_wrenches(prims, pushes, mass_properties(prims))
+  qpos0 = jnp.concatenate([rest_position(prims), jnp.array([1.0, 0.0, 0.0, 0.0])])
+  run = functools.partial(rollout, body, qpos0.astype(jnp.float32), steps=steps,
+                          duration=int(pushes.duration), settings=settings)
+  return jax.vmap(run)(wrenches.astype(jnp.float32))
