@@ -23,7 +23,9 @@ def get_config() -> ml_collections.ConfigDict:
   config.data.steps = 256
   config.data.rotate = 0.0  # radians; > 0 adds the paper's rotation noise (tools pretraining)
   config.data.size_noise = 0.0
-  config.data.backend = "mjx"  # the engine inference uses; "mujoco" makes a marked C variant
+  # the engine that simulates the data, and that evaluation then uses: "mjx", or "box_plane"
+  # (faster on a GPU, closer to MuJoCo C); "mujoco" makes a marked C variant read through MJX
+  config.data.backend = "mjx"
   config.data.split_fractions = (0.8, 0.1, 0.1)
   config.data.render_workers = 0  # processes rendering in parallel (0: this process)
   # The PPD network (paper appendix; ppdjax.nn.model).

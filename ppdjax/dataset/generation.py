@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from ppdjax import primitives
 from ppdjax.dataset import camera, card, depth, materials, render, storage, towers, voxels
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
-from ppdjax.sim.simulate import simulate
+from ppdjax.sim.simulate import BACKENDS, simulate
 
 
 # Where the "depth" arrays come from; part of a dataset's identity (config.json), so that
@@ -36,7 +36,7 @@ def check_config(cfg) -> None:
            ("render_workers", 0 <= cfg.render_workers <= 256),
            ("image_size", 16 <= cfg.image_size <= 1024), ("steps", cfg.steps >= 1),
            ("rotate", 0 <= cfg.rotate <= np.pi), ("size_noise", 0 <= cfg.size_noise < 1),
-           ("backend", cfg.backend in ("mjx", "mujoco")),
+           ("backend", cfg.backend in BACKENDS),
            ("split_fractions", len(cfg.split_fractions) == 3
             and abs(sum(cfg.split_fractions) - 1) < 1e-6 and min(cfg.split_fractions) >= 0)]
   for key, ok in rules:
@@ -128,7 +128,7 @@ def generate(config, out: str, progress: bool = True) -> dict:
       "towers": cfg.num_towers, "samples": sum(c["samples"] for c in counts),
       "splits": {k: sum(c["splits"][k] for c in counts) for k in storage.SPLITS},
       "engine": {"backend": cfg.backend,
-                 "precision": "float32" if cfg.backend == "mjx" else "float64 (stored float32)",
+                 "precision": "float64 (stored float32)" if cfg.backend == "mujoco" else "float32",
                  "mjx_settings": dataclasses.asdict(DEFAULT_SETTINGS)},
       "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
       "depth": DEPTH_SOURCE,

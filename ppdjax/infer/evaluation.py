@@ -52,7 +52,7 @@ from ppdjax.infer.refine import refine_batch
 from ppdjax.infer.tables import BASELINES, PREFIXES, model_switches, summarize
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, settings_for
 from ppdjax.training import checkpoints, sharding
 from ppdjax.training import estimator as estimator_module
 
@@ -317,7 +317,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                        depth=depth, camera=test.camera if depth else None,
                        refine_prior=refine_prior,
                        estimator=estimator_module.load(estimator)[0] if estimator else None,
-                       estimator_weight=estimator_weight, joint=joint, true_shapes=true_shapes)
+                       estimator_weight=estimator_weight, joint=joint, true_shapes=true_shapes,
+                       settings=settings_for(test.manifest.get("engine", {}).get("backend", "mjx")))
       idx = np.pad(idx, (0, batch_size - keep), mode="edge")  # one compiled shape
       batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials")
                         + (("depth",) if depth else ()))
