@@ -18,6 +18,8 @@ import jax.numpy as jnp
 from mujoco.mjx._src import forward, math, solver, support
 from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SolverType
 
+from ppdjax.sim.small_linalg import cholesky_solve
+
 
 def _not_done(m, d, ctx) -> jax.Array:
   """MJX's while-loop predicate, without the iteration count."""
@@ -26,35 +28,13 @@ def _not_done(m, d, ctx) -> jax.Array:
   return (improvement >= m.opt.tolerance) & (gradient >= m.opt.tolerance)
 
 
-def _cholesky_solve(a: jax.Array, b: jax.Array) -> jax.Array:
-  """Solves a x = b for a small SPD matrix by an unrolled Cholesky factorisation.
-
-  Plain arithmetic that XLA fuses into a few kernels, where `cho_factor`/`cho_solve` call
-  a batched linear-algebra library per Newton iteration (measured in docs/physics.md).
-  """
-  n = a.shape[-1]
-  low = [[None] * n for _ in range(n)]
-  for j in range(n):
-    diag = a[j, j] - sum(low[j][k] * low[j][k] for k in range(j))
-    low[j][j] = jnp.sqrt(jnp.maximum(diag, 1e-30))
-    for i in range(j + 1, n):
-      low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
-  y = [None] * n
-  for i in range(n):
-    y[i] = (b[i] - sum(low[i][k] * y[k] for k in range(i))) / low[i][i]
-  x = [None] * n
-  for i in reversed(range(n)):
-    x[i] = (y[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))) / low[i][i]
-  return jnp.stack(x)
-
-
 def _update_gradient(m, d, ctx):
   """MJX's Newton gradient update (pyramidal cones) with the unrolled Cholesky solve."""
   grad = ctx.Ma - d.qfrc_smooth - ctx.qfrc_constraint
   efc_j = d._impl.efc_J  # pylint: disable=protected-access
   h = (efc_j.T * d._impl.efc_D * ctx.active) @ efc_j  # pylint: disable=protected-access
   h = support.full_m(m, d) + h
-  return ctx.replace(grad=grad, Mgrad=_cholesky_solve((h + h.T) * 0.5, grad))
+  return ctx.replace(grad=grad, Mgrad=cholesky_solve((h + h.T) * 0.5, grad))
 
 
 def _iteration(m, d, ctx, unrolled_cholesky: bool):
