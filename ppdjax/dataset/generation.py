@@ -20,7 +20,7 @@ from tqdm.auto import tqdm
 
 from ppdjax import primitives
 from ppdjax.dataset import camera, card, depth, materials, render, storage, towers, voxels
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
+from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.sim.simulate import BACKENDS, simulate
 
 
@@ -129,7 +129,8 @@ def generate(config, out: str, progress: bool = True) -> dict:
       "splits": {k: sum(c["splits"][k] for c in counts) for k in storage.SPLITS},
       "engine": {"backend": cfg.backend,
                  "precision": "float64 (stored float32)" if cfg.backend == "mujoco" else "float32",
-                 "mjx_settings": dataclasses.asdict(DEFAULT_SETTINGS)},
+                 # the JAX engine's settings (inference reads "mujoco" data through MJX)
+                 "settings": dataclasses.asdict(settings_for(cfg.backend))},
       "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
       "depth": DEPTH_SOURCE,
       "shards": counts,
