@@ -149,7 +149,8 @@ def test_simulate_under_jit_with_fewer_steps(prims, mjx_traj):
 
 
 @pytest.mark.slow  # a cross-check of ~60 s; decompose(refine=True) runs jacfwd by default
-def test_forward_mode_density_derivatives_vs_finite_differences(prims):
+@pytest.mark.parametrize("backend", ["mjx", "box_plane"])
+def test_forward_mode_density_derivatives_vs_finite_differences(prims, backend):
   """d(trajectory)/d(log density) by jacfwd through MJX against central differences.
 
   They agree while the contact set stays the same (the push and the first 1/30 s, through
@@ -162,7 +163,8 @@ def test_forward_mode_density_derivatives_vs_finite_differences(prims):
   steps, h = 30, 1e-2
 
   def traj(log_density):
-    return ppdjax.simulate(one.replace(density=jnp.exp(log_density)), steps=steps)[..., :3]
+    return ppdjax.simulate(one.replace(density=jnp.exp(log_density)), steps=steps,
+                           backend=backend)[..., :3]
 
   log_d = jnp.log(jnp.where(one.valid, one.density, 1.0))
   jac = np.asarray(jax.jacfwd(traj)(log_d))  # (P, steps, 3, K)
