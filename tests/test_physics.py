@@ -151,7 +151,8 @@ def test_simulate_under_jit_with_fewer_steps(prims, mjx_traj):
 @pytest.mark.slow  # a cross-check of ~60 s; decompose(refine=True) runs jacfwd by default
 @pytest.mark.parametrize("backend", ["mjx", "box_plane"])
 def test_forward_mode_density_derivatives_vs_finite_differences(prims, backend):
-  """d(trajectory)/d(log density) by jacfwd through MJX against central differences.
+  """d(trajectory)/d(log density) by jacfwd through each JAX engine against central
+  differences.
 
   They agree while the contact set stays the same (the push and the first 1/30 s, through
   the push step's contacts). A contact that starts or ends (a box landing, an edge
