@@ -275,12 +275,12 @@ def test_box_plane_step_ignores_padding(prims, box_plane_traj):
 
 
 def test_box_plane_constants_are_the_scene_models():
-  from ppdjax.sim import box_plane
+  from ppdjax.sim import box_plane, newton
   model = scene.template_model()
   np.testing.assert_allclose(model.opt.gravity, box_plane.GRAVITY)
   assert model.opt.impratio == 1.0 and model.opt.timestep == TIMESTEP
-  assert (model.opt.tolerance, model.opt.ls_tolerance) == (box_plane.TOLERANCE,
-                                                           box_plane.LS_TOLERANCE)
+  assert (model.opt.tolerance, model.opt.ls_tolerance) == (newton.TOLERANCE,
+                                                           newton.LS_TOLERANCE)
   np.testing.assert_allclose(model.geom_friction[:, 0], box_plane.FRICTION)
   np.testing.assert_allclose(model.geom_solref, np.tile(box_plane.SOLREF, (model.ngeom, 1)))
   np.testing.assert_allclose(model.geom_solimp, np.tile(box_plane.SOLIMP, (model.ngeom, 1)))

@@ -1,10 +1,10 @@
 """Evaluation on a dataset split: paper Tables 2, 4 and 5 for one trained model.
 
-Per batch, one jitted call decodes the objects and simulates, per object, in one batched
-MJX call: the network's S density samples (candidate 0 its arg-max), Table 4's sampling
-baselines (S uniform densities on the true shape; S random tower shapes with uniform
-densities) and Table 2's baselines' guesses on the true shape. With refinement, a second
-jitted call fits the closest sample's densities by Levenberg–Marquardt through MJX.
+Per batch, one jitted call decodes the objects and simulates, with the data's engine, the
+network's S density samples (candidate 0 its arg-max), Table 4's sampling baselines (S
+uniform densities on the true shape; S random tower shapes with uniform densities) and
+Table 2's guesses on the true shape; with refinement, a second fits the closest sample's
+densities by Levenberg–Marquardt through the same engine.
 
 Rows (density metrics over true boxes, the k-th decoded box against the k-th true box
 from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
@@ -23,9 +23,8 @@ from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
   ...+Sample+Joint  with `joint`: faces and densities fitted together from the same start
                   as +Refine (`joint.refine_joint`; with depth, on the depth image too);
   Frequent, Nearest, Oracle (`ppdjax.infer.baselines`), on the true shape.
-MAE is the paper's trajectory MAE in mm (`metrics.trajectory_mae`). Each batch's records
-can be saved as they are made and reused by a later call (`partial`): long evaluations
-resume.
+MAE: the paper's trajectory MAE in mm (`metrics.trajectory_mae`). Batch records saved as
+they are made (`partial`) are reused by a later call: long evaluations resume.
 """
 
 from __future__ import annotations
@@ -318,7 +317,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                        refine_prior=refine_prior,
                        estimator=estimator_module.load(estimator)[0] if estimator else None,
                        estimator_weight=estimator_weight, joint=joint, true_shapes=true_shapes,
-                       settings=settings_for(test.manifest.get("engine", {}).get("backend", "mjx")))
+                       settings=settings_for(test.manifest.get("engine", {}).get("backend")))
       idx = np.pad(idx, (0, batch_size - keep), mode="edge")  # one compiled shape
       batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials")
                         + (("depth",) if depth else ()))

@@ -13,9 +13,8 @@ expressions (70 kernel launches per step on a GPU, against MJX's 144):
   below the box centre that touch the ground (at most 4), each at the corner moved half its
   depth back along the normal; the deepest `max_contacts` of them are kept.
 - **Constraints**: MuJoCo's soft contacts with a pyramidal cone (4 edges per contact,
-  friction 1, `solref`/`solimp` defaults, `impratio` 1) and the Newton solver with MJX's
-  line search, warm start and stopping test, each element frozen once it has converged,
-  as `mjx_step.solve` does, run a fixed number of iterations (no `while_loop`).
+  friction 1, `solref`/`solimp` defaults, `impratio` 1), solved by `ppdjax.sim.newton`
+  (MuJoCo's Newton solver as MJX runs it, for a fixed number of iterations).
 - **Integration**: semi-implicit Euler, the quaternion by MuJoCo's `mju_quatIntegrate`.
 
 Pure JAX on one rollout; `jax.vmap` batches it. Differentiable in forward mode and, with
@@ -39,14 +38,14 @@ from ppdjax.primitives import Primitives, quat_to_mat
 from ppdjax.sim.mass import mass_properties
 from ppdjax.sim.pushes import Pushes, push_wrenches
 from ppdjax.sim.scene import rest_position
+from ppdjax.sim import newton
+from ppdjax.sim.newton import MINVAL
 from ppdjax.sim.small_linalg import cholesky_solve
 
 GRAVITY = np.array([0.0, 0.0, -9.81], np.float32)  # MuJoCo's default
 FRICTION = 1.0  # MuJoCo's default sliding friction (condim 3: sliding only)
 SOLREF = (0.02, 1.0)  # MuJoCo's default time constant and damping ratio
 SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)  # dmin, dmax, width, midpoint, power
-TOLERANCE, LS_TOLERANCE = 1e-8, 0.01  # MuJoCo's solver defaults
-MINVAL = 1e-15  # mjMINVAL
 CORNER_SIGNS = np.array([[1 if i & 1 else -1, 1 if i & 2 else -1, 1 if i & 4 else -1]
                          for i in range(8)], np.float32)  # mjc_PlaneBox's corner order
 
@@ -187,150 +186,6 @@ def _constraints(body: Body, qpos: jax.Array, qvel: jax.Array, max_contacts: int
   return (edges.reshape(-1, 6), jnp.repeat(d, 4), aref.reshape(-1))
 
 
-@struct.dataclass
-class _Ctx:
-  qacc: jax.Array
-  ma: jax.Array
-  jaref: jax.Array
-  grad: jax.Array
-  mgrad: jax.Array
-  search: jax.Array
-  gauss: jax.Array
-  cost: jax.Array
-  prev_cost: jax.Array
-  active: jax.Array
-  qfrc_constraint: jax.Array
-
-
-@struct.dataclass
-class _Problem:
-  """The Newton problem of one step: min over qacc of the Gauss + constraint cost."""
-
-  m: jax.Array  # (6, 6)
-  qfrc_smooth: jax.Array
-  qacc_smooth: jax.Array
-  j: jax.Array  # (R, 6)
-  d: jax.Array  # (R,)
-  aref: jax.Array  # (R,)
-  trace_m: jax.Array
-
-
-def _update_constraint(p: _Problem, ctx: _Ctx) -> _Ctx:
-  active = ctx.jaref < 0
-  force = -p.d * ctx.jaref * active
-  gauss = 0.5 * jnp.dot(ctx.ma - p.qfrc_smooth, ctx.qacc - p.qacc_smooth)
-  cost = 0.5 * jnp.sum(p.d * ctx.jaref * ctx.jaref * active) + gauss
-  return ctx.replace(active=active, gauss=gauss, cost=cost, prev_cost=ctx.cost,
-                     qfrc_constraint=p.j.T @ force)
-
-
-def _update_gradient(p: _Problem, ctx: _Ctx) -> _Ctx:
-  grad = ctx.ma - p.qfrc_smooth - ctx.qfrc_constraint
-  h = p.m + (p.j.T * (p.d * ctx.active)) @ p.j
-  return ctx.replace(grad=grad, mgrad=cholesky_solve(0.5 * (h + h.T), grad))
-
-
-def _context(p: _Problem, qacc: jax.Array, grad: bool = True) -> _Ctx:
-  zero = jnp.zeros(6, qacc.dtype)
-  ctx = _Ctx(qacc=qacc, ma=p.m @ qacc, jaref=p.j @ qacc - p.aref, grad=zero, mgrad=zero,
-             search=zero, gauss=jnp.zeros(()), cost=jnp.array(jnp.inf),
-             prev_cost=jnp.zeros(()), active=jnp.zeros(p.d.shape, bool),
-             qfrc_constraint=zero)
-  ctx = _update_constraint(p, ctx)
-  if grad:
-    ctx = _update_gradient(p, ctx)
-    ctx = ctx.replace(search=-ctx.mgrad)
-  return ctx
-
-
-def _linesearch(p: _Problem, ctx: _Ctx, ls_iterations: int) -> _Ctx:
-  """MJX's bracketing Newton line search on the piecewise quadratic cost (pyramidal)."""
-  gtol = TOLERANCE * LS_TOLERANCE * jnp.linalg.norm(ctx.search) * p.trace_m
-  mv, jv = p.m @ ctx.search, p.j @ ctx.search
-  quad_gauss = jnp.stack([ctx.gauss, jnp.dot(ctx.search, ctx.ma - p.qfrc_smooth),
-                          0.5 * jnp.dot(ctx.search, mv)])
-  quad = p.d[:, None] * jnp.stack([0.5 * ctx.jaref ** 2, jv * ctx.jaref, 0.5 * jv * jv], 1)
-
-  def point(alpha):
-    active = (ctx.jaref + alpha * jv) < 0
-    q = quad_gauss + jnp.sum(quad * active[:, None], 0)
-    return dict(alpha=alpha, cost=alpha * alpha * q[2] + alpha * q[1] + q[0],
-                d0=2 * alpha * q[2] + q[1], d1=2 * q[2] + (q[2] == 0) * MINVAL)
-
-  def pick(cond, a, b):
-    return jax.tree.map(lambda x, y: jnp.where(cond, x, y), a, b)
-
-  p0 = point(jnp.zeros(()))
-  rows_0 = jnp.maximum(p0["cost"] - quad_gauss[0], 0.0)
-  rows_2 = jnp.maximum(0.5 * p0["d1"] - quad_gauss[2], 0.0)
-  dmag = 2.0 * jnp.sqrt(jax.lax.stop_gradient(rows_0 * rows_2)) + jnp.abs(quad_gauss[1])
-  gtol_accept = jax.lax.stop_gradient(
-      jnp.maximum(gtol, 8 * jnp.finfo(dmag.dtype).eps * dmag))
-  first = point(p0["alpha"] - p0["d0"] / p0["d1"])
-  lo = pick(first["d0"] < p0["d0"], first, p0)
-  hi = pick(first["d0"] < p0["d0"], p0, first)
-  swap = jnp.array(True)
-
-  def good(x):
-    return (jnp.abs(x["d0"]) < gtol_accept) & (x["cost"] < p0["cost"])
-
-  def in_bracket(x, y):
-    return ((x < y) & (y < 0)) | ((x > y) & (y > 0))
-
-  for _ in range(ls_iterations):
-    go = swap & ~good(lo) & ~good(hi)
-    lo_next = point(lo["alpha"] - lo["d0"] / lo["d1"])
-    hi_next = point(hi["alpha"] - hi["d0"] / hi["d1"])
-    mid = point(0.5 * (lo["alpha"] + hi["alpha"]))
-    s1 = in_bracket(lo["d0"], lo_next["d0"])
-    new_lo = pick(s1, lo_next, lo)
-    s2 = in_bracket(new_lo["d0"], mid["d0"])
-    new_lo = pick(s2, mid, new_lo)
-    s3 = in_bracket(new_lo["d0"], hi_next["d0"])
-    new_lo = pick(s3, hi_next, new_lo)
-    s4 = in_bracket(hi["d0"], hi_next["d0"]) | ((hi["d0"] < 0) & (hi_next["d0"] > 0))
-    new_hi = pick(s4, hi_next, hi)
-    s5 = in_bracket(new_hi["d0"], mid["d0"])
-    new_hi = pick(s5, mid, new_hi)
-    s6 = in_bracket(new_hi["d0"], lo_next["d0"])
-    new_hi = pick(s6, lo_next, new_hi)
-    new_swap = s1 | s2 | s3 | s4 | s5 | s6
-    # accept the lowest-cost converged candidate
-    cands = (lo_next, hi_next, mid)
-    costs = jnp.stack([jnp.where(good(c), c["cost"], jnp.inf) for c in cands])
-    done = jnp.isfinite(costs).any()
-    best_i = jnp.argmin(costs)
-    best = jax.tree.map(lambda *xs: jnp.stack(xs)[best_i], *cands)
-    new_lo, new_hi = pick(done, best, new_lo), pick(done, best, new_hi)
-    new_swap = new_swap & ~done
-    lo, hi, swap = pick(go, new_lo, lo), pick(go, new_hi, hi), jnp.where(go, new_swap, swap)
-
-  improved = (lo["cost"] < p0["cost"]) | (hi["cost"] < p0["cost"])
-  alpha = jnp.where(lo["cost"] < hi["cost"], lo["alpha"], hi["alpha"]) * improved
-  return ctx.replace(qacc=ctx.qacc + alpha * ctx.search, ma=ctx.ma + alpha * mv,
-                     jaref=ctx.jaref + alpha * jv)
-
-
-def _solve(p: _Problem, qacc_warmstart: jax.Array, iterations: int,
-           ls_iterations: int) -> jax.Array:
-  """qacc by `iterations` Newton steps from the better of warm start and smooth."""
-  warm = _context(p, qacc_warmstart, grad=False)
-  smooth = _context(p, p.qacc_smooth, grad=False)
-  ctx = _context(p, jnp.where(warm.cost < smooth.cost, qacc_warmstart, p.qacc_smooth))
-  for _ in range(iterations):
-    improvement = (ctx.prev_cost - ctx.cost) / p.trace_m
-    gradient = jnp.linalg.norm(ctx.grad) / p.trace_m
-    go = (improvement >= TOLERANCE) & (gradient >= TOLERANCE)
-    # A converged element searches along a harmless unit direction (its result is
-    # discarded), so reverse mode sees no 0/0.
-    probe = ctx.replace(search=jnp.where(go, ctx.search, jnp.ones_like(ctx.search)))
-    new = _linesearch(p, probe, ls_iterations)
-    new = _update_gradient(p, _update_constraint(p, new))
-    new = new.replace(search=-new.mgrad)
-    ctx = jax.tree.map(lambda a, b: jnp.where(go, a, b), new, ctx)
-  return ctx.qacc
-
-
 def _quat_integrate(quat: jax.Array, omega_b: jax.Array, dt: float) -> jax.Array:
   """MuJoCo's mju_quatIntegrate: rotate by omega_b * dt about body axes, renormalise."""
   sq = jnp.sum(omega_b * omega_b)
@@ -364,9 +219,9 @@ def _step(body, state, wrench, iterations, ls_iterations, max_contacts):
   qfrc_smooth = _smooth_force(body, rot, state.qvel, wrench)
   qacc_smooth = cholesky_solve(m, qfrc_smooth)
   j, d, aref = _constraints(body, qpos, state.qvel, max_contacts)
-  problem = _Problem(m=m, qfrc_smooth=qfrc_smooth, qacc_smooth=qacc_smooth, j=j, d=d,
-                     aref=aref, trace_m=jnp.maximum(jnp.trace(m), MINVAL))
-  qacc = _solve(problem, state.qacc_warmstart, iterations, ls_iterations)
+  problem = newton.Problem(m=m, qfrc_smooth=qfrc_smooth, qacc_smooth=qacc_smooth, j=j, d=d,
+                           aref=aref, trace_m=jnp.maximum(jnp.trace(m), MINVAL))
+  qacc = newton.solve(problem, state.qacc_warmstart, iterations, ls_iterations)
   qvel = state.qvel + TIMESTEP * qacc
   qpos = jnp.concatenate([qpos[:3] + TIMESTEP * qvel[:3],
                           _quat_integrate(qpos[3:], qvel[3:], TIMESTEP)])
