@@ -111,7 +111,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
       `fit` and the paper's pushes.
     estimator_weight: see `estimator`.
     pushes: the pushes the observations were recorded with (None: the paper's four).
-    settings: MJX settings the observations were simulated with (the dataset's).
+    settings: the engine the observations were simulated with (the dataset's): MjxSettings
+      or BoxPlaneSettings (`ppdjax.sim.rollout_mjx.settings_for(engine)`).
 
   Returns:
     decompose(observation, key): observation is a dict with "voxels" (32,32,32),

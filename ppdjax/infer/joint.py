@@ -85,7 +85,7 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
     steps: LM iterations, each one forward-mode rollout with 7K tangents.
     warmup_steps: the first horizon of `refine.horizon_schedule`.
     damping: the starting LM damping.
-    settings: MJX solver settings (the observations').
+    settings: the engine's settings (the observations'; MJX or box-plane).
   """
   pushes = default_pushes() if pushes is None else pushes
   t = observed.shape[-2]

@@ -82,7 +82,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
       entry (1e-5: about 3 mm). 0 is a plain least-squares fit.
     horizons: (steps + 1,) the trajectory steps each pass fits, instead of
       `horizon_schedule(steps, warmup_steps, T)` (e.g. another continuation to compare).
-    settings: MJX solver settings.
+    settings: the engine's settings (MjxSettings or BoxPlaneSettings).
 
   Returns:
     (Primitives with refined densities, {"cost_start", "cost": 0.5·|r|² over the whole

@@ -126,7 +126,7 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
     include_mode: make candidate 0 the most likely assignment.
     prior_weight: τ in metres per nat: the winner minimises distance − τ · log p(slots)
       under the network's distribution (0: the paper's closest trajectory).
-    settings: MJX solver settings (those the dataset was simulated with).
+    settings: the engine's settings (those the dataset was simulated with: MJX or box-plane).
 
   Returns:
     Selection: best densities, its score and every candidate's score and MAE.
