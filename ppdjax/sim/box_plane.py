@@ -231,7 +231,8 @@ def _step(body, state, wrench, iterations, ls_iterations, max_contacts):
 def rollout(body: Body, qpos0: jax.Array, wrench: jax.Array, *, steps: int, duration: int,
             settings: BoxPlaneSettings) -> jax.Array:
   """(steps, 7) poses after each step of one push: `wrench` acts for `duration` steps."""
-  state = State(qpos=qpos0, qvel=jnp.zeros(6, qpos0.dtype), qacc_warmstart=jnp.zeros(6, qpos0.dtype))
+  zero = jnp.zeros(6, qpos0.dtype)
+  state = State(qpos=qpos0, qvel=zero, qacc_warmstart=zero)
   n_push = min(steps, duration + settings.push_steps_extra)
 
   def stepper(iterations, ls_iterations):
