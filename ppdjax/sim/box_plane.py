@@ -128,7 +128,7 @@ def _smooth_force(body: Body, rot: jax.Array, qvel: jax.Array, wrench: jax.Array
   return jnp.concatenate([force, torque_b - gyroscopic])
 
 
-def _contacts(body: Body, qpos: jax.Array, max_contacts: int = 0):
+def _contacts(body: Body, qpos: jax.Array, rot: jax.Array, max_contacts: int = 0):
   """Box-plane contacts, 4 corner slots per box: (C,) depth, (C, 3) point, (C,) active.
 
   Corners come in opposite pairs (i, 7 - i); at most one of each pair lies below the box
@@ -136,7 +136,6 @@ def _contacts(body: Body, qpos: jax.Array, max_contacts: int = 0):
   as mjc_PlaneBox's "first 4 of the lower corners" except when a corner lies exactly at
   the centre's height (a tie of measure zero, where C may take both of a pair).
   """
-  rot = quat_to_mat(qpos[3:])
   centre = qpos[:3] + body.box_pos @ rot.T  # (K, 3)
   box_rot = jnp.einsum("ij,kjl->kil", rot, body.box_rot)  # (K, 3, 3)
   local = CORNER_SIGNS[None, :4] * body.half_size[:, None, :]  # (K, 4, 3): pairs' first
@@ -166,10 +165,10 @@ def _impedance(depth: jax.Array):
   return k, b, imp
 
 
-def _constraints(body: Body, qpos: jax.Array, qvel: jax.Array, max_contacts: int):
+def _constraints(body: Body, qpos: jax.Array, rot: jax.Array, qvel: jax.Array,
+                 max_contacts: int):
   """Pyramidal contact rows: J (R, 6), D (R,), aref (R,); inactive rows are zero."""
-  depth, point, active = _contacts(body, qpos, max_contacts)
-  rot = quat_to_mat(qpos[3:])
+  depth, point, active = _contacts(body, qpos, rot, max_contacts)
   arm = point - qpos[:3]  # (C, 3)
   # d(point velocity)/d(qvel): [I | -skew(arm) rot], rows x, y, z of the world.
   rot_part = -jnp.einsum("cij,jk->cik", jax.vmap(_skew)(arm), rot)  # (C, 3, 3)
@@ -218,7 +217,7 @@ def _step(body, state, wrench, iterations, ls_iterations, max_contacts):
   m = _mass_matrix(body, rot)
   qfrc_smooth = _smooth_force(body, rot, state.qvel, wrench)
   qacc_smooth = cholesky_solve(m, qfrc_smooth)
-  j, d, aref = _constraints(body, qpos, state.qvel, max_contacts)
+  j, d, aref = _constraints(body, qpos, rot, state.qvel, max_contacts)
   problem = newton.Problem(m=m, qfrc_smooth=qfrc_smooth, qacc_smooth=qacc_smooth, j=j, d=d,
                            aref=aref, trace_m=jnp.maximum(jnp.trace(m), MINVAL))
   qacc = newton.solve(problem, state.qacc_warmstart, iterations, ls_iterations)
