@@ -154,6 +154,19 @@ def test_fit_without_init_is_exact_on_axis_aligned_towers(tower_set, fitted_towe
   np.testing.assert_array_equal(_voxelize(got), vox[:16])
 
 
+def test_exact_readings_skip_the_search_with_the_same_answer(tower_set, fitted_towers):
+  """A batch of towers takes the fast path (every exact reading wins); one rotated box
+  among them sends the whole batch through the search, which must agree on the towers."""
+  true, vox = tower_set
+  rotated = primitives.make(*towers.sample_geometry(np.random.default_rng(5), 1, rotate=0.5))
+  mixed = np.concatenate([vox[:15], _voxelize(primitives.stack([rotated]))])
+  got = jax.tree.map(np.asarray, fit.fit_boxes(mixed))
+  fast = jax.tree.map(lambda x: x.reshape((16,) + x.shape[2:])[:15], fitted_towers)
+  for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[:15], got)), jax.tree.leaves(fast)):
+    np.testing.assert_array_equal(a, b)
+  assert got.valid[15].sum() == 1  # the rotated box was fitted, not read as a tower
+
+
 def test_rejects_bad_input(tower_set):
   vox = tower_set[1][:2]
   with pytest.raises(ValueError, match=r"voxels: expected shape \(\.\.\., 32, 32, 32\)"):

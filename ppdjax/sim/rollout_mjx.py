@@ -62,6 +62,8 @@ def settings_for(backend: str) -> Settings:
   """The JAX engine's default settings for data simulated by `backend`: the box-plane
   step for "box_plane", MJX otherwise (data made by MuJoCo C is read through MJX)."""
   return BoxPlaneSettings() if backend == "box_plane" else DEFAULT_SETTINGS
+
+
 # Above this many push iterations the push step keeps MJX's while_loop (unrolling 100
 # iterations would take minutes to compile).
 MAX_UNROLLED_ITERATIONS = 16
