@@ -312,6 +312,15 @@ def test_box_plane_kernel_is_the_reference_step(prims, box_plane_traj):
 
 
 @pytest.mark.slow
+def test_box_plane_kernel_with_all_contacts_is_the_reference_step(prims):
+  """max_contacts=0 (every candidate in the solve, as MuJoCo C) against the reference."""
+  four = jax.tree.map(lambda x: x[:4], prims)
+  out = [np.asarray(ppdjax.simulate(four, steps=48, backend="box_plane", settings=BoxPlaneSettings(
+      max_contacts=0, kernel=kernel))) for kernel in ("reference", "pallas")]
+  assert _gap_mm(out[1], out[0]).max() < 0.001
+
+
+@pytest.mark.slow
 def test_box_plane_kernel_derivatives_are_the_reference_steps(prims):
   """jax.jvp through the kernel runs the reference step (custom_jvp): the same numbers."""
   one = jax.tree.map(lambda x: jnp.asarray(x[0]), prims)

@@ -66,9 +66,9 @@ class BoxPlaneSettings:
       8 costs no agreement with C on the benchmark towers and halves the rows.
     kernel: "reference" runs this module's step (XLA); "pallas" runs whole rollouts as
       one Pallas kernel (`ppdjax.sim.box_plane_kernel`; interpreted off a GPU), the same
-      trajectories to 0.001 mm at p90, faster at 2,048 rollouts and slower at 131,072 on
-      an H100 (docs/physics.md), hence not the default. Derivatives always run this
-      module's step.
+      trajectories to 0.001 mm at p90; its first version was faster at 2,048 rollouts
+      and slower at 131,072 on an H100 (docs/physics.md), hence not the default.
+      Derivatives always run this module's step.
   """
 
   iterations: int = 3

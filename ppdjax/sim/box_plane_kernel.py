@@ -8,7 +8,8 @@ steps, so a step costs no launches and no memory traffic beyond the poses it wri
 
 A rollout's scalars are (BLOCK,) arrays, its vectors and matrices tuples of them (the
 kernel language has no small arrays of odd sizes); its contact candidates (4 per box,
-padded to CANDIDATES) are (CANDIDATES, BLOCK) tensors, so a row operation is one tensor
+padded to CANDIDATES) are (CANDIDATES, BLOCK) tensors, and the kept contacts are packed
+into (max_contacts, BLOCK) tensors before the solve, so a row operation is one tensor
 operation and the kernel stays small enough to compile in about 80 s. The physics is
 `box_plane.step`'s (contacts by `mjc_PlaneBox`, the deepest `max_contacts` as `top_k`
 picks them, pyramidal soft rows written through the contact points' velocities, MuJoCo's
@@ -16,11 +17,10 @@ Newton solver with MJX's line search, semi-implicit Euler); tests/test_physics.p
 the two to the same trajectories. Forward only: derivatives (`jax.jvp`, `jax.grad`) run
 the reference step (`jax.custom_jvp`).
 
-Measured on one H100 (docs/physics.md): 0.001 mm from the reference at p90 after 256
-steps; 48 ms for 2,048 rollouts (reference 52-60 ms) but 1.6 s for 131,072 (reference
-0.95 s): every candidate carries rows although at most `max_contacts` are kept, so a
-program does 4x the reference's row work in registers that spill. Compacting the kept
-contacts into (max_contacts, BLOCK) tensors is the next step.
+Measured on one H100 before the packing (docs/physics.md): 0.001 mm from the reference at
+p90 after 256 steps; 48 ms for 2,048 rollouts (reference 52-60 ms) but 1.6 s for 131,072
+(reference 0.95 s), with every candidate's rows in the solve (4x the reference's row
+work, in registers that spill). The packing removes that excess; it is not timed yet.
 """
 
 from __future__ import annotations
@@ -117,25 +117,36 @@ def _smooth_force(body, rot, qvel, wrench):
 
 
 def _contacts(body, pos, rot, max_contacts):
-  """Contact candidates as (CANDIDATES, BLOCK) tensors: depth, arm (point - origin, world)
-  and `on` (touching, and among the deepest `max_contacts` as `lax.top_k` picks them)."""
+  """Contacts as (slots, BLOCK) tensors: depth, arm (point - origin, world) and `on`.
+
+  All candidates (4 per box) are tested; with `max_contacts`, the deepest touching ones
+  are then packed into max_contacts slots (rounded up to a power of two), deepest first
+  and the lowest index on ties, as `lax.top_k` picks them, so the solver works on those
+  rows only."""
   centre = [sum(rot[i][j] * body["cand_pos"][j] for j in range(3)) for i in range(3)]
   corner = [sum(rot[i][j] * body["cand_corner"][j] for j in range(3)) for i in range(3)]
   down = corner[2] <= 0.0
   corner = [jnp.where(down, x, -x) for x in corner]
   depth = pos[2] + centre[2] + corner[2]
   arm = (centre[0] + corner[0], centre[1] + corner[1], centre[2] + corner[2] - 0.5 * depth)
-  active = (depth <= 0.0) & body["cand_valid"]
-  if 0 < max_contacts < body["num_candidates"]:
-    index = jax.lax.broadcasted_iota(jnp.int32, depth.shape, 0)
-    key = jnp.where(active, -depth, -1e30)  # untouching candidates rank below all others
-    kept = jnp.zeros(depth.shape, bool)
-    for _ in range(max_contacts):  # the deepest left, the lowest index on ties
-      best = jnp.max(jnp.where(kept, -jnp.inf, key), axis=0)
-      first = jnp.min(jnp.where(~kept & (key == best), index, CANDIDATES), axis=0)
-      kept = kept | (index == first)
-    active = active & kept
-  return depth, arm, active.astype(jnp.float32)
+  on = ((depth <= 0.0) & body["cand_valid"]).astype(jnp.float32)
+  if not 0 < max_contacts < body["num_candidates"]:
+    return depth, arm, on
+  index = jax.lax.broadcasted_iota(jnp.int32, depth.shape, 0)
+  key = jnp.where(on > 0, -depth, -1e30)  # untouching candidates rank below all others
+  slots = 1 << (max_contacts - 1).bit_length()
+  slot = jax.lax.broadcasted_iota(jnp.int32, (slots, depth.shape[1]), 0)
+  fields = (depth,) + arm + (on,)
+  packed = [jnp.zeros(slot.shape, jnp.float32) for _ in fields]
+  kept = jnp.zeros(depth.shape, bool)
+  for r in range(max_contacts):
+    best = jnp.max(jnp.where(kept, -jnp.inf, key), axis=0)
+    first = jnp.min(jnp.where(~kept & (key == best), index, CANDIDATES), axis=0)
+    pick = index == first
+    kept = kept | pick
+    packed = [jnp.where(slot == r, jnp.sum(jnp.where(pick, f, 0.0), axis=0), p)
+              for f, p in zip(fields, packed)]
+  return packed[0], tuple(packed[1:4]), packed[4]
 
 
 def _edge_speeds(c, x):
