@@ -13,6 +13,7 @@ different XLA_FLAGS (one process per setting) to compare compiler options.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import os
@@ -95,12 +96,16 @@ def main():
   parser.add_argument("--batch", type=int, default=64)
   parser.add_argument("--repeats", type=int, default=5)
   parser.add_argument("--engine", default="box_plane", choices=("mjx", "box_plane"))
+  parser.add_argument("--kernel", default="reference", choices=("reference", "pallas"),
+                      help="the box-plane step's kernel (BoxPlaneSettings.kernel)")
   parser.add_argument("--only", default="", help="comma-separated stage-name prefixes")
   parser.add_argument("--out", default="")
   args = parser.parse_args()
   config = paper.get_config()
   model = PPD(config.model, rngs=nnx.Rngs(0))
   settings = rollout_mjx.settings_for(args.engine)
+  if args.engine == "box_plane":
+    settings = dataclasses.replace(settings, kernel=args.kernel)
   obs = observations(0, args.batch, config.data.image_size, settings)
   one = jax.tree.map(lambda x: x[:1], obs)
   key = jax.random.key(0)
@@ -118,6 +123,7 @@ def main():
     print(f"| {name} | {t1 * 1e3:.1f} | {tb * 1e3:.1f} | {args.batch / tb:.1f} |", flush=True)
   if args.out:
     meta = {"device": jax.devices()[0].device_kind, "engine": args.engine,
+            "kernel": args.kernel,
             "samples": args.samples, "batch": args.batch, "jax": jax.__version__,
             "xla_flags": os.environ.get("XLA_FLAGS", "")}
     with open(args.out, "w") as f:

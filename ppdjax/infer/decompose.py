@@ -17,7 +17,7 @@ from ppdjax.infer.sampling import select_densities
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings
+from ppdjax.sim.rollout_mjx import Settings, settings_for
 from ppdjax.training import checkpoints
 from ppdjax.training import estimator as estimator_module
 
@@ -84,7 +84,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       refine_steps: int = 12, prior_weight: float = 0.0,
                       refine_prior: float = 0.0, estimator=None,
                       estimator_weight: float = 1.0, pushes: Pushes | None = None,
-                      settings: Settings = DEFAULT_SETTINGS):
+                      settings: Settings | None = None):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
 
   Args:
@@ -111,8 +111,9 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
       `fit` and the paper's pushes.
     estimator_weight: see `estimator`.
     pushes: the pushes the observations were recorded with (None: the paper's four).
-    settings: the engine the observations were simulated with (the dataset's): MjxSettings
-      or BoxPlaneSettings (`ppdjax.sim.rollout_mjx.settings_for(engine)`).
+    settings: the engine the observations were simulated with: MjxSettings or
+      BoxPlaneSettings; None: the default settings of the engine that made the model's
+      training data (`config.data.backend`, `rollout_mjx.settings_for`).
 
   Returns:
     decompose(observation, key): observation is a dict with "voxels" (32,32,32),
@@ -136,6 +137,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   if isinstance(estimator, str):
     estimator = estimator_module.load(estimator)[0]
   pushes = default_pushes() if pushes is None else pushes
+  if settings is None:
+    settings = settings_for(config.data.get("backend", "mjx"))
   graphdef, state = nnx.split(model)
   est_graphdef, est_state = nnx.split(estimator) if estimator is not None else (None, None)
 
