@@ -46,7 +46,8 @@ def timed(fn, repeats: int) -> float:
 def observations(seed: int, count: int, image_size: int, settings) -> dict:
   prims = ppdjax.sample_towers(seed, count)
   rng = np.random.default_rng(seed)
-  traj = jax.jit(jax.vmap(lambda p: rollout_mjx.simulate(p, ppdjax.default_pushes(), settings=settings)))(
+  simulate = lambda p: rollout_mjx.simulate(p, ppdjax.default_pushes(), settings=settings)
+  traj = jax.jit(jax.vmap(simulate))(
       jax.tree.map(jnp.asarray, prims))
   return {"voxels": jnp.asarray(ppdjax.voxelize(prims)),
           "image": jnp.asarray(rng.integers(0, 255, (count, image_size, image_size, 3),
