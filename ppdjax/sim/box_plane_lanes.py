@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ppdjax.conventions import TIMESTEP
-from ppdjax.sim import box_plane
+from ppdjax.sim import box_plane, newton
 from ppdjax.sim.box_plane import FRICTION, GRAVITY
 from ppdjax.sim.newton import LS_TOLERANCE, MINVAL, TOLERANCE
 
@@ -45,8 +45,7 @@ def _mtv(m, v):  # m transposed, times v
   return tuple(_dot([m[k][j] for k in range(len(v))], v) for j in range(len(m[0])))
 
 
-def _where(c, a, b):
-  return jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
+_where = newton.pick
 
 
 def _cholesky_solve(a, b):
@@ -247,39 +246,9 @@ def _linesearch(p, ctx, ls_iterations):
   def good(x):
     return (jnp.abs(x["d0"]) < gtol_accept) & (x["cost"] < p0["cost"])
 
-  def in_bracket(x, y):
-    return ((x < y) & (y < 0)) | ((x > y) & (y > 0))
-
-  def iteration(_, carry):
-    lo, hi, swap = carry
-    go = swap & ~good(lo) & ~good(hi)
-    lo_next = point(lo["alpha"] - lo["d0"] / lo["d1"])
-    hi_next = point(hi["alpha"] - hi["d0"] / hi["d1"])
-    mid = point(0.5 * (lo["alpha"] + hi["alpha"]))
-    s1 = in_bracket(lo["d0"], lo_next["d0"])
-    new_lo = _where(s1, lo_next, lo)
-    s2 = in_bracket(new_lo["d0"], mid["d0"])
-    new_lo = _where(s2, mid, new_lo)
-    s3 = in_bracket(new_lo["d0"], hi_next["d0"])
-    new_lo = _where(s3, hi_next, new_lo)
-    s4 = in_bracket(hi["d0"], hi_next["d0"]) | ((hi["d0"] < 0) & (hi_next["d0"] > 0))
-    new_hi = _where(s4, hi_next, hi)
-    s5 = in_bracket(new_hi["d0"], mid["d0"])
-    new_hi = _where(s5, mid, new_hi)
-    s6 = in_bracket(new_hi["d0"], lo_next["d0"])
-    new_hi = _where(s6, lo_next, new_hi)
-    new_swap = s1 | s2 | s3 | s4 | s5 | s6
-    # the lowest-cost converged candidate, the first on ties (argmin)
-    best, best_cost = lo_next, jnp.where(good(lo_next), lo_next["cost"], jnp.inf)
-    for c in (hi_next, mid):
-      c_cost = jnp.where(good(c), c["cost"], jnp.inf)
-      best, best_cost = _where(c_cost < best_cost, c, best), jnp.minimum(c_cost, best_cost)
-    done = good(lo_next) | good(hi_next) | good(mid)
-    new_lo, new_hi = _where(done, best, new_lo), _where(done, best, new_hi)
-    new_swap = new_swap & ~done
-    return _where(go, new_lo, lo), _where(go, new_hi, hi), jnp.where(go, new_swap, swap)
-
-  lo, hi, _ = jax.lax.fori_loop(0, ls_iterations, iteration, (lo, hi, jnp.ones(gtol.shape, bool)))
+  lo, hi, _ = jax.lax.fori_loop(
+      0, ls_iterations, lambda _, c: newton.bracket_iteration(point, good, *c),
+      (lo, hi, jnp.ones(gtol.shape, bool)))
   improved = (lo["cost"] < p0["cost"]) | (hi["cost"] < p0["cost"])
   alpha = jnp.where(improved, jnp.where(lo["cost"] < hi["cost"], lo["alpha"], hi["alpha"]), 0.0)
   return dict(ctx, qacc=tuple(a + alpha * s for a, s in zip(ctx["qacc"], search)),

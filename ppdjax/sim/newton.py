@@ -75,6 +75,51 @@ def _context(p: Problem, qacc: jax.Array, grad: bool = True) -> _Ctx:
   return ctx
 
 
+def pick(cond, a, b):
+  """`a` where `cond`, else `b`, leaf by leaf (pytrees of one structure)."""
+  return jax.tree.map(lambda x, y: jnp.where(cond, x, y), a, b)
+
+
+def _in_bracket(x, y):
+  return ((x < y) & (y < 0)) | ((x > y) & (y > 0))
+
+
+def bracket_iteration(point, good, lo, hi, swap):
+  """One iteration of MJX's bracketing Newton line search: Newton steps from both ends
+  of the bracket [lo, hi] and its midpoint; the bracket shrinks onto the sign change of
+  the slope, or ends on the lowest-cost converged candidate (the first on ties).
+
+  `point(alpha)` gives a dict of "alpha", "cost", "d0" (slope), "d1" (curvature);
+  `good(x)` whether a point is converged. Written on whatever arrays the points hold:
+  one element here, a block of rollouts in `box_plane_lanes`.
+  """
+  go = swap & ~good(lo) & ~good(hi)
+  lo_next = point(lo["alpha"] - lo["d0"] / lo["d1"])
+  hi_next = point(hi["alpha"] - hi["d0"] / hi["d1"])
+  mid = point(0.5 * (lo["alpha"] + hi["alpha"]))
+  s1 = _in_bracket(lo["d0"], lo_next["d0"])
+  new_lo = pick(s1, lo_next, lo)
+  s2 = _in_bracket(new_lo["d0"], mid["d0"])
+  new_lo = pick(s2, mid, new_lo)
+  s3 = _in_bracket(new_lo["d0"], hi_next["d0"])
+  new_lo = pick(s3, hi_next, new_lo)
+  s4 = _in_bracket(hi["d0"], hi_next["d0"]) | ((hi["d0"] < 0) & (hi_next["d0"] > 0))
+  new_hi = pick(s4, hi_next, hi)
+  s5 = _in_bracket(new_hi["d0"], mid["d0"])
+  new_hi = pick(s5, mid, new_hi)
+  s6 = _in_bracket(new_hi["d0"], lo_next["d0"])
+  new_hi = pick(s6, lo_next, new_hi)
+  new_swap = s1 | s2 | s3 | s4 | s5 | s6
+  best, best_cost = lo_next, jnp.where(good(lo_next), lo_next["cost"], jnp.inf)
+  for c in (hi_next, mid):
+    c_cost = jnp.where(good(c), c["cost"], jnp.inf)
+    best, best_cost = pick(c_cost < best_cost, c, best), jnp.minimum(c_cost, best_cost)
+  done = good(lo_next) | good(hi_next) | good(mid)
+  new_lo, new_hi = pick(done, best, new_lo), pick(done, best, new_hi)
+  new_swap = new_swap & ~done
+  return pick(go, new_lo, lo), pick(go, new_hi, hi), jnp.where(go, new_swap, swap)
+
+
 def _linesearch(p: Problem, ctx: _Ctx, ls_iterations: int) -> _Ctx:
   """MJX's bracketing Newton line search on the piecewise quadratic cost (pyramidal)."""
   gtol = TOLERANCE * LS_TOLERANCE * jnp.linalg.norm(ctx.search) * p.trace_m
@@ -88,9 +133,6 @@ def _linesearch(p: Problem, ctx: _Ctx, ls_iterations: int) -> _Ctx:
     q = quad_gauss + jnp.sum(quad * active[:, None], 0)
     return dict(alpha=alpha, cost=alpha * alpha * q[2] + alpha * q[1] + q[0],
                 d0=2 * alpha * q[2] + q[1], d1=2 * q[2] + (q[2] == 0) * MINVAL)
-
-  def pick(cond, a, b):
-    return jax.tree.map(lambda x, y: jnp.where(cond, x, y), a, b)
 
   p0 = point(jnp.zeros(()))
   rows_0 = jnp.maximum(p0["cost"] - quad_gauss[0], 0.0)
@@ -106,36 +148,8 @@ def _linesearch(p: Problem, ctx: _Ctx, ls_iterations: int) -> _Ctx:
   def good(x):
     return (jnp.abs(x["d0"]) < gtol_accept) & (x["cost"] < p0["cost"])
 
-  def in_bracket(x, y):
-    return ((x < y) & (y < 0)) | ((x > y) & (y > 0))
-
   for _ in range(ls_iterations):
-    go = swap & ~good(lo) & ~good(hi)
-    lo_next = point(lo["alpha"] - lo["d0"] / lo["d1"])
-    hi_next = point(hi["alpha"] - hi["d0"] / hi["d1"])
-    mid = point(0.5 * (lo["alpha"] + hi["alpha"]))
-    s1 = in_bracket(lo["d0"], lo_next["d0"])
-    new_lo = pick(s1, lo_next, lo)
-    s2 = in_bracket(new_lo["d0"], mid["d0"])
-    new_lo = pick(s2, mid, new_lo)
-    s3 = in_bracket(new_lo["d0"], hi_next["d0"])
-    new_lo = pick(s3, hi_next, new_lo)
-    s4 = in_bracket(hi["d0"], hi_next["d0"]) | ((hi["d0"] < 0) & (hi_next["d0"] > 0))
-    new_hi = pick(s4, hi_next, hi)
-    s5 = in_bracket(new_hi["d0"], mid["d0"])
-    new_hi = pick(s5, mid, new_hi)
-    s6 = in_bracket(new_hi["d0"], lo_next["d0"])
-    new_hi = pick(s6, lo_next, new_hi)
-    new_swap = s1 | s2 | s3 | s4 | s5 | s6
-    # accept the lowest-cost converged candidate
-    cands = (lo_next, hi_next, mid)
-    costs = jnp.stack([jnp.where(good(c), c["cost"], jnp.inf) for c in cands])
-    done = jnp.isfinite(costs).any()
-    best_i = jnp.argmin(costs)
-    best = jax.tree.map(lambda *xs: jnp.stack(xs)[best_i], *cands)
-    new_lo, new_hi = pick(done, best, new_lo), pick(done, best, new_hi)
-    new_swap = new_swap & ~done
-    lo, hi, swap = pick(go, new_lo, lo), pick(go, new_hi, hi), jnp.where(go, new_swap, swap)
+    lo, hi, swap = bracket_iteration(point, good, lo, hi, swap)
 
   improved = (lo["cost"] < p0["cost"]) | (hi["cost"] < p0["cost"])
   alpha = jnp.where(lo["cost"] < hi["cost"], lo["alpha"], hi["alpha"]) * improved
