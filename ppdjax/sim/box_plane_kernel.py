@@ -125,13 +125,15 @@ def _fused(body: Body, qpos0, wrench, *, steps, duration, settings, interpret):
                              steps=steps,
                              duration=duration, settings=settings,
                              n_push=min(steps, duration + settings.push_steps_extra))
+  out_rows = 1 << (steps * 8 - 1).bit_length()  # power-of-two blocks
   out = pl.pallas_call(
-      kernel, out_shape=jax.ShapeDtypeStruct((steps * 8, n_pad), jnp.float32),
+      kernel, out_shape=jax.ShapeDtypeStruct((out_rows, n_pad), jnp.float32),
       grid=(n_pad // BLOCK,), in_specs=[pl.BlockSpec((rows, BLOCK), lambda i: (0, i))],
-      out_specs=pl.BlockSpec((steps * 8, BLOCK), lambda i: (0, i)),
+      out_specs=pl.BlockSpec((out_rows, BLOCK), lambda i: (0, i)),
       compiler_params=_compiler_params(), interpret=interpret, name="box_plane_rollout",
   )(packed)
-  return out.reshape(steps, 8, n_pad)[:, :7, :n].transpose(2, 0, 1).reshape(lead + (steps, 7))
+  poses = out[:steps * 8].reshape(steps, 8, n_pad)[:, :7, :n]
+  return poses.transpose(2, 0, 1).reshape(lead + (steps, 7))
 
 
 def _compiler_params():
