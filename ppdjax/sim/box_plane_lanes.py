@@ -23,6 +23,7 @@ from ppdjax.conventions import TIMESTEP
 from ppdjax.sim import box_plane, newton
 from ppdjax.sim.box_plane import FRICTION, GRAVITY
 from ppdjax.sim.newton import LS_TOLERANCE, MINVAL, TOLERANCE
+from ppdjax.sim.small_linalg import cholesky_solve_entries
 
 CANDIDATES = 32  # contact candidates per rollout (4 per box, then invalid padding)
 
@@ -46,24 +47,6 @@ def _mtv(m, v):  # m transposed, times v
 
 
 _where = newton.pick
-
-
-def _cholesky_solve(a, b):
-  """Solves a x = b, a symmetric positive definite (nested tuples), unrolled."""
-  n = len(b)
-  low = [[None] * n for _ in range(n)]
-  for j in range(n):
-    diag = a[j][j] - sum((low[j][k] * low[j][k] for k in range(j)), 0.0)
-    low[j][j] = jnp.sqrt(jnp.maximum(diag, 1e-30))
-    for i in range(j + 1, n):
-      low[i][j] = (a[i][j] - sum((low[i][k] * low[j][k] for k in range(j)), 0.0)) / low[j][j]
-  y = [None] * n
-  for i in range(n):
-    y[i] = (b[i] - sum((low[i][k] * y[k] for k in range(i)), 0.0)) / low[i][i]
-  x = [None] * n
-  for i in reversed(range(n)):
-    x[i] = (y[i] - sum((low[k][i] * x[k] for k in range(i + 1, n)), 0.0)) / low[i][i]
-  return tuple(x)
 
 
 def _quat_to_rows(q):
@@ -211,7 +194,7 @@ def _update_gradient(p, ctx):
   grad = tuple(a - b - c for a, b, c in zip(ctx["ma"], p["qfrc_smooth"], ctx["qfrc_constraint"]))
   rows = _edge_hessian(p["c"], [jnp.where(a, p["d"], 0.0) for a in ctx["active"]])
   h = [[p["m"][i][j] + rows[i][j] for j in range(6)] for i in range(6)]
-  mgrad = _cholesky_solve(h, grad)
+  mgrad = cholesky_solve_entries(h, grad)
   return dict(ctx, grad=grad, mgrad=mgrad, search=tuple(-x for x in mgrad))
 
 
@@ -288,7 +271,8 @@ def step(body, qpos, qvel, warm, wrench, iterations, ls_iterations, max_contacts
   qfrc_smooth = _smooth_force(body, rot, qvel, wrench)
   c, d, aref = _constraints(body, pos, rot, qvel, max_contacts)
   trace = functools.reduce(lambda a, b: a + b, [m[i][i] for i in range(6)])
-  problem = {"m": m, "qfrc_smooth": qfrc_smooth, "qacc_smooth": _cholesky_solve(m, qfrc_smooth),
+  problem = {"m": m, "qfrc_smooth": qfrc_smooth,
+             "qacc_smooth": cholesky_solve_entries(m, qfrc_smooth),
              "c": c, "d": d, "aref": aref, "trace_m": jnp.maximum(trace, MINVAL)}
   qacc = _solve(problem, warm, iterations, ls_iterations)
   qvel = tuple(v + TIMESTEP * a for v, a in zip(qvel, qacc))
