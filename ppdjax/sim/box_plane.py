@@ -261,16 +261,14 @@ def rollout(body: Body, qpos0: jax.Array, wrench: jax.Array, *, steps: int, dura
 
 
 def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
-                   settings: BoxPlaneSettings) -> jax.Array:
+                   settings: BoxPlaneSettings, run_rollout=rollout) -> jax.Array:
   """(P, steps, 7) trajectories of one object (K slots) under P pushes; traceable.
 
-  With the kernel selected (`BoxPlaneSettings.kernel`), every rollout under any `vmap`
-  of this function joins one kernel launch."""
-  from ppdjax.sim import box_plane_kernel  # the kernel module builds on this one
+  `run_rollout`: this module's `rollout`, or `box_plane_kernel.rollout` (the same
+  contract; every rollout under any `vmap` of this function joins one kernel launch)."""
   body = body_of(prims)
   wrenches = push_wrenches(prims, pushes, mass_properties(prims))
   qpos0 = jnp.concatenate([rest_position(prims), jnp.array([1.0, 0.0, 0.0, 0.0])])
-  fn = box_plane_kernel.rollout if settings.kernel == "pallas" else rollout
-  run = functools.partial(fn, body, qpos0.astype(jnp.float32), steps=steps,
+  run = functools.partial(run_rollout, body, qpos0.astype(jnp.float32), steps=steps,
                           duration=int(pushes.duration), settings=settings)
   return jax.vmap(run)(wrenches.astype(jnp.float32))

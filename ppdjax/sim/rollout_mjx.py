@@ -17,7 +17,7 @@ from mujoco import mjx
 
 from ppdjax.conventions import STEPS
 from ppdjax.primitives import Primitives, flatten, unflatten
-from ppdjax.sim import box_plane, mjx_step, scene
+from ppdjax.sim import box_plane, box_plane_kernel, mjx_step, scene
 from ppdjax.sim.box_plane import BoxPlaneSettings
 from ppdjax.sim.mass import mass_properties
 from ppdjax.sim.pushes import Pushes, push_wrenches
@@ -102,7 +102,9 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
   `settings` picks the step: MjxSettings runs MJX, BoxPlaneSettings the box-plane step.
   """
   if isinstance(settings, BoxPlaneSettings):
-    return box_plane.rollout_object(prims, pushes, steps=steps, settings=settings)
+    run = box_plane_kernel.rollout if settings.kernel == "pallas" else box_plane.rollout
+    return box_plane.rollout_object(prims, pushes, steps=steps, settings=settings,
+                                    run_rollout=run)
   k = prims.density.shape[-1]
   mx = template(settings, k)
   fields = scene.object_fields(prims)
