@@ -38,7 +38,9 @@ from ppdjax.sim import rollout_mjx
 from ppdjax.sim.box_plane import BoxPlaneSettings
 
 # The accelerator's engines, each at its package default settings.
-ENGINES = {"MJX": rollout_mjx.MjxSettings(), "box-plane step": BoxPlaneSettings()}
+# On a GPU the box-plane step runs as its Pallas kernel ("auto"); "(XLA)" is its reference.
+ENGINES = {"MJX": rollout_mjx.MjxSettings(), "box-plane step": BoxPlaneSettings(),
+           "box-plane step (XLA)": BoxPlaneSettings(kernel="reference")}
 
 
 def observations(seed: int, count: int, image_size: int) -> dict:

@@ -47,14 +47,19 @@ VARIANTS = {
     "Newton 2 / ls 4 (explored)": _v(2, 4, 8, push=(8, 4), chol=True),
     "scan unroll 2": _v(3, 2, 8, push=(8, 4), chol=True, unroll=2),
     # the step written for this scene (ppdjax.sim.box_plane), MuJoCo C's box-plane contacts
-    "box-plane step: Newton 3 / ls 2 (all contacts)": BoxPlaneSettings(max_contacts=0),
-    "box-plane step: Newton 3 / ls 2 (8 deepest contacts; default)": BoxPlaneSettings(),
+    # (its XLA reference; "kernel" rows run the same step as one Pallas kernel)
+    "box-plane step: Newton 3 / ls 2 (all contacts)": BoxPlaneSettings(
+        max_contacts=0, kernel="reference"),
+    "box-plane step: Newton 3 / ls 2 (8 deepest contacts; default)": BoxPlaneSettings(
+        kernel="reference"),
     "box-plane step: Newton 2 / ls 2 (8 deepest contacts)": BoxPlaneSettings(
-        iterations=2, max_contacts=8),
-    "box-plane step: Newton 4 / ls 3": BoxPlaneSettings(iterations=4, ls_iterations=3),
+        iterations=2, max_contacts=8, kernel="reference"),
+    "box-plane step: Newton 4 / ls 3": BoxPlaneSettings(iterations=4, ls_iterations=3,
+                                                        kernel="reference"),
     "box-plane step: converged (Newton 10 / ls 6)": BoxPlaneSettings(
         iterations=10, ls_iterations=6, push_iterations=10, push_ls_iterations=6,
-        max_contacts=0),
+        max_contacts=0, kernel="reference"),
+    "box-plane step: Pallas kernel (default on a GPU)": BoxPlaneSettings(kernel="pallas"),
 }
 BOX_PLANE = [name for name in VARIANTS if name.startswith("box-plane")]
 assert VARIANTS["+ Newton 3 (default)"] == _v(3, 2, 8, push=(8, 4), chol=True)

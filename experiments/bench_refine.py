@@ -30,7 +30,7 @@ from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
+from ppdjax.sim.rollout_mjx import settings_for
 
 
 def timed(fn, repeats: int) -> tuple[float, float]:
@@ -53,6 +53,8 @@ def main():
   parser.add_argument("--batch", type=int, default=64)
   parser.add_argument("--at_once", default="8,64", help="+Joint group sizes to time")
   parser.add_argument("--repeats", type=int, default=3)
+  parser.add_argument("--backend", default="mjx", choices=("mjx", "box_plane"),
+                      help="the engine (the dataset's own is the faithful choice)")
   parser.add_argument("--out", default="")
   args = parser.parse_args()
   data = storage.open_dataset(args.data, args.split)
@@ -65,7 +67,7 @@ def main():
   traj = jnp.asarray(b["trajectories"], jnp.float32)
   depth = jnp.asarray(b["depth"], jnp.float32)
   d0, m0 = jnp.full((args.batch,), jnp.inf), jnp.zeros((args.batch,))
-  common = dict(steps=12, prior_weight=0.0, pushes=default_pushes(), settings=DEFAULT_SETTINGS)
+  common = dict(steps=12, prior_weight=0.0, pushes=default_pushes(), settings=settings_for(args.backend))
   refine = jax.jit(functools.partial(refine_batch, **common))
   runs = {"+Refine (densities)": functools.partial(refine, start, logits, traj, d0, m0)}
   for n in [int(x) for x in args.at_once.split(",")]:
@@ -86,7 +88,8 @@ def main():
   if args.out:
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     with open(args.out, "w") as f:
-      json.dump({"device": jax.devices()[0].device_kind, "batch": args.batch, "rows": rows},
+      json.dump({"device": jax.devices()[0].device_kind, "batch": args.batch,
+                 "backend": args.backend, "rows": rows},
                 f, indent=1)
 
 

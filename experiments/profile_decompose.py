@@ -97,7 +97,7 @@ def main():
   parser.add_argument("--batch", type=int, default=64)
   parser.add_argument("--repeats", type=int, default=5)
   parser.add_argument("--engine", default="box_plane", choices=("mjx", "box_plane"))
-  parser.add_argument("--kernel", default="reference", choices=("reference", "pallas"),
+  parser.add_argument("--kernel", default="auto", choices=("auto", "reference", "pallas"),
                       help="the box-plane step's kernel (BoxPlaneSettings.kernel)")
   parser.add_argument("--only", default="", help="comma-separated stage-name prefixes")
   parser.add_argument("--out", default="")

@@ -102,7 +102,7 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
   `settings` picks the step: MjxSettings runs MJX, BoxPlaneSettings the box-plane step.
   """
   if isinstance(settings, BoxPlaneSettings):
-    run = box_plane_kernel.rollout if settings.kernel == "pallas" else box_plane.rollout
+    run = box_plane_kernel.rollout if settings.resolved_kernel() == "pallas" else box_plane.rollout
     return box_plane.rollout_object(prims, pushes, steps=steps, settings=settings,
                                     run_rollout=run)
   k = prims.density.shape[-1]
