@@ -18,11 +18,14 @@ from ppdjax.sim.simulate import simulate  # noqa: E402
 from ppdjax.dataset.towers import sample_towers  # noqa: E402
 from ppdjax.dataset.voxels import voxelize  # noqa: E402
 from ppdjax.dataset.storage import open_dataset  # noqa: E402
+from ppdjax.dataset.mesh_files import load_object  # noqa: E402
+from ppdjax.dataset.mesh_boxes import primitives_from_mesh  # noqa: E402
 from ppdjax.training.checkpoints import load  # noqa: E402
 from ppdjax.infer.fit import fit_boxes  # noqa: E402
 from ppdjax.infer.decompose import make_decompose_fn  # noqa: E402
 
 __all__ = ["Primitives", "MassProperties", "mass_properties", "Pushes", "default_pushes",
-           "simulate", "sample_towers", "voxelize", "open_dataset", "load",
+           "simulate", "sample_towers", "voxelize", "open_dataset", "load_object",
+           "primitives_from_mesh", "load",
            "fit_boxes", "make_decompose_fn"]
 __version__ = "0.1.0"

@@ -76,3 +76,95 @@ def test_voxelize_parts_matches_the_box_voxelizer():
   want = ppdjax.voxelize(primitives.stack([primitives.make(half[None], pos[None])]))[0] > 0
   assert per_part.shape == (1, 32, 32, 32) and np.array_equal(union, per_part[0])
   assert np.sum(union != want) <= 0.01 * want.sum(), (np.sum(union != want), want.sum())
+
+
+def _joined_box_and_cylinder():
+  box = trimesh.creation.box(extents=(0.4, 0.12, 0.1))
+  cylinder = trimesh.creation.cylinder(radius=0.03, height=0.5, sections=32)
+  cylinder.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+  cylinder.apply_translation([0.45, 0.0, 0.0])  # end to end along x, touching
+  return [box, cylinder]
+
+
+def _oriented_bounds(part: trimesh.Trimesh) -> primitives.Primitives:
+  obb = part.bounding_box_oriented
+  rot = obb.primitive.transform[:3, :3] * np.sign(np.linalg.det(obb.primitive.transform[:3, :3]))
+  return primitives.make(np.asarray(obb.primitive.extents)[None] / 2,
+                         obb.primitive.transform[:3, 3][None],
+                         np.asarray(primitives.mat_to_quat(rot))[None])
+
+
+def test_primitives_from_mesh_recovers_the_parts_of_a_composed_mesh():
+  parts = _joined_box_and_cylinder()
+  pose = trimesh.transformations.random_rotation_matrix(np.random.default_rng(4).random(3))
+  posed = [p.copy().apply_transform(pose) for p in parts]
+  prims, transform = ppdjax.primitives_from_mesh(posed, densities=[7800.0, 600.0])
+  assert prims.valid.sum() == 2 and prims.density.shape == (5,)
+  normalised = [p.copy().apply_transform(transform) for p in posed]
+  for part, density in zip(normalised, (7800.0, 600.0)):
+    truth = _oriented_bounds(part)
+    iou = np.asarray(primitives.box_iou(truth, prims))[0]
+    k = int(np.argmax(iou))
+    assert iou[k] > 0.5, iou
+    assert prims.density[k] == density  # the box takes its part's density
+  prims.validate()
+  with pytest.raises(ValueError, match="densities must give each"):
+    ppdjax.primitives_from_mesh(parts, densities=[1.0])
+
+
+def test_tool_boxes_cover_the_tools():
+  for category in ("axe", "wrench", "saw"):
+    tool = tools.sample_tool(8, 0, category)
+    prims, transform = ppdjax.primitives_from_mesh(list(tool.parts), densities=tool.densities)
+    parts = [p.copy().apply_transform(transform) for p in tool.parts]
+    union, _ = meshes.voxelize_parts(parts)
+    boxes = np.asarray(ppdjax.voxelize(primitives.stack([prims])))[0] > 0
+    iou = (union & boxes).sum() / (union | boxes).sum()
+    assert len(tool.parts) <= prims.valid.sum() <= 5 and iou > 0.6, (category, iou)
+    assert set(prims.density[prims.valid]) <= set(tool.densities)
+
+
+def test_load_object_reads_groups_and_components(tmp_path):
+  parts = _joined_box_and_cylinder()
+  scene = trimesh.Scene()
+  for name, part in zip(("head", "handle"), parts):
+    scene.add_geometry(part, node_name=name, geom_name=name)
+  scene.export(tmp_path / "tool.glb")
+  tool, transform = ppdjax.load_object(str(tmp_path / "tool.glb"),
+                                       part_materials={"head": "metal", "handle": "wood"})
+  assert tool.names == ("head", "handle") and tool.materials == ("metal", "wood")
+  assert tool.densities[0] > tool.densities[1]
+  lo, hi = trimesh.util.concatenate(tool.parts).bounds
+  np.testing.assert_allclose((hi - lo).max(), 1.0, rtol=1e-6)
+  trimesh.util.concatenate(parts).export(tmp_path / "tool.stl")  # one mesh: components
+  tool, _ = ppdjax.load_object(str(tmp_path / "tool.stl"), part_densities=[7800, 700])
+  assert tool.names == ("part0", "part1") and sorted(tool.densities) == [700.0, 7800.0]
+
+
+def test_load_object_errors_name_the_problem(tmp_path):
+  def write(name, mesh):
+    mesh.export(tmp_path / name)
+    return str(tmp_path / name)
+
+  with pytest.raises(FileNotFoundError, match="no mesh file"):
+    ppdjax.load_object(str(tmp_path / "missing.obj"))
+  (tmp_path / "bad.ply").write_bytes(b"ply\nformat nonsense\n\x00\x01")
+  with pytest.raises(ValueError, match="cannot read"):
+    ppdjax.load_object(str(tmp_path / "bad.ply"), part_materials="wood")
+  box = trimesh.creation.box(extents=(0.3, 0.1, 0.1))
+  open_box = trimesh.Trimesh(box.vertices, box.faces[:-1], process=False)
+  with pytest.raises(ValueError, match="not a closed surface"):
+    ppdjax.load_object(write("open.stl", open_box), part_materials="wood")
+  many = trimesh.util.concatenate([box.copy().apply_translation([i, 0, 0]) for i in range(6)])
+  with pytest.raises(ValueError, match="6 parts; at most 5"):
+    ppdjax.load_object(write("many.stl", many), part_materials="wood")
+  path = write("box.obj", box)
+  with pytest.raises(ValueError, match="unknown material"):
+    ppdjax.load_object(path, part_materials="plastic")
+  with pytest.raises(ValueError, match="does not have"):
+    ppdjax.load_object(path, part_materials={"blade": "metal"})
+  with pytest.raises(ValueError, match=r"must lie in \[100, 10000\]"):
+    ppdjax.load_object(path, part_densities=[20000.0])
+  with pytest.warns(UserWarning, match="every part is taken as wood"):
+    tool, _ = ppdjax.load_object(path)
+  assert tool.materials == ("wood",)

@@ -23,17 +23,26 @@ SURFACE_SAMPLES = 200_000  # about 20 per voxel face crossed: thin parts are not
 VOXEL = 1.0 / R
 
 
-def _parts(mesh) -> list[trimesh.Trimesh]:
+def components(mesh: trimesh.Trimesh) -> list[trimesh.Trimesh]:
+  """Connected components by shared edges, in the file's face order (scipy; no repair,
+  so an open part stays open and is reported as such)."""
+  groups = trimesh.graph.connected_components(
+      mesh.face_adjacency, nodes=np.arange(len(mesh.faces)), min_len=1, engine="scipy")
+  groups = sorted(groups, key=lambda g: int(np.min(g)))
+  return list(mesh.submesh(groups, append=False, repair=False))
+
+
+def parts_of(mesh) -> list[trimesh.Trimesh]:
   """A list of part meshes: a Trimesh's connected components, or the given parts."""
   if isinstance(mesh, trimesh.Trimesh):
-    return list(mesh.split(only_watertight=False)) or [mesh]
+    return components(mesh) or [mesh]
   parts = list(mesh)
   if not parts or not all(isinstance(p, trimesh.Trimesh) for p in parts):
     raise ValueError("expected a trimesh.Trimesh or a non-empty sequence of them")
   return parts
 
 
-def _surface(parts, count: int, seed: int = 0):
+def surface_samples(parts, count: int, seed: int = 0):
   """(points (n, 3), part index (n,)) sampled uniformly by area over all parts."""
   union = trimesh.util.concatenate(parts)
   owner = np.concatenate([np.full(len(p.faces), i) for i, p in enumerate(parts)])
@@ -47,10 +56,10 @@ def normalize(mesh) -> tuple[list[trimesh.Trimesh], np.ndarray]:
   Args:
     mesh: a trimesh.Trimesh (parts: its connected components) or a sequence of parts.
   """
-  parts = _parts(mesh)
+  parts = parts_of(mesh)
   if sum(p.area for p in parts) <= 0:
     raise ValueError("the mesh has no surface")
-  points, _ = _surface(parts, 50_000)
+  points, _ = surface_samples(parts, 50_000)
   centre = points.mean(0)
   evals, axes = np.linalg.eigh(np.cov((points - centre).T))
   axes = axes[:, ::-1]  # largest spread first: x, y, z
