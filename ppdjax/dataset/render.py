@@ -38,11 +38,28 @@ def render_xml(num_slots: int = NUM_SLOTS, texture_size: int = materials.TEXTURE
   boxes = "\n".join(
       f'      <geom name="box{k}" type="box" size="0.1 0.1 0.1" material="mat{k}" '
       f'pos="{0.01 * (k + 1)} 0.02 0.03" quat="0.9 0.1 0.2 0.3"/>' for k in range(num_slots))
-  assets = "\n".join(
+  return stage_xml(material_assets(num_slots, texture_size), boxes)
+
+
+def material_assets(count: int, texture_size: int = materials.TEXTURE_SIZE) -> str:
+  """MJCF assets tex{k} / mat{k}, k < count: flat placeholder textures whose pixels are
+  written per object (`write_texture`)."""
+  return "\n".join(
       f'    <texture name="tex{k}" type="2d" builtin="flat" width="{texture_size}" '
       f'height="{texture_size}" rgb1="1 1 1"/>\n'
       f'    <material name="mat{k}" texture="tex{k}" texuniform="true" texrepeat="4 4" '
-      f'specular="0.3" shininess="0.3"/>' for k in range(num_slots))
+      f'specular="0.3" shininess="0.3"/>' for k in range(count))
+
+
+def write_texture(model, tex: int, material: str, seed: int) -> None:
+  """Writes a material's procedural texture (`materials.texture`) into texture `tex`."""
+  size = model.tex_width[tex] * model.tex_height[tex] * model.tex_nchannel[tex]
+  img = materials.texture(material, seed, int(model.tex_width[tex]))
+  model.tex_data[model.tex_adr[tex]:model.tex_adr[tex] + size] = img.reshape(-1)
+
+
+def stage_xml(assets: str, object_geoms: str, extra_assets: str = "") -> str:
+  """The rendered scene (floor, sky, light, the camera `view`) around an object body."""
   pos = " ".join(f"{v}" for v in camera.CAMERA_POS)
   return f"""<mujoco model="ppdjax_render">
   <visual><global offwidth="1024" offheight="1024"/><quality shadowsize="2048"/></visual>
@@ -53,16 +70,29 @@ def render_xml(num_slots: int = NUM_SLOTS, texture_size: int = materials.TEXTURE
     <texture type="skybox" builtin="gradient" rgb1="0.75 0.82 0.9" rgb2="0.95 0.95 0.95"
              width="64" height="64"/>
 {assets}
+{extra_assets}
   </asset>
   <worldbody>
     <light pos="2 -1 4" dir="-0.4 0.2 -1" directional="true" diffuse="0.8 0.8 0.8"/>
     <camera name="view" pos="{pos}" xyaxes="{_camera_xyaxes()}" fovy="{camera.FOVY}"/>
     <geom name="ground" type="plane" size="5 5 0.1" material="floor"/>
     <body name="object" pos="0 0 0.5">
-{boxes}
+{object_geoms}
     </body>
   </worldbody>
 </mujoco>"""
+
+
+def open_renderer(model, height: int, width: int):
+  """mujoco.Renderer, or a RuntimeError that says how to get headless OpenGL."""
+  try:
+    return mujoco.Renderer(model, height, width)
+  except Exception as e:  # no usable OpenGL: say how to get one
+    raise RuntimeError(
+        "MuJoCo could not open a headless OpenGL context (MUJOCO_GL="
+        f"{os.environ.get('MUJOCO_GL')}). Set MUJOCO_GL=egl before mujoco is first "
+        "imported, and install EGL (Debian: libegl1 libgl1-mesa-dri), or use "
+        "MUJOCO_GL=osmesa with libosmesa6.") from e
 
 
 class ObjectRenderer:
@@ -78,14 +108,7 @@ class ObjectRenderer:
       raise ValueError(f"image size must be within 16..1024 pixels, got {height}x{width}")
     self.model = mujoco.MjModel.from_xml_string(render_xml(num_slots))
     self.data = mujoco.MjData(self.model)
-    try:
-      self._renderer = mujoco.Renderer(self.model, height, width)
-    except Exception as e:  # no usable OpenGL: say how to get one
-      raise RuntimeError(
-          "MuJoCo could not open a headless OpenGL context (MUJOCO_GL="
-          f"{os.environ.get('MUJOCO_GL')}). Set MUJOCO_GL=egl before mujoco is first "
-          "imported, and install EGL (Debian: libegl1 libgl1-mesa-dri), or use "
-          "MUJOCO_GL=osmesa with libosmesa6.") from e
+    self._renderer = open_renderer(self.model, height, width)
     self._first_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "box0")
     self._tex_ids = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXTURE, f"tex{k}")
                      for k in range(num_slots)]
@@ -123,10 +146,8 @@ class ObjectRenderer:
     self._renderer._gl_context.make_current()  # pylint: disable=protected-access
     for slot in np.flatnonzero(valid):
       tex = self._tex_ids[slot]
-      size = m.tex_width[tex] * m.tex_height[tex] * m.tex_nchannel[tex]
-      img = materials.texture(materials.MATERIAL_NAMES[int(material_ids[slot])],
-                              int(texture_seeds[slot]), int(m.tex_width[tex]))
-      m.tex_data[m.tex_adr[tex]:m.tex_adr[tex] + size] = img.reshape(-1)
+      write_texture(m, tex, materials.MATERIAL_NAMES[int(material_ids[slot])],
+                    int(texture_seeds[slot]))
       mujoco.mjr_uploadTexture(m, self._renderer._mjr_context, tex)  # pylint: disable=protected-access
     mujoco.mj_forward(m, self.data)
     self._renderer.update_scene(self.data, camera="view")

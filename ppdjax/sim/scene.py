@@ -22,6 +22,12 @@ OBJECT_BODY = 1  # body id of the object (0 is the world)
 FIRST_BOX_GEOM = 1  # geom 0 is the ground plane
 
 
+# The solver options of every simulated scene (towers, tools): MuJoCo's defaults otherwise.
+OPTION_XML = f"""  <option timestep="{TIMESTEP!r}" integrator="Euler" cone="pyramidal" solver="Newton">
+    <flag midphase="disable" eulerdamp="disable"/>
+  </option>"""
+
+
 def scene_xml(boxes: list[dict] | None = None, num_slots: int = NUM_SLOTS) -> str:
   """MJCF of the scene; `boxes` (size, pos, quat, density dicts) instead of placeholders
   makes a model MuJoCo's compiler sets up for one object (the tests' reference)."""
@@ -35,9 +41,7 @@ def scene_xml(boxes: list[dict] | None = None, num_slots: int = NUM_SLOTS) -> st
       f'      <geom name="box{i}" type="box" size="{_v(b["size"])}" pos="{_v(b["pos"])}" '
       f'quat="{_v(b["quat"])}" density="{b["density"]!r}"/>' for i, b in enumerate(boxes))
   return f"""<mujoco model="ppdjax_scene">
-  <option timestep="{TIMESTEP!r}" integrator="Euler" cone="pyramidal" solver="Newton">
-    <flag midphase="disable" eulerdamp="disable"/>
-  </option>
+{OPTION_XML}
   <worldbody>
     <geom name="ground" type="plane" size="0 0 1"/>
     <body name="object" pos="0 0 0.5">

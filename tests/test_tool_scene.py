@@ -1,0 +1,62 @@
+"""A tool's own physics and image (ppdjax.dataset.tool_scene), checked against the towers'."""
+
+import numpy as np
+import pytest
+import trimesh
+
+import ppdjax
+from ppdjax import primitives
+from ppdjax.dataset import meshes, tool_scene, tools
+
+
+def test_a_box_tool_moves_as_the_same_box_tower():
+  """The tool path (mesh geom, explicit inertia, ray-cast push point) against the towers'
+  C engine (box geom, box formulas): the same box, the same pushes."""
+  half, pos = np.array([0.4, 0.15, 0.1]), np.array([0.02, -0.01, 0.0])
+  box = trimesh.creation.box(extents=2 * half).apply_translation(pos)
+  prims = primitives.stack([primitives.make(half[None], pos[None], density=2000.0)])
+  pushes = ppdjax.default_pushes()
+  want = np.asarray(ppdjax.simulate(prims, pushes, steps=64, backend="mujoco"))[0]
+  got = tool_scene.simulate_tool([box], [2000.0], pushes, steps=64)
+  gap = np.linalg.norm(got[..., :3] - want[..., :3], axis=-1)
+  assert gap.max() < 1e-5, gap.max()
+  assert np.linalg.norm(want[:, -1, :3] - want[:, 0, :3], axis=-1).min() > 0.01  # it moved
+
+
+def test_mass_properties_add_up_as_the_box_formulas():
+  halves = np.array([[0.3, 0.1, 0.05], [0.05, 0.05, 0.2]])
+  centres = np.array([[0.0, 0.0, 0.0], [0.35, 0.0, 0.15]])
+  densities = [7800.0, 600.0]
+  parts = [trimesh.creation.box(extents=2 * h).apply_translation(c)
+           for h, c in zip(halves, centres)]
+  mass, com, inertia = tool_scene.mass_properties(parts, densities)
+  want = ppdjax.mass_properties(primitives.make(halves, centres, density=np.array(densities),
+                                                num_slots=2))
+  np.testing.assert_allclose(mass, want.mass, rtol=1e-5)
+  np.testing.assert_allclose(com, want.com, atol=1e-6)
+  np.testing.assert_allclose(inertia, want.inertia, rtol=1e-4, atol=1e-6)
+
+
+def test_convex_pieces_cut_only_bent_parts():
+  box = trimesh.creation.box(extents=(0.5, 0.1, 0.1))
+  assert len(tool_scene.convex_pieces(box)) == 1
+  axe = tools.sample_tool(8, 0, "axe")
+  handle = axe.parts[axe.names.index("handle")]
+  assert handle.convex_hull.volume > 1.1 * handle.volume  # this handle is bent
+  assert len(tool_scene.convex_pieces(handle)) == tool_scene.SLABS
+
+
+def test_tools_simulate_and_render():
+  tool = tools.sample_tool(3, 1)
+  parts, _ = meshes.normalize(list(tool.parts))
+  traj = tool_scene.simulate_tool(parts, tool.densities, steps=32)
+  assert traj.shape == (4, 32, 7) and np.all(np.isfinite(traj))
+  np.testing.assert_allclose(np.linalg.norm(traj[..., 3:], axis=-1), 1.0, atol=1e-6)
+  with pytest.raises(RuntimeError, match="diverged"):
+    tool_scene.simulate_tool(parts, tool.densities, ppdjax.default_pushes(1e7), steps=32)
+  image = tool_scene.render_tool(parts, tool.materials, [0] * len(parts), height=64, width=64)
+  empty = tool_scene.render_tool([trimesh.creation.box(extents=(0.01, 0.01, 0.01))
+                                  .apply_translation([3.0, 3.0, 0.0])], ["wood"], [0],
+                                 height=64, width=64)
+  assert image.shape == (64, 64, 3) and image.dtype == np.uint8
+  assert np.abs(image.astype(int) - empty).max(-1).astype(bool).sum() > 20  # the tool shows
