@@ -16,6 +16,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.demo.example_samples = 128  # density samples for the shipped example (paper: 512)
   # Block-tower dataset (python -m ppdjax.generate).
   config.data = ml_collections.ConfigDict()
+  config.data.kind = "towers"  # or "tools" (configs/tools.py: num_tools, tools_per_shard)
   config.data.num_towers = 16
   config.data.towers_per_shard = 4
   config.data.configs_per_tower = 8

@@ -56,11 +56,12 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
 
   m = ds.manifest
   lines = [f"# Dataset card: {m['config'].get('name', '?')} preset", "",
-           f"{m['towers']} towers x {m['config']['data']['configs_per_tower']} configurations "
-           f"= {m['samples']} samples; splits by tower: " +
+           (f"{m['tools']} tools, one sample each; splits by tool: " if "tools" in m else
+            f"{m['towers']} towers x {m['config']['data']['configs_per_tower']} configurations "
+            f"= {m['samples']} samples; splits by tower: ") +
            ", ".join(f"{k} {v}" for k, v in m["splits"].items()) +
            f". Engine: {m['engine']['backend']} ({m['engine']['precision']}), seed "
-           f"{m['seed']}.", "", "| blocks | samples |", "|---|---|"]
+           f"{m['seed']}.", "", "| boxes | samples |", "|---|---|"]
   lines += [f"| {b} | {(blocks == b).sum()} |" for b in range(1, valid.shape[1] + 1)
             if (blocks == b).any()]
   lines += ["", "| material | blocks | density range seen (x100 kg/m³) |", "|---|---|---|"]

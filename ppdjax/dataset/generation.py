@@ -19,7 +19,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ppdjax import primitives
-from ppdjax.dataset import camera, card, depth, materials, render, storage, towers, voxels
+from ppdjax.dataset import (camera, card, depth, materials, render, storage, tool_generation,
+                            tool_scene, towers, voxels)
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.sim.simulate import BACKENDS, simulate
 
@@ -27,21 +28,50 @@ from ppdjax.sim.simulate import BACKENDS, simulate
 # Where the "depth" arrays come from; part of a dataset's identity (config.json), so that
 # generation never resumes over shards whose depth came from MuJoCo's GL pass (before it).
 DEPTH_SOURCE = "exact ray cast of the boxes and the ground (ppdjax.dataset.depth)"
+TOOL_DEPTH_SOURCE = "MuJoCo's depth pass of the tool's parts (ppdjax.dataset.tool_scene)"
 
 
 def check_config(cfg) -> None:
   """Raises ValueError naming the first bad value of the `data` section."""
-  rules = [("num_towers", cfg.num_towers >= 1), ("towers_per_shard", cfg.towers_per_shard >= 1),
-           ("configs_per_tower", cfg.configs_per_tower >= 1),
-           ("render_workers", 0 <= cfg.render_workers <= 256),
-           ("image_size", 16 <= cfg.image_size <= 1024), ("steps", cfg.steps >= 1),
-           ("rotate", 0 <= cfg.rotate <= np.pi), ("size_noise", 0 <= cfg.size_noise < 1),
-           ("backend", cfg.backend in BACKENDS),
-           ("split_fractions", len(cfg.split_fractions) == 3
-            and abs(sum(cfg.split_fractions) - 1) < 1e-6 and min(cfg.split_fractions) >= 0)]
+  if kind_of(cfg) not in KINDS:
+    raise ValueError(f"config.data.kind must be one of {KINDS}, got {cfg.kind!r}")
+  if kind_of(cfg) == "tools":
+    rules = [("num_tools", cfg.num_tools >= 1), ("tools_per_shard", cfg.tools_per_shard >= 1)]
+  else:
+    rules = [("num_towers", cfg.num_towers >= 1),
+             ("towers_per_shard", cfg.towers_per_shard >= 1),
+             ("configs_per_tower", cfg.configs_per_tower >= 1),
+             ("rotate", 0 <= cfg.rotate <= np.pi), ("size_noise", 0 <= cfg.size_noise < 1),
+             ("backend", cfg.backend in BACKENDS)]
+  rules += [("render_workers", 0 <= cfg.render_workers <= 256),
+            ("image_size", 16 <= cfg.image_size <= 1024), ("steps", cfg.steps >= 1),
+            ("split_fractions", len(cfg.split_fractions) == 3
+             and abs(sum(cfg.split_fractions) - 1) < 1e-6 and min(cfg.split_fractions) >= 0)]
   for key, ok in rules:
     if not ok:
       raise ValueError(f"config.data.{key} has a bad value: {cfg[key]!r}")
+
+
+KINDS = ("towers", "tools")
+
+
+def kind_of(cfg) -> str:
+  """"towers" (the default) or "tools" (`tool_generation`)."""
+  return cfg.get("kind", "towers")
+
+
+def _plan(cfg):
+  """(objects, objects per shard, samples per object, unit) of the data section."""
+  if kind_of(cfg) == "tools":
+    return cfg.num_tools, cfg.tools_per_shard, 1, "tool"
+  return cfg.num_towers, cfg.towers_per_shard, cfg.configs_per_tower, "tower"
+
+
+def _workers(cfg):
+  """What makes a shard's observations: tool processes, or the towers' renderer."""
+  if kind_of(cfg) == "tools":
+    return tool_generation.ToolWorkers(cfg.render_workers)
+  return render.BatchRenderer(cfg.image_size, cfg.image_size, cfg.render_workers, depth=False)
 
 
 def bytes_per_sample(cfg) -> int:
@@ -84,9 +114,10 @@ def generate(config, out: str, progress: bool = True) -> dict:
   os.makedirs(out, exist_ok=True)
   config_path = os.path.join(out, "config.json")
   # a dataset depends on the seed, the data section and the depth source only (not on
-  # model or train)
+  # model or train); tools' depth is MuJoCo's depth pass of the parts
+  source = TOOL_DEPTH_SOURCE if kind_of(cfg) == "tools" else DEPTH_SOURCE
   text = ml_collections.ConfigDict({"name": config.name, "seed": config.seed,
-                                    "data": config.data.to_dict(), "depth": DEPTH_SOURCE}
+                                    "data": config.data.to_dict(), "depth": source}
                                    ).to_json_best_effort(sort_keys=True, indent=1)
   if os.path.exists(config_path):
     with open(config_path) as f:
@@ -95,26 +126,27 @@ def generate(config, out: str, progress: bool = True) -> dict:
                          "use a new directory")
   else:
     free = shutil.disk_usage(out).free
-    need = bytes_per_sample(cfg) * cfg.num_towers * cfg.configs_per_tower
+    objects, _, per_object, _ = _plan(cfg)
+    need = bytes_per_sample(cfg) * objects * per_object
     if need > free:
       raise OSError(f"not enough disk space in {out}: the dataset needs about "
                     f"{need / 1e9:.2f} GB, {free / 1e9:.2f} GB are free")
     with open(config_path, "w") as f:
       f.write(text)
 
-  num_shards = -(-cfg.num_towers // cfg.towers_per_shard)
+  objects, per_shard, _, unit = _plan(cfg)
+  num_shards = -(-objects // per_shard)
   names = [f"shard-{s:05d}" for s in range(num_shards)]
   sums = [storage.shard_complete(os.path.join(out, n)) for n in names]
   todo = [s for s in range(num_shards) if sums[s] is None]
-  bar = tqdm(total=cfg.num_towers, unit="tower", disable=not progress, desc="generate")
-  bar.update(cfg.num_towers - sum(min(cfg.towers_per_shard,
-                                      cfg.num_towers - s * cfg.towers_per_shard) for s in todo))
+  bar = tqdm(total=objects, unit=unit, disable=not progress, desc="generate")
+  bar.update(objects - sum(min(per_shard, objects - s * per_shard) for s in todo))
+  make_shard = tool_generation.generate_shard if unit == "tool" else generate_shard
   t0 = time.perf_counter()
   if todo:
-    with render.BatchRenderer(cfg.image_size, cfg.image_size, cfg.render_workers,
-                              depth=False) as renderer:
+    with _workers(cfg) as workers:
       for s in todo:
-        arrays = generate_shard(cfg, config.seed, s, renderer)
+        arrays = make_shard(cfg, config.seed, s, workers)
         sums[s] = storage.write_shard(os.path.join(out, names[s]), arrays)
         bar.update(len(np.unique(arrays["tower_id"])))
   bar.close()
@@ -125,14 +157,16 @@ def generate(config, out: str, progress: bool = True) -> dict:
                    "splits": {k: int((split == v).sum()) for k, v in storage.SPLITS.items()}})
   manifest = {
       "format_version": storage.FORMAT_VERSION, "config": json.loads(text), "seed": config.seed,
-      "towers": cfg.num_towers, "samples": sum(c["samples"] for c in counts),
+      "kind": kind_of(cfg), f"{unit}s": objects, "samples": sum(c["samples"] for c in counts),
       "splits": {k: sum(c["splits"][k] for c in counts) for k in storage.SPLITS},
       "engine": {"backend": cfg.backend,
                  "precision": "float64 (stored float32)" if cfg.backend == "mujoco" else "float32",
                  # the JAX engine's settings (inference reads "mujoco" data through MJX)
-                 "settings": dataclasses.asdict(settings_for(cfg.backend))},
+                 "settings": dataclasses.asdict(settings_for(cfg.backend)),
+                 **({"tools": "MuJoCo C on the parts' convex pieces, pushes of "
+                              f"{tool_scene.TOOL_PUSH_FORCE:g} N"} if unit == "tool" else {})},
       "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
-      "depth": DEPTH_SOURCE,
+      "depth": source,
       "shards": counts,
   }
   with open(os.path.join(out, "manifest.json"), "w") as f:

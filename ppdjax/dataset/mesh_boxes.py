@@ -123,6 +123,32 @@ def _part_volumes_in_box(box, per_part: np.ndarray) -> np.ndarray:
   return per_part.reshape(len(per_part), -1)[:, inside].sum(-1)
 
 
+def boxes_of_parts(parts, densities, max_boxes: int = NUM_SLOTS, *,
+                   box_cost: float = BOX_COST, num_slots: int = NUM_SLOTS
+                   ) -> tuple[primitives.Primitives, np.ndarray]:
+  """(Primitives (num_slots,), owner (num_slots,) int): boxes of parts already in the
+  normalised frame, bottom to top, each with the density of the part it covers most by
+  volume (that part's index in `owner`; -1 for padded slots)."""
+  points, part = surface_samples(parts, SAMPLES)
+  volume = sum(abs(p.volume) for p in parts)
+  boxes = fit_point_boxes(points, part, volume, max_boxes, box_cost)
+  _, per_part = voxelize_parts(parts)
+  owner = [int(np.argmax(_part_volumes_in_box(b, per_part))) for b in boxes]
+  k, pad = len(boxes), num_slots - len(boxes)
+  rotation = np.stack([b[1] for b in boxes] + [np.eye(3)] * pad)
+  prims = primitives.Primitives(
+      half_size=np.stack([b[2] for b in boxes] + [np.full(3, 0.05)] * pad).astype(np.float32),
+      pos=np.stack([b[0] for b in boxes] + [np.zeros(3)] * pad).astype(np.float32),
+      quat=np.asarray(jax.vmap(primitives.mat_to_quat)(rotation), np.float32),
+      density=np.asarray([densities[o] for o in owner] + [1000.0] * pad, np.float32),
+      valid=np.arange(num_slots) < k)
+  order = np.asarray(primitives.bottom_to_top_order(prims))
+  prims = primitives.canonical_boxes(prims)
+  prims = primitives.Primitives(*[np.asarray(getattr(prims, f))[order]
+                                  for f in primitives.FIELDS])
+  return prims, np.asarray(owner + [-1] * pad)[order]
+
+
 def primitives_from_mesh(mesh, max_boxes: int = NUM_SLOTS, densities=None, *,
                          box_cost: float = BOX_COST, num_slots: int = NUM_SLOTS
                          ) -> tuple[primitives.Primitives, np.ndarray]:
@@ -149,22 +175,6 @@ def primitives_from_mesh(mesh, max_boxes: int = NUM_SLOTS, densities=None, *,
   if densities.shape != (len(parts),):
     raise ValueError(f"densities must give each of the {len(parts)} parts one, got "
                      f"{densities.shape[0]}")
-  points, part = surface_samples(parts, SAMPLES)
-  volume = sum(abs(p.volume) for p in parts)
-  boxes = fit_point_boxes(points, part, volume, max_boxes, box_cost)
-  _, per_part = voxelize_parts(parts)
-  owner = [int(np.argmax(_part_volumes_in_box(b, per_part))) for b in boxes]
-  k = len(boxes)
-  pad = num_slots - k
-  rotation = np.stack([b[1] for b in boxes] + [np.eye(3)] * pad)
-  quat = np.asarray(jax.vmap(primitives.mat_to_quat)(rotation), np.float32)
-  prims = primitives.Primitives(
-      half_size=np.stack([b[2] for b in boxes] + [np.full(3, 0.05)] * pad).astype(np.float32),
-      pos=np.stack([b[0] for b in boxes] + [np.zeros(3)] * pad).astype(np.float32),
-      quat=quat,
-      density=np.asarray([densities[o] for o in owner] + [1000.0] * pad, np.float32),
-      valid=np.arange(num_slots) < k)
-  prims = primitives.canonical_boxes(prims)
-  prims = primitives.bottom_to_top(prims)
-  return primitives.Primitives(*[np.asarray(getattr(prims, f)) for f in primitives.FIELDS]), \
-      transform
+  prims, _ = boxes_of_parts(parts, densities, max_boxes, box_cost=box_cost,
+                            num_slots=num_slots)
+  return prims, transform

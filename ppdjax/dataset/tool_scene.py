@@ -168,10 +168,11 @@ def simulate_tool(parts, densities, pushes: Pushes | None = None, *,
   return out
 
 
-def render_tool(parts, materials, texture_seeds, *, height: int = 224,
-                width: int = 224) -> np.ndarray:
+def render_tool(parts, materials, texture_seeds, *, height: int = 224, width: int = 224,
+                depth: bool = False):
   """(H, W, 3) uint8 image of the tool at rest, each part with its material's texture,
-  under the towers' camera and light."""
+  under the towers' camera and light; with `depth`, (image, (H, W) float32 metres from
+  MuJoCo's depth pass)."""
   import mujoco  # pylint: disable=import-outside-toplevel
   from ppdjax.dataset import render  # pylint: disable=import-outside-toplevel
   meshes = "\n".join(
@@ -190,4 +191,9 @@ def render_tool(parts, materials, texture_seeds, *, height: int = 224,
   mujoco.mj_forward(model, data)
   with render.open_renderer(model, height, width) as renderer:
     renderer.update_scene(data, camera="view")
-    return renderer.render().copy()
+    rgb = renderer.render().copy()
+    if not depth:
+      return rgb
+    renderer.enable_depth_rendering()
+    renderer.update_scene(data, camera="view")
+    return rgb, renderer.render().astype(np.float32)

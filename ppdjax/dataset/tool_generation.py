@@ -1,0 +1,97 @@
+"""The tools dataset's shards (paper Sec. 5.2): each tool observed from its own geometry.
+
+`python -m ppdjax.generate --config=ppdjax/configs/tools.py --out=DIR` writes the towers'
+format (`storage`), one sample per tool: its exact voxels (`meshes.voxelize_parts`), an
+image and MuJoCo depth rendered from the parts (`tool_scene.render_tool`), trajectories
+simulated from the parts (`tool_scene.simulate_tool`), and as labels the boxes of
+`mesh_boxes.boxes_of_parts`, each with the material and density of the part it covers
+most. "tower_id" holds the tool's index. Sample i is a pure function of (seed, i): tool i
+is `tools.sample_tool(seed, i)`, or, in the rare case its simulation diverges, the first
+of `sample_tool(seed, i + a * ATTEMPT_STRIDE)`, a = 1, 2, ... that does not.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ppdjax import primitives
+from ppdjax.dataset import materials, storage, tool_scene, tools
+from ppdjax.dataset.mesh_boxes import boxes_of_parts
+from ppdjax.dataset.meshes import normalize, voxelize_parts
+
+ATTEMPTS = 4
+ATTEMPT_STRIDE = 1_000_000
+
+
+def tool_sample(seed: int, index: int, image_size: int, steps: int) -> dict[str, np.ndarray]:
+  """The arrays of tool `index` (one row of each storage field but "split")."""
+  for attempt in range(ATTEMPTS):
+    tool = tools.sample_tool(seed, index + attempt * ATTEMPT_STRIDE)
+    parts, _ = normalize(list(tool.parts))
+    try:
+      traj = tool_scene.simulate_tool(parts, tool.densities, steps=steps)
+      break
+    except RuntimeError:
+      continue
+  else:
+    raise RuntimeError(f"tool {index} of seed {seed}: every attempt diverged")
+  union, _ = voxelize_parts(parts)
+  prims, owner = boxes_of_parts(parts, tool.densities)
+  ids = np.asarray([materials.MATERIAL_NAMES.index(tool.materials[o]) if o >= 0 else -1
+                    for o in owner])
+  rng = np.random.default_rng([seed, index])
+  tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, len(parts))
+  image, depth = tool_scene.render_tool(parts, tool.materials, tex_seeds, height=image_size,
+                                        width=image_size, depth=True)
+  return {"voxels": union.astype(np.uint8), "image": image, "depth": depth,
+          "trajectories": traj.astype(np.float32),
+          **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS},
+          "materials": ids, "tower_id": np.int64(index)}
+
+
+def _one(args):
+  return tool_sample(*args)
+
+
+class ToolWorkers:
+  """Makes tool samples in `workers` processes (0: this one); a context manager."""
+
+  def __init__(self, workers: int):
+    self._pool = None
+    if workers > 0:
+      import multiprocessing  # pylint: disable=import-outside-toplevel
+      saved = os.environ.get("JAX_PLATFORMS")
+      os.environ["JAX_PLATFORMS"] = "cpu"  # workers need no accelerator
+      try:
+        self._pool = multiprocessing.get_context("spawn").Pool(workers)
+      finally:
+        if saved is None:
+          os.environ.pop("JAX_PLATFORMS")
+        else:
+          os.environ["JAX_PLATFORMS"] = saved
+
+  def map(self, jobs: list) -> list:
+    return self._pool.map(_one, jobs) if self._pool else [_one(j) for j in jobs]
+
+  def close(self):
+    if self._pool is not None:
+      self._pool.close()
+      self._pool.join()
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
+
+
+def generate_shard(cfg, seed: int, shard: int, workers: ToolWorkers) -> dict[str, np.ndarray]:
+  """All arrays of one shard of tools."""
+  first = shard * cfg.tools_per_shard
+  count = min(cfg.tools_per_shard, cfg.num_tools - first)
+  rows = workers.map([(seed, i, cfg.image_size, cfg.steps) for i in range(first, first + count)])
+  arrays = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
+  arrays["split"] = storage.split_of(arrays["tower_id"], tuple(cfg.split_fractions))
+  return arrays
