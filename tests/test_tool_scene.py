@@ -84,3 +84,24 @@ def test_a_tools_dataset_is_written_and_read_as_towers_are(tmp_path):
   again = generation.tool_generation.tool_sample(config.seed, 3, 32, 12)
   np.testing.assert_array_equal(again["trajectories"], batch["trajectories"][3])
   np.testing.assert_array_equal(again["half_size"], prims.half_size[3])
+
+
+@pytest.mark.slow
+def test_the_decompose_command_on_a_mesh_file(tiny_run, tmp_path):
+  """`python -m ppdjax.decompose --mesh FILE --materials ...` end to end (tiny model)."""
+  import json
+  from ppdjax import decompose
+  tool = tools.sample_tool(3, 0, "hammer")
+  scene = trimesh.Scene()
+  for name, part in zip(tool.names, tool.parts):
+    scene.add_geometry(part, node_name=name, geom_name=name)
+  scene.export(tmp_path / "hammer.glb")
+  record = decompose.run(str(tmp_path / "hammer.glb"), decompose._parse(
+      "head=metal,handle=wood", number=False), None, tiny_run[0], str(tmp_path / "out"),
+      samples=2, engine="box_plane")
+  assert [p["material"] for p in record["parts"]] == ["wood", "metal"]
+  assert 1 <= len(record["boxes"]) <= 5 and len(record["boxes_from_mesh"]) == 2
+  assert (tmp_path / "out" / "decomposition.png").stat().st_size > 10_000
+  assert json.loads((tmp_path / "out" / "decomposition.json").read_text())["samples"] == 2
+  with pytest.raises(ValueError, match="name=value"):
+    decompose._parse("head=metal,wood", number=False)

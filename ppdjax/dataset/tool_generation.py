@@ -19,7 +19,7 @@ import numpy as np
 from ppdjax import primitives
 from ppdjax.dataset import materials, storage, tool_scene, tools
 from ppdjax.dataset.mesh_boxes import boxes_of_parts
-from ppdjax.dataset.meshes import normalize, voxelize_parts
+from ppdjax.dataset.meshes import normalize
 
 ATTEMPTS = 4
 ATTEMPT_STRIDE = 1_000_000
@@ -27,27 +27,23 @@ ATTEMPT_STRIDE = 1_000_000
 
 def tool_sample(seed: int, index: int, image_size: int, steps: int) -> dict[str, np.ndarray]:
   """The arrays of tool `index` (one row of each storage field but "split")."""
+  rng = np.random.default_rng([seed, index])
   for attempt in range(ATTEMPTS):
     tool = tools.sample_tool(seed, index + attempt * ATTEMPT_STRIDE)
     parts, _ = normalize(list(tool.parts))
+    tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, len(parts))
     try:
-      traj = tool_scene.simulate_tool(parts, tool.densities, steps=steps)
+      obs = tool_scene.observe(parts, tool.materials, tool.densities, tex_seeds,
+                               image_size=image_size, steps=steps)
       break
     except RuntimeError:
       continue
   else:
     raise RuntimeError(f"tool {index} of seed {seed}: every attempt diverged")
-  union, _ = voxelize_parts(parts)
   prims, owner = boxes_of_parts(parts, tool.densities)
   ids = np.asarray([materials.MATERIAL_NAMES.index(tool.materials[o]) if o >= 0 else -1
                     for o in owner])
-  rng = np.random.default_rng([seed, index])
-  tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, len(parts))
-  image, depth = tool_scene.render_tool(parts, tool.materials, tex_seeds, height=image_size,
-                                        width=image_size, depth=True)
-  return {"voxels": union.astype(np.uint8), "image": image, "depth": depth,
-          "trajectories": traj.astype(np.float32),
-          **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS},
+  return {**obs, **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS},
           "materials": ids, "tower_id": np.int64(index)}
 
 

@@ -21,6 +21,7 @@ import numpy as np
 import trimesh
 
 from ppdjax.conventions import REST_DEPTH, STEPS
+from ppdjax.dataset.meshes import voxelize_parts
 from ppdjax.sim import scene
 from ppdjax.sim.pushes import Pushes, default_pushes
 
@@ -197,3 +198,17 @@ def render_tool(parts, materials, texture_seeds, *, height: int = 224, width: in
     renderer.enable_depth_rendering()
     renderer.update_scene(data, camera="view")
     return rgb, renderer.render().astype(np.float32)
+
+
+def observe(parts, materials, densities, texture_seeds, *, image_size: int = 224,
+            steps: int = STEPS, pushes: Pushes | None = None) -> dict[str, np.ndarray]:
+  """What the model observes of a tool (normalised parts): "voxels" (32, 32, 32) uint8,
+  "image" (S, S, 3) uint8, "depth" (S, S) float32, "trajectories" (P, steps, 7) float32
+  under `pushes` (default `tool_pushes()`). Raises RuntimeError if the simulation
+  diverges."""
+  traj = simulate_tool(parts, densities, pushes, steps=steps)
+  union, _ = voxelize_parts(parts)
+  image, depth = render_tool(parts, materials, texture_seeds, height=image_size,
+                             width=image_size, depth=True)
+  return {"voxels": union.astype(np.uint8), "image": image, "depth": depth,
+          "trajectories": traj.astype(np.float32)}
