@@ -72,6 +72,7 @@ def test_a_tools_dataset_is_written_and_read_as_towers_are(tmp_path):
   manifest = generation.generate(config, str(tmp_path / "tools"), progress=False)
   assert manifest["kind"] == "tools" and manifest["tools"] == 4 and manifest["samples"] == 4
   ds = storage.open_dataset(str(tmp_path / "tools"), verify=True)
+  np.testing.assert_array_equal(ds.pushes.magnitudes, tool_scene.tool_pushes().magnitudes)
   batch = ds.take(np.arange(4))
   assert batch["trajectories"].shape == (4, 4, 12, 7) and batch["depth"].shape == (4, 32, 32)
   prims = batch["primitives"]

@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 from ppdjax import primitives
 from ppdjax.dataset import (camera, card, depth, materials, render, storage, tool_generation,
                             tool_scene, towers, voxels)
+from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.sim.simulate import BACKENDS, simulate
 
@@ -29,6 +30,13 @@ from ppdjax.sim.simulate import BACKENDS, simulate
 # generation never resumes over shards whose depth came from MuJoCo's GL pass (before it).
 DEPTH_SOURCE = "exact ray cast of the boxes and the ground (ppdjax.dataset.depth)"
 TOOL_DEPTH_SOURCE = "MuJoCo's depth pass of the tool's parts (ppdjax.dataset.tool_scene)"
+
+
+def pushes_record(pushes) -> dict:
+  """The pushes as the manifest stores them (`storage.Dataset.pushes` reads them back)."""
+  return {"sources": np.asarray(pushes.sources).tolist(),
+          "targets": np.asarray(pushes.targets).tolist(),
+          "magnitudes": np.asarray(pushes.magnitudes).tolist(), "duration": pushes.duration}
 
 
 def check_config(cfg) -> None:
@@ -165,6 +173,7 @@ def generate(config, out: str, progress: bool = True) -> dict:
                  "settings": dataclasses.asdict(settings_for(cfg.backend)),
                  **({"tools": "MuJoCo C on the parts' convex pieces, pushes of "
                               f"{tool_scene.TOOL_PUSH_FORCE:g} N"} if unit == "tool" else {})},
+      "pushes": pushes_record(tool_scene.tool_pushes() if unit == "tool" else default_pushes()),
       "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
       "depth": source,
       "shards": counts,

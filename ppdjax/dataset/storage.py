@@ -34,6 +34,7 @@ from ppdjax.conventions import OBS_KEYS
 from ppdjax import primitives
 from ppdjax.dataset import camera
 from ppdjax.primitives import Primitives
+from ppdjax.sim.pushes import Pushes, default_pushes
 
 FORMAT_VERSION = 1
 # One .npy file per field: the observations, depth, the Primitives fields, and labels.
@@ -169,6 +170,21 @@ class Dataset:
       size = int(self.manifest["config"]["data"]["image_size"])
       cam = camera.camera_dict(size, size)
     return camera.check_camera(cam)
+
+  @property
+  def engine(self) -> str | None:
+    """The backend that simulated the trajectories ("mjx", "box_plane", "mujoco")."""
+    return self.manifest.get("engine", {}).get("backend")
+
+  @property
+  def pushes(self):
+    """The pushes the trajectories were recorded under (`sim.pushes.Pushes`). Datasets
+    written before the manifest stored them all used the paper's four."""
+    p = self.manifest.get("pushes")
+    if p is None:
+      return default_pushes()
+    return Pushes(np.asarray(p["sources"], np.float32), np.asarray(p["targets"], np.float32),
+                  np.asarray(p["magnitudes"], np.float32), int(p["duration"])).validate()
 
   def __len__(self) -> int:
     return len(self._index)

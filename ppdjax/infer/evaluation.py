@@ -317,7 +317,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                        refine_prior=refine_prior,
                        estimator=estimator_module.load(estimator)[0] if estimator else None,
                        estimator_weight=estimator_weight, joint=joint, true_shapes=true_shapes,
-                       settings=settings_for(test.manifest.get("engine", {}).get("backend")))
+                       pushes=test.pushes, settings=settings_for(test.engine))
       idx = np.pad(idx, (0, batch_size - keep), mode="edge")  # one compiled shape
       batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials")
                         + (("depth",) if depth else ()))
