@@ -1,4 +1,4 @@
-"""experiments/blocks.py: the step list, and (slow) the whole pipeline on the tiny preset."""
+"""experiments/blocks.py and tools.py: the step list, and (slow) the pipelines on tiny presets."""
 
 import json
 import os
@@ -102,3 +102,27 @@ def test_jobs_start_steps_when_their_inputs_are_done_and_stop_behind_a_failure(t
   assert again == 0 and started == [ln.split()[1] for ln in
                                     (tmp_path / "order").read_text().split("\n")
                                     if ln.startswith("start")]  # done steps are not rerun
+
+
+@pytest.mark.slow  # about 5 minutes on 2 cores
+def test_tools_pipeline_runs_and_reports_table3(tmp_path):
+  """experiments/tools.py on the tools preset's tiny size: every step, then the report."""
+  root, results, assets = (str(tmp_path / d) for d in ("root", "results", "assets"))
+  env = {**os.environ, "JAX_PLATFORMS": "cpu",
+         "JAX_COMPILATION_CACHE_DIR": os.path.join(ROOT, ".jax_cache")}
+  run = subprocess.run([sys.executable, "experiments/tools.py",
+                        "--config=ppdjax/configs/tools.py:tiny", f"--root={root}",
+                        f"--results={results}", f"--assets={assets}"], cwd=ROOT, env=env,
+                       capture_output=True, text=True, timeout=900)
+  assert run.returncode == 0, run.stderr[-3000:]
+  with open(os.path.join(results, "tools.json")) as f:
+    table = json.load(f)
+  assert list(table["rows"])[:7] == ["Frequent", "Nearest", "Oracle", "PPD (no trajectory)",
+                                     "PPD (no image)", "PPD (full)", "PPD (full)+Sample"]
+  assert table["objects"] >= 1 and "f1" in table["shape"]
+  assert os.path.exists(os.path.join(results, "tools_decomposition.png"))
+  assert os.path.exists(os.path.join(assets, "tools_model", "config.json"))
+  listed = subprocess.run([sys.executable, "experiments/tools.py", "--list",
+                           "--config=ppdjax/configs/tools.py:tiny", f"--root={root}"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+  assert [line.split()[0] for line in listed.stdout.splitlines()][:-1] == ["done"] * 10

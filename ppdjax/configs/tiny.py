@@ -22,6 +22,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.data.configs_per_tower = 8
   config.data.image_size = 64
   config.data.steps = 256
+  config.data.num_blocks = 0  # blocks per tower: 0 draws 2..5; 2 for the tools' pretraining
   config.data.rotate = 0.0  # radians; > 0 adds the paper's rotation noise (tools pretraining)
   config.data.size_noise = 0.0
   # the engine that simulates the data, and that evaluation then uses: "mjx", or "box_plane"

@@ -93,8 +93,9 @@ def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray
   count = min(cfg.towers_per_shard, cfg.num_towers - first)
   prims, ids = [], []
   for _ in range(count):
-    p, m = towers.sample_configurations(rng, cfg.configs_per_tower, rotate=cfg.rotate,
-                                        size_noise=cfg.size_noise)
+    p, m = towers.sample_configurations(rng, cfg.configs_per_tower,
+                                        num_blocks=cfg.get("num_blocks", 0) or None,
+                                        rotate=cfg.rotate, size_noise=cfg.size_noise)
     prims.append(p)
     ids.append(m)
   vox = voxels.voxelize(primitives.stack([jax.tree.map(lambda x: x[0], p) for p in prims]))

@@ -1,0 +1,142 @@
+"""The tools experiment (paper Sec. 5.2, Table 3) in resumable steps of <= --step_seconds.
+
+  python experiments/tools.py --config=ppdjax/configs/tools.py        # every step left
+  python experiments/tools.py --config=ppdjax/configs/tools.py:tiny   # the same on a CPU
+  python experiments/tools.py --list                                  # done and left
+
+Steps: generate the 2-block pretraining towers (`config.pretrain`) and the tools dataset;
+pretrain the full model on the towers; fine-tune the full model and the no-image and
+no-trajectory ablations on the tools from the pretrained weights (`config.finetune`);
+evaluate each on the whole tools test split (the full model with the baselines, +Sample
+and, with eval.fit, the +Fit rows); then `report`: experiments/results/tools.{json,md}
+beside the paper's Table 3, a figure of decomposed test tools, and the full model exported
+to assets/tools_model. Generation resumes by shard, training from its last checkpoint
+(a call stops itself after --step_seconds), evaluations by saved batch.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import jax
+from absl import app, flags
+from ml_collections import config_flags
+
+jax.config.update("jax_compilation_cache_dir",
+                  os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
+
+import blocks_common as common  # noqa: E402
+from ppdjax.dataset import generation  # noqa: E402
+from ppdjax.infer import evaluation, partial, tables  # noqa: E402
+from ppdjax.training import loop  # noqa: E402
+from ppdjax.training.state import total_steps  # noqa: E402
+
+config_flags.DEFINE_config_file("config", "ppdjax/configs/tools.py", "Tools preset.")
+flags.DEFINE_string("root", "out/tools", "Datasets, runs and evaluations go here.")
+flags.DEFINE_string("results", "experiments/results", "Where tools.json/md and PNGs go.")
+flags.DEFINE_string("assets", "assets", "Where the exported tools model goes.")
+flags.DEFINE_integer("step_seconds", 540, "A training or evaluation call stops after this long.")
+flags.DEFINE_bool("list", False, "Print the steps and their state, then exit.")
+FLAGS = flags.FLAGS
+VARIANTS = ("full", "no_image", "no_trajectory")
+
+
+class Pipeline:
+  """The steps, each a (name, done?, action); state lives only on disk."""
+
+  def __init__(self, config, root: str):
+    self.config, self.root = config, root
+    self.data = os.path.join(root, "data")
+    self.pretrain_data = os.path.join(root, "pretrain_data")
+
+  def workdir(self, name: str) -> str:
+    return os.path.join(self.root, name)
+
+  def pretrain_config(self):
+    """The towers' data section for pretraining (`config.pretrain`), same model."""
+    c = self.config.copy_and_resolve_references()
+    c.data.kind, c.data.backend = "towers", "mjx"
+    c.data.num_towers = c.pretrain.num_towers
+    c.data.num_blocks, c.data.rotate = c.pretrain.num_blocks, c.pretrain.rotate
+    c.data.size_noise = c.pretrain.size_noise
+    return c
+
+  def train_config(self, variant: str):
+    if variant == "pretrain":
+      return self.pretrain_config()
+    c = common.variant_config(self.config, variant)
+    c.train.init_from = self.workdir("pretrain")
+    c.train.geometry_steps = c.finetune.geometry_steps
+    c.train.joint_steps = c.finetune.joint_steps
+    c.train.warmup_steps = min(c.train.warmup_steps, c.finetune.geometry_steps)
+    return c
+
+  def eval_dir(self, variant: str) -> str:
+    return os.path.join(self.workdir(variant), "eval")
+
+  def steps(self):
+    out = [("generate:pretrain", lambda: self._generated(self.pretrain_data),
+            lambda: generation.generate(self.pretrain_config(), self.pretrain_data)),
+           ("generate:tools", lambda: self._generated(self.data),
+            lambda: generation.generate(self.config, self.data))]
+    for v in ("pretrain",) + VARIANTS:
+      out.append((f"train:{v}", lambda v=v: loop.trained_steps(self.workdir(v))
+                  >= total_steps(self.train_config(v).train), lambda v=v: self.train(v)))
+      if v != "pretrain":
+        out.append((f"evaluate:{v}", lambda v=v: os.path.exists(
+            os.path.join(self.eval_dir(v), "results.json")), lambda v=v: self.evaluate(v)))
+    out.append(("report", lambda: False, self.report))
+    return out
+
+  @staticmethod
+  def _generated(path: str) -> bool:
+    return os.path.exists(os.path.join(path, "manifest.json"))
+
+  def train(self, variant: str) -> None:
+    data = self.pretrain_data if variant == "pretrain" else self.data
+    loop.train_and_evaluate(self.train_config(variant), data, self.workdir(variant),
+                            time_limit_s=FLAGS.step_seconds)
+
+  def evaluate(self, variant: str) -> None:
+    e, full = self.config.eval, variant == "full"
+    results = evaluation.evaluate(
+        self.workdir(variant), self.data, split="test", samples=e.samples if full else 1,
+        batch_size=e.batch_size, with_baselines=full, prior_weight=e.prior_weight if full
+        else 0.0, fit=bool(full and e.fit), progress=True,
+        partial_dir=os.path.join(self.eval_dir(variant), "partial"),
+        max_seconds=FLAGS.step_seconds)
+    command = (f"python -m ppdjax.evaluate --workdir={variant} --data=data --split=test "
+               f"--samples={results['samples']} --norefine"
+               + ("" if full else " --nobaselines") + (" --fit" if results["fit"] else ""))
+    tables.write_results(results, self.eval_dir(variant), command)
+
+  def report(self) -> None:
+    import tools_report  # pylint: disable=import-outside-toplevel
+    tools_report.write_all(self, FLAGS.results, FLAGS.assets, " ".join(sys.argv))
+
+
+def main(argv):
+  del argv
+  pipe = Pipeline(FLAGS.config, FLAGS.root)
+  steps = pipe.steps()
+  if FLAGS.list:
+    for name, done, _ in steps:
+      print(f"{'done' if done() else 'left'}  {name}")
+    return
+  for name, done, action in steps:
+    while not done():
+      print(f"== {name}", flush=True)
+      try:
+        action()
+      except partial.EvaluationPaused as e:
+        print(f"   paused: {e}", flush=True)
+        continue
+      if name == "report":
+        break
+      if name.startswith("train:") and not done():
+        continue  # the time limit stopped it: go on from the checkpoint
+
+
+if __name__ == "__main__":
+  app.run(main)
