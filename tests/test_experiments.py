@@ -125,4 +125,5 @@ def test_tools_pipeline_runs_and_reports_table3(tmp_path):
   listed = subprocess.run([sys.executable, "experiments/tools.py", "--list",
                            "--config=ppdjax/configs/tools.py:tiny", f"--root={root}"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
-  assert [line.split()[0] for line in listed.stdout.splitlines()][:-1] == ["done"] * 10
+  states = [line.split()[0] for line in listed.stdout.splitlines()]
+  assert states == ["done"] * 9 + ["left"], listed.stdout  # the report always runs again
