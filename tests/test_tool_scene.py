@@ -46,7 +46,8 @@ def test_convex_pieces_cut_only_bent_parts():
   assert len(tool_scene.convex_pieces(handle)) == tool_scene.SLABS
 
 
-def test_tools_simulate_and_render():
+def test_tools_simulate_and_render(tmp_path, monkeypatch):
+  monkeypatch.chdir(tmp_path)  # MuJoCo writes its warning log into the working directory
   tool = tools.sample_tool(3, 1)
   parts, _ = meshes.normalize(list(tool.parts))
   traj = tool_scene.simulate_tool(parts, tool.densities, steps=32)
