@@ -179,6 +179,22 @@ def _worker_render(args):
           np.stack([o[1] for o in out]) if depth else None)
 
 
+def cpu_process_pool(workers: int, initializer=None, initargs=()):
+  """A pool of `workers` spawned processes (JAX and GL contexts do not survive a fork)
+  whose JAX stays on the CPU: they use it for a little geometry, and the accelerator's
+  memory belongs to the parent."""
+  import multiprocessing  # pylint: disable=import-outside-toplevel
+  saved = os.environ.get("JAX_PLATFORMS")
+  os.environ["JAX_PLATFORMS"] = "cpu"
+  try:
+    return multiprocessing.get_context("spawn").Pool(workers, initializer, initargs)
+  finally:
+    if saved is None:
+      os.environ.pop("JAX_PLATFORMS")
+    else:
+      os.environ["JAX_PLATFORMS"] = saved
+
+
 class BatchRenderer:
   """Renders batches of objects, in `workers` processes (each with its own GL context).
 
@@ -190,19 +206,7 @@ class BatchRenderer:
                num_slots: int = NUM_SLOTS, depth: bool = True):
     self.workers, self.depth = workers, depth
     if workers > 0:
-      import multiprocessing  # pylint: disable=import-outside-toplevel
-      ctx = multiprocessing.get_context("spawn")  # JAX and GL contexts do not survive fork
-      # workers use JAX only for a little geometry: keep them off the accelerator, whose
-      # memory the parent's JAX holds
-      saved = os.environ.get("JAX_PLATFORMS")
-      os.environ["JAX_PLATFORMS"] = "cpu"
-      try:
-        self._pool = ctx.Pool(workers, _worker_init, (height, width, num_slots))
-      finally:
-        if saved is None:
-          os.environ.pop("JAX_PLATFORMS")
-        else:
-          os.environ["JAX_PLATFORMS"] = saved
+      self._pool = cpu_process_pool(workers, _worker_init, (height, width, num_slots))
     else:
       _worker_init(height, width, num_slots)
       self._pool = None

@@ -12,12 +12,10 @@ of `sample_tool(seed, i + a * ATTEMPT_STRIDE)`, a = 1, 2, ... that does not.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from ppdjax import primitives
-from ppdjax.dataset import materials, storage, tool_scene, tools
+from ppdjax.dataset import materials, render, storage, tool_scene, tools
 from ppdjax.dataset.mesh_boxes import boxes_of_parts
 from ppdjax.dataset.meshes import normalize
 
@@ -55,18 +53,7 @@ class ToolWorkers:
   """Makes tool samples in `workers` processes (0: this one); a context manager."""
 
   def __init__(self, workers: int):
-    self._pool = None
-    if workers > 0:
-      import multiprocessing  # pylint: disable=import-outside-toplevel
-      saved = os.environ.get("JAX_PLATFORMS")
-      os.environ["JAX_PLATFORMS"] = "cpu"  # workers need no accelerator
-      try:
-        self._pool = multiprocessing.get_context("spawn").Pool(workers)
-      finally:
-        if saved is None:
-          os.environ.pop("JAX_PLATFORMS")
-        else:
-          os.environ["JAX_PLATFORMS"] = saved
+    self._pool = render.cpu_process_pool(workers) if workers > 0 else None
 
   def map(self, jobs: list) -> list:
     return self._pool.map(_one, jobs) if self._pool else [_one(j) for j in jobs]
