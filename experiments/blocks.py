@@ -19,17 +19,15 @@ after --step_seconds and the next call goes on); the test-split evaluations save
 as it is made and stop after --step_seconds too (the next call goes on); evaluations are
 skipped once written.
 ROOT/steps.jsonl records each call's wall time and device. With --jobs=N, up to N steps
-whose inputs are ready run at once, each in its own process (experiments/blocks_jobs.py).
+whose inputs are ready run at once, each in its own process (experiments/pipeline_steps.py).
 """
 
 from __future__ import annotations
 
-import datetime
 import json
 import os
 import shutil
 import sys
-import time
 
 import jax
 from absl import app, flags, logging
@@ -39,8 +37,8 @@ jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
 import blocks_common as common  # noqa: E402
-import blocks_jobs  # noqa: E402
 import blocks_report  # noqa: E402
+import pipeline_steps  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
 from ppdjax.infer import evaluation, partial, tables  # noqa: E402
 from ppdjax.training import loop  # noqa: E402
@@ -233,61 +231,18 @@ class Pipeline:
     shutil.rmtree(saved, ignore_errors=True)
 
   def report(self) -> None:
-    args = [a for a in sys.argv[1:] if not a.startswith("--step=")]  # blocks_jobs adds one
+    # the side-by-side runner adds --step= to its children's command lines
+    args = [a for a in sys.argv[1:] if not a.startswith("--step=")]
     blocks_report.write_all(self, FLAGS.results, FLAGS.assets,
                             "python experiments/blocks.py " + " ".join(args),
                             exported=FLAGS.exported)
-
-  def log(self, step: str, seconds: float, finished: bool) -> None:
-    os.makedirs(self.root, exist_ok=True)
-    dev = jax.devices()[0]
-    end = time.time()  # start and end let the report count overlapping steps once
-    with open(os.path.join(self.root, "steps.jsonl"), "a") as f:
-      f.write(json.dumps({"step": step, "seconds": round(seconds, 1), "finished": finished,
-                          "start": round(end - seconds, 1), "end": round(end, 1),
-                          "device": f"{jax.device_count()} x {dev.device_kind}",
-                          "date": datetime.date.today().isoformat()}) + "\n")
-
-
-def run_step(pipe: Pipeline, name: str, done, action) -> bool:
-  """Runs one call of a step; returns whether the step is now done."""
-  print(f"== {name}", flush=True)
-  t0 = time.perf_counter()
-  action()
-  finished = name == "report" or done()
-  pipe.log(name, time.perf_counter() - t0, finished)
-  print(f"== {name}: {time.perf_counter() - t0:.0f} s"
-        + ("" if finished else " (not finished: run again to go on)"), flush=True)
-  return finished
 
 
 def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
-  pipe = Pipeline(FLAGS.config, FLAGS.root)
-  steps = pipe.steps()
-  names = [s[0] for s in steps]
-  if FLAGS.list:
-    for name, done, _ in steps:
-      print(f"{'done' if done() else 'todo'}  {name}")
-    return
-  if FLAGS.step not in ("all", "next") and FLAGS.step not in names:
-    raise app.UsageError(f"--step must be all, next or one of {', '.join(names)}")
-  if FLAGS.jobs < 1:
-    raise app.UsageError(f"--jobs must be at least 1, got {FLAGS.jobs}")
-  if FLAGS.jobs > 1 and FLAGS.step == "all":
-    jax.config.update("jax_platforms", "cpu")  # the devices are the children's
-    done = {name: d for name, d, _ in steps}
-    sys.exit(blocks_jobs.run(names, pipe.needs, lambda n: done[n](), FLAGS.jobs, sys.argv,
-                             os.path.join(pipe.root, "logs")))
-  for name, done, action in steps:
-    if FLAGS.step not in ("all", "next", name) or (done() and FLAGS.step != name):
-      continue
-    while not run_step(pipe, name, done, action):
-      if FLAGS.step == "next":
-        return
-    if FLAGS.step != "all":
-      return
+  sys.exit(pipeline_steps.run_steps(Pipeline(FLAGS.config, FLAGS.root), FLAGS.step,
+                                    FLAGS.jobs, sys.argv, list_only=FLAGS.list))
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from ml_collections import config_flags
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
+import pipeline_steps  # noqa: E402
 from ppdjax.infer import evaluation, tables  # noqa: E402
 from ppdjax.training import loop  # noqa: E402
 
@@ -63,7 +64,7 @@ def ensure_trained(config, data_dir: str, root: str, variant: str) -> str:
   t0 = time.perf_counter()
   print(f"[{variant}] training -> {workdir}", flush=True)
   loop.train_and_evaluate(variant_config(config, variant), data_dir, workdir)
-  _log_step(root, f"train {variant}", time.perf_counter() - t0)
+  pipeline_steps.log_call(root, f"train {variant}", time.perf_counter() - t0, True)
   return workdir
 
 
@@ -90,15 +91,8 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
                          + (" --refine" if refine else "")
                          + f" --prior_weight={config.eval.prior_weight}"
                          + (f" --max_objects={max_objects}" if max_objects else ""))
-  _log_step(root, f"evaluate {variant}", time.perf_counter() - t0)
+  pipeline_steps.log_call(root, f"evaluate {variant}", time.perf_counter() - t0, True)
   return results
-
-
-def _log_step(root: str, step: str, seconds: float) -> None:
-  os.makedirs(root, exist_ok=True)
-  with open(os.path.join(root, "steps.jsonl"), "a") as f:
-    f.write(json.dumps({"step": step, "seconds": round(seconds, 1),
-                        "device": jax.devices()[0].device_kind}) + "\n")
 
 
 def write(out_dir: str, name: str, payload: dict, markdown: str) -> None:

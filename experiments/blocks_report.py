@@ -14,6 +14,8 @@ import shutil
 
 import numpy as np
 
+import pipeline_steps
+
 from ppdjax.dataset import storage
 from ppdjax.infer import example, tables
 from ppdjax.plots import plot_confusion, plot_variant_curves
@@ -70,14 +72,7 @@ def collect(pipe) -> dict:
             if v in res and row in res[v]["table5"]}
   table5_ci95 = {name: res[v].get("table5_ci95", {}).get(row) for name, v, row in TABLE5_ROWS
                  if v in res and row in res[v]["table5"]}
-  steps, spans = {}, []
-  with open(os.path.join(pipe.root, "steps.jsonl")) as f:
-    for line in f:
-      r = json.loads(line)
-      s = steps.setdefault(r["step"], {"seconds": 0.0, "calls": 0, "device": r["device"]})
-      s["seconds"] = round(s["seconds"] + r["seconds"], 1)
-      s["calls"] += 1
-      spans.append((r.get("start"), r.get("end"), r["seconds"]))
+  log = pipeline_steps.read_log(pipe.root)
   return {
       "table2": table2, "f1": full["f1"], "shape": full.get("shape"),
       "shape_fit": full.get("shape_fit"), "shape_fit_depth": full.get("shape_fit_depth"),
@@ -89,25 +84,10 @@ def collect(pipe) -> dict:
       "refine": full["refine"],
       "prior_weight": full.get("prior_weight", 0.0), "prior_sweep": full.get("prior_sweep"),
       "prior_sweeps": full.get("prior_sweeps"), "validation": val,
-      "refine_stats": full.get("refine_stats"), "steps": steps,
-      "total_seconds": round(sum(s["seconds"] for s in steps.values()), 1),
-      "wall_seconds": round(wall_seconds(spans), 1),
+      "refine_stats": full.get("refine_stats"), **log,
       "paper": {"table2": tables.PAPER_TABLE2, "table4": tables.PAPER_TABLE4,
                 "table5": tables.PAPER_TABLE5, "f1": tables.PAPER_SHAPE_F1},
   }
-
-
-def wall_seconds(spans: list[tuple]) -> float:
-  """The time in which at least one step ran: overlapping steps (--jobs) count once; a
-  record without start and end (older logs) counts its own seconds."""
-  total, reach = 0.0, -float("inf")
-  for start, end, seconds in sorted(spans, key=lambda s: (s[0] is not None, s[0] or 0)):
-    if start is None or end is None:
-      total += seconds
-    elif end > reach:
-      total += end - max(start, reach)
-      reach = end
-  return total
 
 
 def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
@@ -204,12 +184,7 @@ def markdown(r: dict, command: str) -> str:
     s = r["refine_stats"]
     lines += [f"Refinement lowered the trajectory distance on {100 * s['improved_fraction']:.0f}%"
               f" of objects (median ratio {s['median_distance_ratio']:.3f}).", ""]
-  lines += ["## Steps (wall time)", "", "| step | calls | seconds | device |", "|---|--:|--:|---|"]
-  lines += [f"| {k} | {s['calls']} | {s['seconds']:.0f} | {s['device']} |"
-            for k, s in r["steps"].items()]
-  lines += ["", f"Total: {r['total_seconds'] / 60:.1f} min of steps, "
-            f"{r.get('wall_seconds', r['total_seconds']) / 60:.1f} min of wall time "
-            "(steps run side by side with --jobs count once).", "",
+  lines += ["## Steps (wall time)", ""] + pipeline_steps.steps_md(r) + ["",
             "![learning curves](blocks_learning_curves.png)", "",
             "![confusion](blocks_confusion.png)", "",
             "![decomposition](blocks_decomposition.png)", ""]

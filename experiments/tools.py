@@ -2,6 +2,8 @@
 
   python experiments/tools.py --config=ppdjax/configs/tools.py        # every step left
   python experiments/tools.py --config=ppdjax/configs/tools.py:tiny   # the same on a CPU
+  python experiments/tools.py --step=next                             # one call, then exit
+  python experiments/tools.py --jobs=2        # independent steps side by side
   python experiments/tools.py --list                                  # done and left
 
 Steps: generate the 2-block pretraining towers (`config.pretrain`) and the tools dataset;
@@ -12,6 +14,9 @@ and, with eval.fit, the +Fit rows); then `report`: experiments/results/tools.{js
 beside the paper's Table 3, a figure of decomposed test tools, and the full model exported
 to assets/tools_model. Generation resumes by shard, training from its last checkpoint
 (a call stops itself after --step_seconds), evaluations by saved batch.
+ROOT/steps.jsonl records each call's wall time and device (experiments/pipeline_steps.py);
+with --jobs=N, up to N steps whose inputs are ready run at once, e.g. the tools are made
+on the CPU while the model pretrains on the towers.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
 import blocks_common as common  # noqa: E402
+import pipeline_steps  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
 from ppdjax.infer import evaluation, partial, tables  # noqa: E402
 from ppdjax.training import loop  # noqa: E402
@@ -37,6 +43,9 @@ flags.DEFINE_string("root", "out/tools", "Datasets, runs and evaluations go here
 flags.DEFINE_string("results", "experiments/results", "Where tools.json/md and PNGs go.")
 flags.DEFINE_string("assets", "assets", "Where the exported tools model goes.")
 flags.DEFINE_integer("step_seconds", 540, "A training or evaluation call stops after this long.")
+flags.DEFINE_string("step", "all", "'all' (every step left), 'next', or a step name.")
+flags.DEFINE_integer("jobs", 1, "Steps run at once, each in its own process (with "
+                     "--step=all).")
 flags.DEFINE_bool("list", False, "Print the steps and their state, then exit.")
 FLAGS = flags.FLAGS
 VARIANTS = ("full", "no_image", "no_trajectory")
@@ -89,6 +98,18 @@ class Pipeline:
     out.append(("report", lambda: False, self.report))
     return out
 
+  def needs(self, name: str) -> tuple[str, ...]:
+    """The steps that must be done before `name` starts (the data flow of steps())."""
+    kind, _, variant = name.partition(":")
+    if kind == "generate":
+      return ()
+    if kind == "train":
+      return (("generate:pretrain",) if variant == "pretrain"
+              else ("generate:tools", "train:pretrain"))
+    if kind == "evaluate":
+      return (f"train:{variant}",)
+    return tuple(n for n, _, _ in self.steps() if n != "report")
+
   @staticmethod
   def _generated(path: str) -> bool:
     return os.path.exists(os.path.join(path, "manifest.json"))
@@ -100,12 +121,16 @@ class Pipeline:
 
   def evaluate(self, variant: str) -> None:
     e, full = self.config.eval, variant == "full"
-    results = evaluation.evaluate(
-        self.workdir(variant), self.data, split="test", samples=e.samples if full else 1,
-        batch_size=e.batch_size, with_baselines=full, prior_weight=e.prior_weight if full
-        else 0.0, fit=bool(full and e.fit), progress=True,
-        partial_dir=os.path.join(self.eval_dir(variant), "partial"),
-        max_seconds=FLAGS.step_seconds)
+    try:
+      results = evaluation.evaluate(
+          self.workdir(variant), self.data, split="test", samples=e.samples if full else 1,
+          batch_size=e.batch_size, with_baselines=full, prior_weight=e.prior_weight if full
+          else 0.0, fit=bool(full and e.fit), progress=True,
+          partial_dir=os.path.join(self.eval_dir(variant), "partial"),
+          max_seconds=FLAGS.step_seconds)
+    except partial.EvaluationPaused as paused:  # saved so far; the next call goes on
+      print(f"[{variant}] {paused}", flush=True)
+      return
     command = (f"python -m ppdjax.evaluate --workdir={variant} --data=data --split=test "
                f"--samples={results['samples']} --norefine"
                + ("" if full else " --nobaselines") + (" --fit" if results["fit"] else ""))
@@ -113,29 +138,16 @@ class Pipeline:
 
   def report(self) -> None:
     import tools_report  # pylint: disable=import-outside-toplevel
-    tools_report.write_all(self, FLAGS.results, FLAGS.assets, " ".join(sys.argv))
+    # the side-by-side runner adds --step= to its children's command lines
+    args = [a for a in sys.argv[1:] if not a.startswith("--step=")]
+    tools_report.write_all(self, FLAGS.results, FLAGS.assets,
+                           "python experiments/tools.py " + " ".join(args))
 
 
 def main(argv):
   del argv
-  pipe = Pipeline(FLAGS.config, FLAGS.root)
-  steps = pipe.steps()
-  if FLAGS.list:
-    for name, done, _ in steps:
-      print(f"{'done' if done() else 'left'}  {name}")
-    return
-  for name, done, action in steps:
-    while not done():
-      print(f"== {name}", flush=True)
-      try:
-        action()
-      except partial.EvaluationPaused as e:
-        print(f"   paused: {e}", flush=True)
-        continue
-      if name == "report":
-        break
-      if name.startswith("train:") and not done():
-        continue  # the time limit stopped it: go on from the checkpoint
+  sys.exit(pipeline_steps.run_steps(Pipeline(FLAGS.config, FLAGS.root), FLAGS.step,
+                                    FLAGS.jobs, sys.argv, list_only=FLAGS.list))
 
 
 if __name__ == "__main__":

@@ -10,6 +10,8 @@ import jax
 import numpy as np
 from PIL import Image
 
+import pipeline_steps
+
 from ppdjax import make_decompose_fn, plots
 from ppdjax.dataset import storage
 from ppdjax.infer.tables import table2_md, with_ci
@@ -39,7 +41,8 @@ def collect(pipe) -> dict:
     if extra in full["table2"]:
       rows[extra.replace("PPD", "PPD (full)")] = full["table2"][extra]
   return {"rows": rows, "shape": full["shape"], "objects": full["objects"],
-          "samples": full["samples"], "mae_units": full.get("mae_units", "mm")}
+          "samples": full["samples"], "mae_units": full.get("mae_units", "mm"),
+          **pipeline_steps.read_log(pipe.root)}
 
 
 def figure(pipe, path: str, model_dir: str) -> str:
@@ -82,7 +85,8 @@ def markdown(r: dict, command: str) -> str:
             + "; ".join(f"{k} {'/'.join(str(v) for v in vals)}" for k, vals in PAPER.items()),
             "", f"Shape F1 (IoU > 0.5): {with_ci(r['shape'], 'f1')}; box count exact on "
             f"{with_ci(r['shape'], 'count_exact')} % of tools; paper {PAPER_F1}.", "",
-            "![decomposed test tools](tools_decomposition.png)", ""]
+            "![decomposed test tools](tools_decomposition.png)", "",
+            "## Steps (wall time)", ""] + pipeline_steps.steps_md(r) + [""]
   return "\n".join(lines)
 
 

@@ -80,13 +80,13 @@ open(os.path.join(root, step), "w").close()
 def test_jobs_start_steps_when_their_inputs_are_done_and_stop_behind_a_failure(tmp_path,
                                                                               capsys):
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import blocks_jobs
+  import pipeline_steps
   script = tmp_path / "step.py"
   script.write_text(_FAKE_STEP)
   needs = {"a": (), "b": ("a",), "c": ("a",), "d": ("b", "c"), "bad": (), "e": ("bad",)}
   done = lambda n: os.path.exists(tmp_path / n)
-  rc = blocks_jobs.run(list(needs), needs.__getitem__, done, 2, [str(script), str(tmp_path)],
-                       str(tmp_path / "logs"))
+  rc = pipeline_steps.run_side_by_side(list(needs), needs.__getitem__, done, 2,
+                                       [str(script), str(tmp_path)], str(tmp_path / "logs"))
   assert rc == 1  # "bad" failed, so "e" never started
   lines = (tmp_path / "order").read_text().split("\n")
   started = [line.split()[1] for line in lines if line.startswith("start")]
@@ -97,8 +97,8 @@ def test_jobs_start_steps_when_their_inputs_are_done_and_stop_behind_a_failure(t
   assert not done("e") and done("d")
   said = capsys.readouterr().out
   assert "-- bad: FAILED (exit 2)" in said and "-- e: not started (bad failed)" in said
-  again = blocks_jobs.run(["a", "b"], needs.__getitem__, done, 2, [str(script), str(tmp_path)],
-                          str(tmp_path / "logs"))
+  again = pipeline_steps.run_side_by_side(["a", "b"], needs.__getitem__, done, 2,
+                                          [str(script), str(tmp_path)], str(tmp_path / "logs"))
   assert again == 0 and started == [ln.split()[1] for ln in
                                     (tmp_path / "order").read_text().split("\n")
                                     if ln.startswith("start")]  # done steps are not rerun
@@ -106,24 +106,41 @@ def test_jobs_start_steps_when_their_inputs_are_done_and_stop_behind_a_failure(t
 
 @pytest.mark.slow  # about 5 minutes on 2 cores
 def test_tools_pipeline_runs_and_reports_table3(tmp_path):
-  """experiments/tools.py on the tools preset's tiny size: every step, then the report."""
+  """experiments/tools.py on the tools preset's tiny size: every step, two at a time as
+  their inputs allow, then the report."""
   root, results, assets = (str(tmp_path / d) for d in ("root", "results", "assets"))
   env = {**os.environ, "JAX_PLATFORMS": "cpu",
          "JAX_COMPILATION_CACHE_DIR": os.path.join(ROOT, ".jax_cache")}
   run = subprocess.run([sys.executable, "experiments/tools.py",
                         "--config=ppdjax/configs/tools.py:tiny", f"--root={root}",
-                        f"--results={results}", f"--assets={assets}"], cwd=ROOT, env=env,
-                       capture_output=True, text=True, timeout=900)
+                        f"--results={results}", f"--assets={assets}", "--jobs=2"], cwd=ROOT,
+                       env=env, capture_output=True, text=True, timeout=900)
   assert run.returncode == 0, run.stderr[-3000:]
   with open(os.path.join(results, "tools.json")) as f:
     table = json.load(f)
   assert list(table["rows"])[:7] == ["Frequent", "Nearest", "Oracle", "PPD (no trajectory)",
                                      "PPD (no image)", "PPD (full)", "PPD (full)+Sample"]
   assert table["objects"] >= 1 and "f1" in table["shape"]
+  assert "train:pretrain" in table["steps"] and table["wall_seconds"] > 0
   assert os.path.exists(os.path.join(results, "tools_decomposition.png"))
   assert os.path.exists(os.path.join(assets, "tools_model", "config.json"))
   listed = subprocess.run([sys.executable, "experiments/tools.py", "--list",
                            "--config=ppdjax/configs/tools.py:tiny", f"--root={root}"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
   states = [line.split()[0] for line in listed.stdout.splitlines()]
-  assert states == ["done"] * 9 + ["left"], listed.stdout  # the report always runs again
+  assert states == ["done"] * 9 + ["todo"], listed.stdout  # the report always runs again
+
+
+def test_step_log_counts_overlapping_calls_once(tmp_path):
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import pipeline_steps
+  rows = [{"step": "a", "seconds": 10.0, "start": 0.0, "end": 10.0, "device": "cpu"},
+          {"step": "b", "seconds": 10.0, "start": 5.0, "end": 15.0, "device": "cpu"},
+          {"step": "a", "seconds": 4.0, "start": 20.0, "end": 24.0, "device": "cpu"},
+          {"step": "old", "seconds": 3.0, "device": "cpu"}]  # no start/end: counts itself
+  (tmp_path / "steps.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+  log = pipeline_steps.read_log(str(tmp_path))
+  assert log["steps"]["a"] == {"seconds": 14.0, "calls": 2, "device": "cpu"}
+  assert log["total_seconds"] == 27.0 and log["wall_seconds"] == 22.0
+  assert "| a | 2 | 14 | cpu |" in pipeline_steps.steps_md(log)
+  assert pipeline_steps.read_log(str(tmp_path / "none"))["steps"] == {}
