@@ -57,6 +57,32 @@ class MjxSettings:
 DEFAULT_SETTINGS = MjxSettings()
 Settings = MjxSettings | BoxPlaneSettings
 
+# A candidate far lighter than the object it explains can be launched by the push (a
+# 1,000 N tool push sends 0.1 kg flying at 30 m/s), then spin until float32 integration
+# diverges. Such a rollout has left the scene: from the first step that is farther than
+# this from the origin, or not finite, it keeps its last pose inside (docs/physics.md).
+ESCAPE_DISTANCE = 10.0  # m; objects span 1 m, observed tools travel up to 3 m
+
+
+def hold_escapes(traj: jax.Array) -> jax.Array:
+  """(..., T, 7) poses with each rollout held at its last pose within ESCAPE_DISTANCE
+  from the first step that leaves it or is not finite. If the first step already does
+  (the push alone throws it out), the rollout holds that pose brought back onto the
+  sphere of radius ESCAPE_DISTANCE (a non-finite quaternion becomes the identity)."""
+  pos = jnp.nan_to_num(traj[..., :3], posinf=0.0, neginf=0.0)
+  r2 = jnp.sum(jnp.square(pos), -1)
+  inside = jnp.all(jnp.isfinite(traj), -1) & (r2 <= ESCAPE_DISTANCE ** 2)
+  inside = jnp.cumprod(inside, -1).astype(bool)
+  last = jnp.maximum(jnp.sum(inside, -1) - 1, 0)[..., None, None]
+  held_pos = jnp.take_along_axis(pos, last, -2)
+  held_pos = held_pos * jnp.minimum(
+      1.0, ESCAPE_DISTANCE / jnp.sqrt(jnp.sum(jnp.square(held_pos), -1, keepdims=True)
+                                      + 1e-12))
+  held_quat = jnp.take_along_axis(traj[..., 3:], last, -2)
+  held_quat = jnp.where(jnp.all(jnp.isfinite(held_quat), -1, keepdims=True), held_quat,
+                        jnp.array([1.0, 0.0, 0.0, 0.0], traj.dtype))
+  return jnp.where(inside[..., None], traj, jnp.concatenate([held_pos, held_quat], -1))
+
 
 def settings_for(backend: str) -> Settings:
   """The JAX engine's default settings for data simulated by `backend`: the box-plane
@@ -100,11 +126,12 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
   """(P, steps, 7) trajectories of one object (K slots) under P pushes; traceable.
 
   `settings` picks the step: MjxSettings runs MJX, BoxPlaneSettings the box-plane step.
+  A rollout that leaves the scene or diverges is held (`hold_escapes`).
   """
   if isinstance(settings, BoxPlaneSettings):
     run = box_plane_kernel.rollout if settings.resolved_kernel() == "pallas" else box_plane.rollout
-    return box_plane.rollout_object(prims, pushes, steps=steps, settings=settings,
-                                    run_rollout=run)
+    return hold_escapes(box_plane.rollout_object(prims, pushes, steps=steps,
+                                                 settings=settings, run_rollout=run))
   k = prims.density.shape[-1]
   mx = template(settings, k)
   fields = scene.object_fields(prims)
@@ -137,7 +164,7 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
                            unroll=settings.unroll)
     return jnp.concatenate([traj_push, traj], 0)
 
-  return jax.vmap(one_push)(wrenches)
+  return hold_escapes(jax.vmap(one_push)(wrenches))
 
 
 @functools.lru_cache(maxsize=16)
