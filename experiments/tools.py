@@ -78,6 +78,8 @@ class Pipeline:
     c.train.init_from = self.workdir("pretrain")
     c.train.geometry_steps = c.finetune.geometry_steps
     c.train.joint_steps = c.finetune.joint_steps
+    c.train.learning_rate = c.finetune.learning_rate
+    c.train.eval_every = c.finetune.eval_every
     c.train.warmup_steps = min(c.train.warmup_steps, c.finetune.geometry_steps)
     return c
 
