@@ -69,6 +69,15 @@ def test_detection_finds_each_sticker_to_a_tenth_of_a_pixel():
   assert gaps.max() < 0.1, gaps
 
 
+def test_brick_and_large_red_surfaces_are_not_stickers():
+  img = np.full((H, W, 3), 120, np.uint8)
+  img[50:150, 50:250] = (158, 56, 36)  # the brick texture's base colour (saturation 196)
+  img[200:440, 300:620] = (230, 20, 20)  # a red surface far larger than a sticker
+  cv2.circle(img, (100, 300), 5, (220, 30, 30), -1)
+  det = detect_stickers(img)
+  np.testing.assert_allclose(det, [[100.0, 300.0]], atol=0.05)
+
+
 def test_matching_assigns_by_minimum_total_distance_within_the_gate():
   predicted = np.array([[0.0, 0.0], [10.0, 0.0], [100.0, 100.0]])
   detections = np.array([[9.0, 0.0], [1.0, 0.0]])  # greedy nearest would pair 1 with 0

@@ -60,7 +60,8 @@ def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: n
                 stickers: np.ndarray, initial_pose: np.ndarray, *, fps: float = 60.0,
                 push_time: float = 0.0, dt: float = TIMESTEP, steps: int | None = None,
                 gate_px: float | None = None, max_gap_s: float = 0.1,
-                smoothing: float = 0.0, progress: bool = False) -> np.ndarray:
+                smoothing: float = 0.0, detector: dict | None = None,
+                progress: bool = False) -> np.ndarray:
   """(steps, 7) float32 trajectory of the object frame in world coordinates, one pose
   per simulator step after the push: step k at push_time + (k + 1) dt.
 
@@ -75,6 +76,7 @@ def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: n
       (default 5 % of the frame's larger side).
     max_gap_s: longest run of frames with fewer than 4 stickers that is interpolated.
     smoothing: Gaussian smoothing of the poses over time, in frames (0: none).
+    detector: keyword arguments of `detect_stickers` (min_area, max_area, min_saturation).
   """
   k, cam_world, pts, p0 = _check(frames, intrinsics, camera_from_world, stickers,
                                  initial_pose, fps)
@@ -85,7 +87,7 @@ def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: n
   last, before = cam_world @ posemod.pose_to_matrix(p0), None
   for t in tqdm(range(n_frames), desc="tracking", unit="frame", disable=not progress):
     guess = last if before is None else last @ np.linalg.inv(before) @ last
-    det = detect_stickers(frames[t])
+    det = detect_stickers(frames[t], **(detector or {}))
     solved = None
     for g, start in ((gate, guess), (gate / 4, None)):
       start = solved if start is None else start
