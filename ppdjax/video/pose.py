@@ -55,19 +55,45 @@ def match(detections: np.ndarray, predicted: np.ndarray, usable: np.ndarray,
   return out
 
 
+def extrapolate(track: list[tuple[int, np.ndarray]], frame: int) -> np.ndarray:
+  """The 4x4 pose at `frame` at constant velocity from the last two (frame, pose) pairs
+  of `track` (position linearly, orientation along the same rotation axis)."""
+  (f1, m1) = track[-1]
+  if len(track) < 2 or track[-2][0] == f1:
+    return m1
+  f0, m0 = track[-2]
+  s = (frame - f1) / (f1 - f0)
+  rel = Rotation.from_matrix(m1[:3, :3] @ m0[:3, :3].T).as_rotvec()
+  out = np.eye(4)
+  out[:3, :3] = Rotation.from_rotvec(s * rel).as_matrix() @ m1[:3, :3]
+  out[:3, 3] = m1[:3, 3] + s * (m1[:3, 3] - m0[:3, 3])
+  return out
+
+
 def solve_pnp(object_points: np.ndarray, image_points: np.ndarray, intrinsics: np.ndarray,
-              guess: np.ndarray) -> np.ndarray:
+              guess: np.ndarray, ransac_px: float | None = None) -> np.ndarray | None:
   """4x4 camera_from_object from >= 4 correspondences: OpenCV's iterative PnP from the
-  guess (a 4x4 camera_from_object), then Levenberg-Marquardt on the reprojection error."""
+  guess (a 4x4 camera_from_object), then Levenberg-Marquardt on the reprojection error.
+  With `ransac_px`, the solve is RANSAC's (pairs off by more than that many pixels are
+  outliers, e.g. a detection matched to a hidden sticker) and LM refines the inliers;
+  None when fewer than 4 remain."""
   obj = np.ascontiguousarray(object_points, np.float64)
   img = np.ascontiguousarray(image_points, np.float64)
   k = np.asarray(intrinsics, np.float64)
   rvec = cv2.Rodrigues(guess[:3, :3])[0]
   tvec = guess[:3, 3].reshape(3, 1).copy()
-  ok, rvec, tvec = cv2.solvePnP(obj, img, k, None, rvec, tvec, useExtrinsicGuess=True,
-                                flags=cv2.SOLVEPNP_ITERATIVE)
-  if not ok:
-    raise RuntimeError("PnP failed")
+  if ransac_px is not None:
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        obj, img, k, None, rvec, tvec, useExtrinsicGuess=True, iterationsCount=200,
+        reprojectionError=ransac_px, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok or inliers is None or len(inliers) < 4:
+      return None
+    obj, img = obj[inliers.ravel()], img[inliers.ravel()]
+  else:
+    ok, rvec, tvec = cv2.solvePnP(obj, img, k, None, rvec, tvec, useExtrinsicGuess=True,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+      return None
   rvec, tvec = cv2.solvePnPRefineLM(obj, img, k, None, rvec, tvec)
   m = np.eye(4)
   m[:3, :3] = cv2.Rodrigues(rvec)[0]
@@ -94,6 +120,7 @@ def smooth(poses: np.ndarray, sigma: float) -> np.ndarray:
 def resample(times: np.ndarray, poses: np.ndarray, new_times: np.ndarray) -> np.ndarray:
   """(len(new_times), 7) poses at `new_times` (within [times[0], times[-1]]): positions
   interpolated linearly, orientations by spherical linear interpolation."""
+  new_times = np.clip(new_times, times[0], times[-1])  # float round-off at the ends
   p = np.stack([np.interp(new_times, times, poses[:, i]) for i in range(3)], -1)
   rot = Slerp(times, Rotation.from_quat(poses[:, 3:], scalar_first=True))(new_times)
   q = rot.as_quat(scalar_first=True)

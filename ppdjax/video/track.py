@@ -6,7 +6,8 @@ sticker should be from the poses of the frames before (constant velocity); assig
 detections to stickers by minimum total distance within a gate (`pose.match`), so a
 sticker that vanishes simply goes unmatched and is found again when it reappears; with
 >= 4 matches solve PnP from the prediction and refine it by Levenberg-Marquardt
-(`pose.solve_pnp`), then match once more at the solved pose and solve again. Frames with
+(`pose.solve_pnp`), then match twice more at the solved pose within a tight gate and
+solve again; a frame whose pose fewer than 4 stickers confirm counts as unseen. Frames with
 fewer than 4 stickers are interpolated from their neighbours, unless such a run lasts
 longer than `max_gap_s` (then `TrackingError` names the frames). The poses are optionally
 smoothed and resampled to the simulator's dt.
@@ -84,26 +85,31 @@ def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: n
   gate = gate_px if gate_px is not None else 0.05 * max(height, width)
   world_cam = np.linalg.inv(cam_world)
   cam_obj = [None] * n_frames
-  last, before = cam_world @ posemod.pose_to_matrix(p0), None
+  track = [(0, cam_world @ posemod.pose_to_matrix(p0))]  # the last two tracked frames
   for t in tqdm(range(n_frames), desc="tracking", unit="frame", disable=not progress):
-    guess = last if before is None else last @ np.linalg.inv(before) @ last
+    guess = posemod.extrapolate(track, t)
     det = detect_stickers(frames[t], **(detector or {}))
     solved = None
-    for g, start in ((gate, guess), (gate / 4, None)):
-      start = solved if start is None else start
-      if start is None:
-        break
+    # a coarse match at the prediction, then matches at the solved pose within a tight
+    # gate: a frame is kept only if >= 4 stickers agree with its pose to a few pixels
+    for g in (gate, max(3.0, gate / 8), max(3.0, gate / 8)):
+      first = solved is None
+      start = guess if first else solved
       uv, front = posemod.project(pts, start, k)
       inside = front & (uv[:, 0] > -g) & (uv[:, 0] < width + g) & (uv[:, 1] > -g) & (
           uv[:, 1] < height + g)
       which = posemod.match(det, uv, inside, g)
       ok = which >= 0
       if ok.sum() < MIN_STICKERS:
+        solved = None
         break
-      solved = posemod.solve_pnp(pts[ok], det[which[ok]], k, start)
+      solved = posemod.solve_pnp(pts[ok], det[which[ok]], k, start,
+                                 ransac_px=max(3.0, gate / 8) if first else None)
+      if solved is None:
+        break
     if solved is not None:
       cam_obj[t] = solved
-      before, last = (last if cam_obj[t - 1] is not None or t == 0 else None), solved
+      track = [(t, solved)] if t == 0 else [track[-1], (t, solved)]
   seen = np.array([m is not None for m in cam_obj])
   _check_gaps(seen, fps, max_gap_s)
   times = np.arange(n_frames) / fps

@@ -1,0 +1,159 @@
+"""Rendered videos as hard as real ones (paper Sec. 5.3 has real ones; here there are
+none): a tower with red stickers on its blocks' top corners, filmed by the dataset's
+camera at any frame rate, with motion blur, sensor noise, lighting change and occlusion.
+
+Stickers are 3 cm red squares, 2 mm thick, lying on each block's top face at its four
+corners (centred 1.5 cm inside each edge, so their centres are known points of the object
+frame). Motion blur averages `shutter_samples` renders spread over the exposure; the
+other degradations act on the blurred frames (`degrade`).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ppdjax.conventions import NUM_SLOTS  # noqa: E402
+from ppdjax.dataset import camera, materials, render  # noqa: E402
+from ppdjax.video import pose as posemod  # noqa: E402
+
+STICKER_HALF = 0.015  # m: half the side of a square sticker
+STICKER_THICKNESS = 0.002  # m
+FOVY = 24.0  # degrees: the dataset's camera position, zoomed in on the tower
+CORNERS = np.array([[sx, sy] for sx in (-1, 1) for sy in (-1, 1)], np.float64)
+
+
+def sticker_points(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
+                   valid: np.ndarray) -> np.ndarray:
+  """(4 x valid blocks, 3) sticker centres in the object frame: on each block's top face,
+  one sticker-half-side in from each corner, on the face's surface."""
+  out = []
+  for h, p, q, v in zip(half_size, pos, quat, valid):
+    if not v:
+      continue
+    rot = posemod.pose_to_matrix(np.concatenate([p, q]))[:3, :3]
+    local = np.concatenate([CORNERS * (h[:2] - STICKER_HALF),
+                            np.full((4, 1), h[2] + STICKER_THICKNESS / 2)], -1)
+    out.append(local @ rot.T + p)
+  return np.concatenate(out)
+
+
+def intrinsics(height: int, width: int, fovy: float = FOVY) -> np.ndarray:
+  """(3, 3) K of the video camera (square pixels, centred principal point)."""
+  f = 0.5 * height / np.tan(np.radians(fovy) / 2)
+  return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+
+
+class VideoRenderer:
+  """Renders a K-slot object at given poses, with its stickers, from the dataset camera."""
+
+  def __init__(self, height: int = 480, width: int = 640, num_slots: int = NUM_SLOTS,
+               fovy: float = FOVY):
+    boxes = "\n".join(
+        f'      <geom name="box{k}" type="box" size="0.1 0.1 0.1" material="mat{k}" '
+        f'pos="{0.01 * (k + 1)} 0.02 0.03" quat="0.9 0.1 0.2 0.3"/>' for k in range(num_slots))
+    stickers = "\n".join(
+        f'      <geom name="sticker{i}" type="box" size="{STICKER_HALF} {STICKER_HALF} '
+        f'{STICKER_THICKNESS / 2}" material="sticker" pos="0.01 {0.001 * i} 0.03" '
+        f'quat="0.9 0.1 0.2 0.3"/>' for i in range(4 * num_slots))
+    sticker_asset = ('    <material name="sticker" rgba="0.9 0.02 0.02 1" specular="0.1" '
+                     'emission="0.3"/>')
+    xml = render.stage_xml(render.material_assets(num_slots), boxes + "\n" + stickers,
+                           sticker_asset)
+    xml = xml.replace('offwidth="1024" offheight="1024"', 'offwidth="1280" offheight="1280"')
+    self.model = mujoco.MjModel.from_xml_string(
+        xml.replace(f'fovy="{camera.FOVY}"', f'fovy="{fovy}"'))
+    self.intrinsics = intrinsics(height, width, fovy)
+    self.camera_from_world = camera.camera_from_world()
+    self.data = mujoco.MjData(self.model)
+    self._renderer = render.open_renderer(self.model, height, width)
+    name = lambda s: mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, s)  # noqa: E731
+    self._box0, self._sticker0 = name("box0"), name("sticker0")
+    self._tex = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXTURE, f"tex{k}")
+                 for k in range(num_slots)]
+    self.num_slots = num_slots
+
+  def close(self):
+    self._renderer.close()
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
+
+  def set_object(self, prims, material_ids, texture_seeds) -> np.ndarray:
+    """Writes one object (numpy Primitives fields, K slots) and returns its (N, 3)
+    sticker centres in the object frame."""
+    m, k = self.model, self.num_slots
+    valid = np.asarray(prims.valid).astype(bool)
+    half, pos = np.asarray(prims.half_size), np.asarray(prims.pos)
+    quat = np.asarray(prims.quat) / np.linalg.norm(prims.quat, axis=-1, keepdims=True)
+    g = slice(self._box0, self._box0 + k)
+    m.geom_size[g] = np.where(valid[:, None], half, 0.01)
+    m.geom_pos[g], m.geom_quat[g] = pos, quat
+    m.geom_rbound[g] = np.linalg.norm(m.geom_size[g], axis=-1)
+    m.geom_group[g] = np.where(valid, 0, render.HIDDEN_GROUP)
+    points = sticker_points(half, pos, quat, valid)
+    s = slice(self._sticker0, self._sticker0 + 4 * k)
+    shown = np.zeros(4 * k, bool)
+    shown[:len(points)] = True
+    m.geom_pos[s] = np.concatenate([points, np.zeros((4 * k - len(points), 3))])
+    m.geom_quat[s] = np.repeat(np.where(valid[:, None], quat, [1.0, 0, 0, 0]), 4, 0)[
+        np.argsort(~np.repeat(valid, 4), kind="stable")]
+    m.geom_group[s] = np.where(shown, 0, render.HIDDEN_GROUP)
+    self._renderer._gl_context.make_current()  # pylint: disable=protected-access
+    for slot in np.flatnonzero(valid):
+      render.write_texture(m, self._tex[slot],
+                           materials.MATERIAL_NAMES[int(material_ids[slot])],
+                           int(texture_seeds[slot]))
+      mujoco.mjr_uploadTexture(m, self._renderer._mjr_context, self._tex[slot])  # pylint: disable=protected-access
+    return points
+
+  def render(self, pose7: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 frame with the object frame at world pose (7,)."""
+    self.model.body_pos[1], self.model.body_quat[1] = pose7[:3], pose7[3:]
+    mujoco.mj_forward(self.model, self.data)
+    self._renderer.update_scene(self.data, camera="view")
+    return self._renderer.render().copy()
+
+
+def film(renderer: VideoRenderer, rest_pose: np.ndarray, trajectory: np.ndarray, dt: float,
+         fps: float, shutter_samples: int = 3, exposure: float = 0.5) -> np.ndarray:
+  """(F, H, W, 3) uint8 frames at i / fps, i < F, of an object at rest until time 0 and
+  then along `trajectory` ((T, 7), step k at (k + 1) dt): each frame averages
+  `shutter_samples` renders spread over `exposure` / fps seconds before it."""
+  times = np.concatenate([[0.0], dt * np.arange(1, len(trajectory) + 1)])
+  poses = np.concatenate([rest_pose[None], trajectory])
+  count = int(np.floor(times[-1] * fps + 1e-9)) + 1
+  frames = []
+  for i in range(count):
+    t = i / fps - exposure / fps * np.linspace(0, 1, shutter_samples, endpoint=False)[::-1]
+    at = posemod.resample(times, poses, np.clip(t, 0.0, times[-1]))
+    frames.append(np.mean([renderer.render(p) for p in at], 0))
+  return np.round(np.stack(frames)).astype(np.uint8)
+
+
+def degrade(frames: np.ndarray, rng: np.random.Generator, *, noise: float = 0.0,
+            lighting: float = 0.0, occlusion: float = 0.0) -> np.ndarray:
+  """Frames as a real camera would give them: Gaussian sensor noise of `noise` grey
+  levels, a brightness drifting by up to +-`lighting` (a fraction) over the clip, and a
+  grey bar `occlusion` of the frame's width wide sweeping across it (0: none)."""
+  out = frames.astype(np.float32)
+  n, h, w = frames.shape[:3]
+  if lighting:
+    phase = rng.uniform(0, 2 * np.pi)
+    gain = 1.0 + lighting * np.sin(phase + np.linspace(0, 2 * np.pi, n))
+    out *= gain[:, None, None, None]
+  if occlusion:
+    bar = int(occlusion * w)
+    for i in range(n):
+      x0 = int((i / max(n - 1, 1)) * (w + bar)) - bar
+      out[i, :, max(x0, 0):max(x0 + bar, 0)] = 90.0
+  if noise:
+    out += rng.normal(0.0, noise, out.shape)
+  return np.clip(np.round(out), 0, 255).astype(np.uint8)
