@@ -138,19 +138,20 @@ def test_bad_input_is_named(change, message):
 
 
 def test_rendered_tower_stickers_give_its_rest_pose():
-  """ppdjax.video.synthetic: a 2-block tower at rest, rendered with its stickers by the
-  dataset camera (zoomed): the stickers found in the frame, matched at the true pose,
-  give that pose back to a few millimetres."""
+  """ppdjax.video.synthetic: a 3-block stone tower at rest, rendered with its stickers by
+  the video camera: the stickers found in the frame, matched at the true pose, give that
+  pose back to a few millimetres (the camera model matches the renderer's pixels)."""
   import jax
   import jax.numpy as jnp
   from ppdjax.dataset import towers
   from ppdjax.sim import scene
+  from ppdjax.dataset.materials import MATERIAL_NAMES
   from ppdjax.video import synthetic
-  tower = jax.tree.map(lambda a: np.asarray(a[1]), towers.sample_towers(3, 4))
+  tower = jax.tree.map(lambda a: np.asarray(a[0]), towers.sample_towers(21, 1))
   rest = np.concatenate([np.asarray(scene.rest_position(jax.tree.map(jnp.asarray, tower))),
                          [1.0, 0.0, 0.0, 0.0]])
   with synthetic.VideoRenderer(480, 640) as r:
-    points = r.set_object(tower, np.arange(5) % 5, np.zeros(5, int))
+    points = r.set_object(tower, [MATERIAL_NAMES.index("stone")] * 5, np.zeros(5, int))
     frame = r.render(rest)
     truth = r.camera_from_world @ posemod.pose_to_matrix(rest)
     uv, _ = posemod.project(points, truth, r.intrinsics)
@@ -158,6 +159,7 @@ def test_rendered_tower_stickers_give_its_rest_pose():
     which = posemod.match(det, uv, np.ones(len(points), bool), 2.0)
     ok = which >= 0
     assert ok.sum() >= 4
+    assert np.median(np.linalg.norm(det[which[ok]] - uv[ok], axis=-1)) < 0.3
     solved = solve_pnp(points[ok], det[which[ok]], r.intrinsics, truth)
   world = np.linalg.inv(r.camera_from_world) @ solved
-  assert np.linalg.norm(world[:3, 3] - rest[:3]) < 5e-3
+  assert np.linalg.norm(world[:3, 3] - rest[:3]) < 3e-3

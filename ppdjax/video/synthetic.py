@@ -1,11 +1,13 @@
 """Rendered videos as hard as real ones (paper Sec. 5.3 has real ones; here there are
-none): a tower with red stickers on its blocks' top corners, filmed by the dataset's
-camera at any frame rate, with motion blur, sensor noise, lighting change and occlusion.
+none): a tower with red stickers on its blocks, filmed at any frame rate with motion
+blur, sensor noise, lighting change and occlusion.
 
-Stickers are 3 cm red squares, 2 mm thick, lying on each block's top face at its four
-corners (centred 1.5 cm inside each edge, so their centres are known points of the object
-frame). Motion blur averages `shutter_samples` renders spread over the exposure; the
-other degradations act on the blurred frames (`degrade`).
+The camera looks along the dataset camera's line of sight from DISTANCE_SCALE of its
+distance with its own field of view (FOVY). Stickers are 3 cm red squares, 0.5 mm thick,
+at the four corners of the two side faces of each block that face the camera
+(STICKER_FACES), a sticker side in from each edge, so their centres are known points of
+the object frame. Motion blur averages `shutter_samples` renders spread over the
+exposure; the other degradations act on the blurred frames (`degrade`).
 """
 
 from __future__ import annotations
@@ -22,53 +24,84 @@ from ppdjax.dataset import camera, materials, render  # noqa: E402
 from ppdjax.video import pose as posemod  # noqa: E402
 
 STICKER_HALF = 0.015  # m: half the side of a square sticker
-STICKER_THICKNESS = 0.002  # m
-FOVY = 24.0  # degrees: the dataset's camera position, zoomed in on the tower
+STICKER_THICKNESS = 0.0005  # m: thin, so its sides hardly show
+# The video camera looks along the dataset camera's line of sight from DISTANCE_SCALE of
+# its distance to the target, with a field of view of FOVY degrees.
+DISTANCE_SCALE = 1.0
+FOVY = 30.0
 CORNERS = np.array([[sx, sy] for sx in (-1, 1) for sy in (-1, 1)], np.float64)
 
 
-def sticker_points(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
-                   valid: np.ndarray) -> np.ndarray:
-  """(4 x valid blocks, 3) sticker centres in the object frame: on each block's top face,
-  one sticker-half-side in from each corner, on the face's surface."""
-  out = []
+# The faces that carry stickers, as (axis, sign) of the face normal in the block frame:
+# the two side faces the camera sees (-y and +x; it looks from the front right).
+STICKER_FACES = ((1, -1.0), (0, 1.0))
+_FACE_QUATS = {(1, -1.0): (np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0),  # local z -> -y
+               (0, 1.0): (np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0)}  # local z -> +x
+
+
+def _quat_mul(a, b):
+  w1, x1, y1, z1 = a
+  w2, x2, y2, z2 = b
+  return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                   w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def sticker_layout(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
+                   valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """(N, 3) sticker centres in the object frame and (N, 4) their orientations: on each
+  valid block's STICKER_FACES, one at each corner of the face, inset by a sticker side."""
+  centres, quats = [], []
   for h, p, q, v in zip(half_size, pos, quat, valid):
     if not v:
       continue
     rot = posemod.pose_to_matrix(np.concatenate([p, q]))[:3, :3]
-    local = np.concatenate([CORNERS * (h[:2] - STICKER_HALF),
-                            np.full((4, 1), h[2] + STICKER_THICKNESS / 2)], -1)
-    out.append(local @ rot.T + p)
-  return np.concatenate(out)
+    for axis, sign in STICKER_FACES:
+      others = [i for i in range(3) if i != axis]
+      for s1 in (-1, 1):
+        for s2 in (-1, 1):
+          local = np.zeros(3)
+          local[axis] = sign * (h[axis] + STICKER_THICKNESS / 2)
+          local[others[0]] = s1 * (h[others[0]] - 2 * STICKER_HALF)
+          local[others[1]] = s2 * (h[others[1]] - 2 * STICKER_HALF)
+          centres.append(rot @ local + p)
+          quats.append(_quat_mul(q, _FACE_QUATS[(axis, sign)]))
+  return np.array(centres), np.array(quats)
 
 
 def intrinsics(height: int, width: int, fovy: float = FOVY) -> np.ndarray:
-  """(3, 3) K of the video camera (square pixels, centred principal point)."""
+  """(3, 3) K of the video camera in OpenCV's pixel convention (pixel centres at integer
+  coordinates, so the centre of a W x H frame is at ((W - 1) / 2, (H - 1) / 2))."""
   f = 0.5 * height / np.tan(np.radians(fovy) / 2)
-  return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+  return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
 
 
 class VideoRenderer:
-  """Renders a K-slot object at given poses, with its stickers, from the dataset camera."""
+  """Renders a K-slot object at given poses, with its stickers, from the video camera."""
+
+  PER_BLOCK = 4 * len(STICKER_FACES)
 
   def __init__(self, height: int = 480, width: int = 640, num_slots: int = NUM_SLOTS,
-               fovy: float = FOVY):
+               fovy: float = FOVY, distance_scale: float = DISTANCE_SCALE):
     boxes = "\n".join(
         f'      <geom name="box{k}" type="box" size="0.1 0.1 0.1" material="mat{k}" '
         f'pos="{0.01 * (k + 1)} 0.02 0.03" quat="0.9 0.1 0.2 0.3"/>' for k in range(num_slots))
     stickers = "\n".join(
         f'      <geom name="sticker{i}" type="box" size="{STICKER_HALF} {STICKER_HALF} '
         f'{STICKER_THICKNESS / 2}" material="sticker" pos="0.01 {0.001 * i} 0.03" '
-        f'quat="0.9 0.1 0.2 0.3"/>' for i in range(4 * num_slots))
+        f'quat="0.9 0.1 0.2 0.3"/>' for i in range(self.PER_BLOCK * num_slots))
     sticker_asset = ('    <material name="sticker" rgba="0.9 0.02 0.02 1" specular="0.1" '
                      'emission="0.3"/>')
     xml = render.stage_xml(render.material_assets(num_slots), boxes + "\n" + stickers,
                            sticker_asset)
     xml = xml.replace('offwidth="1024" offheight="1024"', 'offwidth="1280" offheight="1280"')
-    self.model = mujoco.MjModel.from_xml_string(
-        xml.replace(f'fovy="{camera.FOVY}"', f'fovy="{fovy}"'))
+    eye = camera.CAMERA_TARGET + distance_scale * (camera.CAMERA_POS - camera.CAMERA_TARGET)
+    xml = xml.replace(f'fovy="{camera.FOVY}"', f'fovy="{fovy}"').replace(
+        'pos="' + " ".join(f"{v}" for v in camera.CAMERA_POS) + '"',
+        'pos="' + " ".join(f"{v}" for v in eye) + '"')
+    self.model = mujoco.MjModel.from_xml_string(xml)
     self.intrinsics = intrinsics(height, width, fovy)
     self.camera_from_world = camera.camera_from_world()
+    self.camera_from_world[:3, 3] = -self.camera_from_world[:3, :3] @ eye
     self.data = mujoco.MjData(self.model)
     self._renderer = render.open_renderer(self.model, height, width)
     name = lambda s: mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, s)  # noqa: E731
@@ -98,14 +131,12 @@ class VideoRenderer:
     m.geom_pos[g], m.geom_quat[g] = pos, quat
     m.geom_rbound[g] = np.linalg.norm(m.geom_size[g], axis=-1)
     m.geom_group[g] = np.where(valid, 0, render.HIDDEN_GROUP)
-    points = sticker_points(half, pos, quat, valid)
-    s = slice(self._sticker0, self._sticker0 + 4 * k)
-    shown = np.zeros(4 * k, bool)
-    shown[:len(points)] = True
-    m.geom_pos[s] = np.concatenate([points, np.zeros((4 * k - len(points), 3))])
-    m.geom_quat[s] = np.repeat(np.where(valid[:, None], quat, [1.0, 0, 0, 0]), 4, 0)[
-        np.argsort(~np.repeat(valid, 4), kind="stable")]
-    m.geom_group[s] = np.where(shown, 0, render.HIDDEN_GROUP)
+    points, orient = sticker_layout(half, pos, quat, valid)
+    total = self.PER_BLOCK * k
+    s = slice(self._sticker0, self._sticker0 + total)
+    m.geom_pos[s] = np.concatenate([points, np.zeros((total - len(points), 3))])
+    m.geom_quat[s] = np.concatenate([orient, np.tile([1.0, 0, 0, 0], (total - len(points), 1))])
+    m.geom_group[s] = np.where(np.arange(total) < len(points), 0, render.HIDDEN_GROUP)
     self._renderer._gl_context.make_current()  # pylint: disable=protected-access
     for slot in np.flatnonzero(valid):
       render.write_texture(m, self._tex[slot],
