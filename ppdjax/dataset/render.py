@@ -32,13 +32,17 @@ def _camera_xyaxes() -> str:
   return " ".join(f"{v:.6f}" for v in np.concatenate([right, up]))
 
 
-def render_xml(num_slots: int = NUM_SLOTS, texture_size: int = materials.TEXTURE_SIZE) -> str:
+def box_geoms(num_slots: int = NUM_SLOTS) -> str:
+  """MJCF of the K textured box geoms box{k} (material mat{k}), written per object."""
   # generic placeholder poses: MuJoCo skips the transform of a geom it compiled as sitting
   # at the body frame (geom_sameframe), which would ignore the poses written per object
-  boxes = "\n".join(
+  return "\n".join(
       f'      <geom name="box{k}" type="box" size="0.1 0.1 0.1" material="mat{k}" '
       f'pos="{0.01 * (k + 1)} 0.02 0.03" quat="0.9 0.1 0.2 0.3"/>' for k in range(num_slots))
-  return stage_xml(material_assets(num_slots, texture_size), boxes)
+
+
+def render_xml(num_slots: int = NUM_SLOTS, texture_size: int = materials.TEXTURE_SIZE) -> str:
+  return stage_xml(material_assets(num_slots, texture_size), box_geoms(num_slots))
 
 
 def material_assets(count: int, texture_size: int = materials.TEXTURE_SIZE) -> str:
@@ -95,6 +99,28 @@ def open_renderer(model, height: int, width: int):
         "MUJOCO_GL=osmesa with libosmesa6.") from e
 
 
+def write_boxes(model, first_geom: int, prims: Primitives) -> None:
+  """Writes one object's K boxes (numpy or JAX fields) into the render model's K box
+  geoms from `first_geom` on; padded slots go to the hidden group."""
+  p = jax.tree.map(np.asarray, prims)
+  valid = p.valid.astype(bool)
+  g = slice(first_geom, first_geom + len(valid))
+  model.geom_size[g] = np.where(valid[:, None], p.half_size, 0.01)
+  model.geom_pos[g] = p.pos
+  model.geom_quat[g] = p.quat / np.linalg.norm(p.quat, axis=-1, keepdims=True)
+  model.geom_rbound[g] = np.linalg.norm(model.geom_size[g], axis=-1)
+  model.geom_group[g] = np.where(valid, 0, HIDDEN_GROUP)
+
+
+def upload_textures(model, renderer, tex_ids, valid, material_ids, texture_seeds) -> None:
+  """Writes each valid slot's material texture and uploads it to the renderer's GL context."""
+  renderer._gl_context.make_current()  # pylint: disable=protected-access
+  for slot in np.flatnonzero(valid):
+    write_texture(model, tex_ids[slot], materials.MATERIAL_NAMES[int(material_ids[slot])],
+                  int(texture_seeds[slot]))
+    mujoco.mjr_uploadTexture(model, renderer._mjr_context, tex_ids[slot])  # pylint: disable=protected-access
+
+
 class ObjectRenderer:
   """Renders objects (K slots) with per-block material textures; reuse it for many objects.
 
@@ -133,22 +159,11 @@ class ObjectRenderer:
       material_ids: (K,) material index per slot (ignored for invalid slots).
       texture_seeds: (K,) texture seed per slot.
     """
-    m, k = self.model, self.num_slots
-    p = jax.tree.map(np.asarray, prims)
-    valid = p.valid.astype(bool)
-    g = slice(self._first_geom, self._first_geom + k)
-    m.geom_size[g] = np.where(valid[:, None], p.half_size, 0.01)
-    m.geom_pos[g] = p.pos
-    m.geom_quat[g] = p.quat / np.linalg.norm(p.quat, axis=-1, keepdims=True)
-    m.geom_rbound[g] = np.linalg.norm(m.geom_size[g], axis=-1)
-    m.geom_group[g] = np.where(valid, 0, HIDDEN_GROUP)
+    m = self.model
+    write_boxes(m, self._first_geom, prims)
     m.body_pos[1] = np.asarray(scene.rest_position(jax.tree.map(jnp.asarray, prims)))
-    self._renderer._gl_context.make_current()  # pylint: disable=protected-access
-    for slot in np.flatnonzero(valid):
-      tex = self._tex_ids[slot]
-      write_texture(m, tex, materials.MATERIAL_NAMES[int(material_ids[slot])],
-                    int(texture_seeds[slot]))
-      mujoco.mjr_uploadTexture(m, self._renderer._mjr_context, tex)  # pylint: disable=protected-access
+    upload_textures(m, self._renderer, self._tex_ids, np.asarray(prims.valid).astype(bool),
+                    material_ids, texture_seeds)
     mujoco.mj_forward(m, self.data)
     self._renderer.update_scene(self.data, camera="view")
     rgb = self._renderer.render().copy()

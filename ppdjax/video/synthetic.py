@@ -20,7 +20,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ppdjax.conventions import NUM_SLOTS  # noqa: E402
-from ppdjax.dataset import camera, materials, render  # noqa: E402
+from ppdjax.dataset import camera, render  # noqa: E402
 from ppdjax.video import pose as posemod  # noqa: E402
 
 STICKER_HALF = 0.015  # m: half the side of a square sticker
@@ -82,9 +82,7 @@ class VideoRenderer:
 
   def __init__(self, height: int = 480, width: int = 640, num_slots: int = NUM_SLOTS,
                fovy: float = FOVY, distance_scale: float = DISTANCE_SCALE):
-    boxes = "\n".join(
-        f'      <geom name="box{k}" type="box" size="0.1 0.1 0.1" material="mat{k}" '
-        f'pos="{0.01 * (k + 1)} 0.02 0.03" quat="0.9 0.1 0.2 0.3"/>' for k in range(num_slots))
+    boxes = render.box_geoms(num_slots)
     stickers = "\n".join(
         f'      <geom name="sticker{i}" type="box" size="{STICKER_HALF} {STICKER_HALF} '
         f'{STICKER_THICKNESS / 2}" material="sticker" pos="0.01 {0.001 * i} 0.03" '
@@ -123,26 +121,17 @@ class VideoRenderer:
     """Writes one object (numpy Primitives fields, K slots) and returns its (N, 3)
     sticker centres in the object frame."""
     m, k = self.model, self.num_slots
+    render.write_boxes(m, self._box0, prims)
     valid = np.asarray(prims.valid).astype(bool)
-    half, pos = np.asarray(prims.half_size), np.asarray(prims.pos)
     quat = np.asarray(prims.quat) / np.linalg.norm(prims.quat, axis=-1, keepdims=True)
-    g = slice(self._box0, self._box0 + k)
-    m.geom_size[g] = np.where(valid[:, None], half, 0.01)
-    m.geom_pos[g], m.geom_quat[g] = pos, quat
-    m.geom_rbound[g] = np.linalg.norm(m.geom_size[g], axis=-1)
-    m.geom_group[g] = np.where(valid, 0, render.HIDDEN_GROUP)
-    points, orient = sticker_layout(half, pos, quat, valid)
+    points, orient = sticker_layout(np.asarray(prims.half_size), np.asarray(prims.pos), quat,
+                                    valid)
     total = self.PER_BLOCK * k
     s = slice(self._sticker0, self._sticker0 + total)
     m.geom_pos[s] = np.concatenate([points, np.zeros((total - len(points), 3))])
     m.geom_quat[s] = np.concatenate([orient, np.tile([1.0, 0, 0, 0], (total - len(points), 1))])
     m.geom_group[s] = np.where(np.arange(total) < len(points), 0, render.HIDDEN_GROUP)
-    self._renderer._gl_context.make_current()  # pylint: disable=protected-access
-    for slot in np.flatnonzero(valid):
-      render.write_texture(m, self._tex[slot],
-                           materials.MATERIAL_NAMES[int(material_ids[slot])],
-                           int(texture_seeds[slot]))
-      mujoco.mjr_uploadTexture(m, self._renderer._mjr_context, self._tex[slot])  # pylint: disable=protected-access
+    render.upload_textures(m, self._renderer, self._tex, valid, material_ids, texture_seeds)
     return points
 
   def render(self, pose7: np.ndarray) -> np.ndarray:
