@@ -23,8 +23,8 @@ _MATERIALS = flags.DEFINE_string("materials", "", "Materials per part: name=mate
                                  "material for every part.")
 _DENSITIES = flags.DEFINE_string("densities", "", "Densities per part in kg/m^3 "
                                  "(name=value,... or one value); override --materials'.")
-_MODEL = flags.DEFINE_string("model", "", "Trained model folder (default: assets/tools_model, "
-                             "or the block-tower model while no tools model is shipped).")
+_MODEL = flags.DEFINE_string("model", "", "Trained model folder (default: assets/tools_model; "
+                             "the block-tower model if that is missing).")
 _OUT = flags.DEFINE_string("out", "out/decompose", "Output directory.")
 _SAMPLES = flags.DEFINE_integer("samples", 512, "Density candidates.")
 _ENGINE = flags.DEFINE_enum("engine", "", ["", "mjx", "box_plane"], "Engine that simulates "

@@ -163,3 +163,45 @@ def test_rendered_tower_stickers_give_its_rest_pose():
     solved = solve_pnp(points[ok], det[which[ok]], r.intrinsics, truth)
   world = np.linalg.inv(r.camera_from_world) @ solved
   assert np.linalg.norm(world[:3, 3] - rest[:3]) < 3e-3
+
+
+def test_track_command_on_a_short_clip(tmp_path):
+  """python -m ppdjax.track on a lossless .avi of the synthetic block at 60 fps."""
+  import json
+  import os
+  import subprocess
+  import sys
+  video = str(tmp_path / "clip.avi")
+  writer = cv2.VideoWriter(video, cv2.VideoWriter_fourcc(*"FFV1"), FPS, (W, H))
+  for frame in clip(noise=2.0):
+    writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+  writer.release()
+  (tmp_path / "camera.json").write_text(json.dumps(
+      {"intrinsics": K.tolist(), "camera_from_world": CAMERA.tolist()}))
+  (tmp_path / "stickers.json").write_text(json.dumps(
+      {"stickers": STICKERS.tolist(), "initial_pose": true_pose(0.0).tolist()}))
+  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  run = subprocess.run([sys.executable, "-m", "ppdjax.track", f"--video={video}",
+                        f"--camera={tmp_path / 'camera.json'}",
+                        f"--stickers={tmp_path / 'stickers.json'}",
+                        f"--out={tmp_path / 'traj.npz'}"], cwd=root, capture_output=True,
+                       text=True, timeout=300, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+  assert run.returncode == 0, run.stderr[-2000:]
+  traj = np.load(tmp_path / "traj.npz")["trajectory"]
+  pos_mm, rot_deg = errors(traj)
+  assert len(traj) == int(29 / FPS / TIMESTEP) and np.median(pos_mm) < 2.0
+
+
+def test_track_files_name_their_problems(tmp_path):
+  from ppdjax.video import files
+  with pytest.raises(ValueError, match="no such video"):
+    files.read_video(str(tmp_path / "none.mp4"))
+  (tmp_path / "bad.mp4").write_bytes(b"not a video")
+  with pytest.raises(ValueError, match="not a readable video"):
+    files.read_video(str(tmp_path / "bad.mp4"))
+  (tmp_path / "cam.json").write_text('{"intrinsics": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}')
+  with pytest.raises(ValueError, match="missing camera_from_world"):
+    files.read_camera(str(tmp_path / "cam.json"))
+  (tmp_path / "st.json").write_text("{oops")
+  with pytest.raises(ValueError, match="not valid JSON"):
+    files.read_stickers(str(tmp_path / "st.json"))

@@ -1,0 +1,50 @@
+"""`python -m ppdjax.track --video FILE --camera CAMERA.json --stickers STICKERS.json
+--out TRAJ.npz`: a video of a stickered object to its trajectory (paper Sec. 5.3).
+
+Reads the video (any format OpenCV's FFmpeg reader takes; frame rate from the file unless
+--fps), tracks the stickers (`ppdjax.video.track_poses`) and writes TRAJ.npz with
+"trajectory" (T, 7) float32 at the simulator's dt after the push and "dt". The files'
+formats are in `ppdjax/video/files.py` and docs/video.md.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from absl import app, flags
+
+from ppdjax.conventions import TIMESTEP
+from ppdjax.video import files, track_poses
+
+_VIDEO = flags.DEFINE_string("video", None, "Video file.", required=True)
+_CAMERA = flags.DEFINE_string("camera", None, "Camera JSON (intrinsics, camera_from_world).",
+                              required=True)
+_STICKERS = flags.DEFINE_string("stickers", None, "Stickers JSON (stickers, initial_pose).",
+                                required=True)
+_OUT = flags.DEFINE_string("out", "trajectory.npz", "Output .npz.")
+_FPS = flags.DEFINE_float("fps", 0.0, "Frame rate (0: the file's).")
+_PUSH_TIME = flags.DEFINE_float("push_time", 0.0, "When the push starts (s, video clock).")
+_STEPS = flags.DEFINE_integer("steps", 0, "Simulator steps to write (0: all the video covers).")
+_SMOOTHING = flags.DEFINE_float("smoothing", 0.0, "Gaussian smoothing over frames (0: none).")
+
+
+def main(argv):
+  del argv
+  frames, file_fps = files.read_video(_VIDEO.value)
+  fps = _FPS.value or file_fps
+  if not fps > 0:
+    raise app.UsageError(f"{_VIDEO.value} does not give its frame rate: pass --fps")
+  intrinsics, camera_from_world = files.read_camera(_CAMERA.value)
+  stickers, initial_pose = files.read_stickers(_STICKERS.value)
+  traj = track_poses(frames, intrinsics, camera_from_world, stickers, initial_pose, fps=fps,
+                     push_time=_PUSH_TIME.value, steps=_STEPS.value or None,
+                     smoothing=_SMOOTHING.value, progress=True)
+  os.makedirs(os.path.dirname(os.path.abspath(_OUT.value)), exist_ok=True)
+  np.savez(_OUT.value, trajectory=traj, dt=np.float64(TIMESTEP))
+  print(f"{len(frames)} frames at {fps:g} fps -> {len(traj)} poses at dt {TIMESTEP:.5f} s: "
+        f"{_OUT.value}")
+
+
+if __name__ == "__main__":
+  app.run(main)

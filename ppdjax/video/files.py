@@ -1,0 +1,64 @@
+"""Reading what `python -m ppdjax.track` takes: a video file (OpenCV's FFmpeg reader), a
+camera JSON and a stickers JSON; each problem raises a ValueError naming the file.
+
+  camera.json:   {"intrinsics": 3x3, "camera_from_world": 4x4}  (OpenCV camera axes)
+  stickers.json: {"stickers": Nx3 (object frame, metres), "initial_pose": [px, py, pz,
+                  qw, qx, qy, qz] (the pose at rest, world frame)}
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import cv2
+import numpy as np
+
+
+def read_video(path: str) -> tuple[np.ndarray, float]:
+  """(T, H, W, 3) uint8 RGB frames and the file's frame rate."""
+  if not os.path.isfile(path):
+    raise ValueError(f"{path}: no such video file")
+  capture = cv2.VideoCapture(path)
+  frames = []
+  try:
+    fps = float(capture.get(cv2.CAP_PROP_FPS))
+    while True:
+      ok, frame = capture.read()
+      if not ok:
+        break
+      frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+  finally:
+    capture.release()
+  if len(frames) < 2:
+    raise ValueError(f"{path}: not a readable video (got {len(frames)} frames)")
+  return np.stack(frames), fps
+
+
+def _read_json(path: str, keys: tuple[str, ...]) -> dict:
+  try:
+    with open(path) as f:
+      data = json.load(f)
+  except FileNotFoundError:
+    raise ValueError(f"{path}: no such file") from None
+  except json.JSONDecodeError as e:
+    raise ValueError(f"{path}: not valid JSON ({e})") from None
+  missing = [k for k in keys if not isinstance(data, dict) or k not in data]
+  if missing:
+    raise ValueError(f"{path}: missing {', '.join(missing)}")
+  try:
+    return {k: np.asarray(data[k], np.float64) for k in keys}
+  except (TypeError, ValueError):
+    raise ValueError(f"{path}: {', '.join(keys)} must be arrays of numbers") from None
+
+
+def read_camera(path: str) -> tuple[np.ndarray, np.ndarray]:
+  """(3, 3) intrinsics and (4, 4) camera_from_world (shapes are checked by track_poses)."""
+  d = _read_json(path, ("intrinsics", "camera_from_world"))
+  return d["intrinsics"], d["camera_from_world"]
+
+
+def read_stickers(path: str) -> tuple[np.ndarray, np.ndarray]:
+  """(N, 3) sticker centres and the (7,) pose at rest."""
+  d = _read_json(path, ("stickers", "initial_pose"))
+  return d["stickers"], d["initial_pose"]
