@@ -121,24 +121,26 @@ def upload_textures(model, renderer, tex_ids, valid, material_ids, texture_seeds
     mujoco.mjr_uploadTexture(model, renderer._mjr_context, tex_ids[slot])  # pylint: disable=protected-access
 
 
-class ObjectRenderer:
-  """Renders objects (K slots) with per-block material textures; reuse it for many objects.
+class SlotRenderer:
+  """A render model with K textured box slots (box{k}, tex{k}) and its GL renderer; a
+  context manager. Subclasses say what the scene holds and how it is drawn."""
 
-  Args:
-    height, width: image size in pixels.
-    num_slots: K.
-  """
-
-  def __init__(self, height: int = 224, width: int = 224, num_slots: int = NUM_SLOTS):
+  def __init__(self, xml: str, height: int, width: int, num_slots: int):
     if not (16 <= height <= 1024 and 16 <= width <= 1024):
       raise ValueError(f"image size must be within 16..1024 pixels, got {height}x{width}")
-    self.model = mujoco.MjModel.from_xml_string(render_xml(num_slots))
+    self.model = mujoco.MjModel.from_xml_string(xml)
     self.data = mujoco.MjData(self.model)
     self._renderer = open_renderer(self.model, height, width)
     self._first_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "box0")
     self._tex_ids = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXTURE, f"tex{k}")
                      for k in range(num_slots)]
     self.num_slots = num_slots
+
+  def write_object(self, prims: Primitives, material_ids, texture_seeds) -> None:
+    """Writes one object's boxes and uploads its slots' textures."""
+    write_boxes(self.model, self._first_geom, prims)
+    upload_textures(self.model, self._renderer, self._tex_ids,
+                    np.asarray(prims.valid).astype(bool), material_ids, texture_seeds)
 
   def close(self):
     self._renderer.close()
@@ -148,6 +150,18 @@ class ObjectRenderer:
 
   def __exit__(self, *exc):
     self.close()
+
+
+class ObjectRenderer(SlotRenderer):
+  """Renders objects (K slots) with per-block material textures; reuse it for many objects.
+
+  Args:
+    height, width: image size in pixels.
+    num_slots: K.
+  """
+
+  def __init__(self, height: int = 224, width: int = 224, num_slots: int = NUM_SLOTS):
+    super().__init__(render_xml(num_slots), height, width, num_slots)
 
   def render(self, prims: Primitives, material_ids, texture_seeds, depth: bool = True
              ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -160,10 +174,8 @@ class ObjectRenderer:
       texture_seeds: (K,) texture seed per slot.
     """
     m = self.model
-    write_boxes(m, self._first_geom, prims)
+    self.write_object(prims, material_ids, texture_seeds)
     m.body_pos[1] = np.asarray(scene.rest_position(jax.tree.map(jnp.asarray, prims)))
-    upload_textures(m, self._renderer, self._tex_ids, np.asarray(prims.valid).astype(bool),
-                    material_ids, texture_seeds)
     mujoco.mj_forward(m, self.data)
     self._renderer.update_scene(self.data, camera="view")
     rgb = self._renderer.render().copy()

@@ -75,7 +75,7 @@ def intrinsics(height: int, width: int, fovy: float = FOVY) -> np.ndarray:
   return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
 
 
-class VideoRenderer:
+class VideoRenderer(render.SlotRenderer):
   """Renders a K-slot object at given poses, with its stickers, from the video camera."""
 
   PER_BLOCK = 4 * len(STICKER_FACES)
@@ -96,32 +96,17 @@ class VideoRenderer:
     xml = xml.replace(f'fovy="{camera.FOVY}"', f'fovy="{fovy}"').replace(
         'pos="' + " ".join(f"{v}" for v in camera.CAMERA_POS) + '"',
         'pos="' + " ".join(f"{v}" for v in eye) + '"')
-    self.model = mujoco.MjModel.from_xml_string(xml)
+    super().__init__(xml, height, width, num_slots)
     self.intrinsics = intrinsics(height, width, fovy)
     self.camera_from_world = camera.camera_from_world()
     self.camera_from_world[:3, 3] = -self.camera_from_world[:3, :3] @ eye
-    self.data = mujoco.MjData(self.model)
-    self._renderer = render.open_renderer(self.model, height, width)
-    name = lambda s: mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, s)  # noqa: E731
-    self._box0, self._sticker0 = name("box0"), name("sticker0")
-    self._tex = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXTURE, f"tex{k}")
-                 for k in range(num_slots)]
-    self.num_slots = num_slots
-
-  def close(self):
-    self._renderer.close()
-
-  def __enter__(self):
-    return self
-
-  def __exit__(self, *exc):
-    self.close()
+    self._sticker0 = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "sticker0")
 
   def set_object(self, prims, material_ids, texture_seeds) -> np.ndarray:
     """Writes one object (numpy Primitives fields, K slots) and returns its (N, 3)
     sticker centres in the object frame."""
     m, k = self.model, self.num_slots
-    render.write_boxes(m, self._box0, prims)
+    self.write_object(prims, material_ids, texture_seeds)
     valid = np.asarray(prims.valid).astype(bool)
     quat = np.asarray(prims.quat) / np.linalg.norm(prims.quat, axis=-1, keepdims=True)
     points, orient = sticker_layout(np.asarray(prims.half_size), np.asarray(prims.pos), quat,
@@ -131,7 +116,6 @@ class VideoRenderer:
     m.geom_pos[s] = np.concatenate([points, np.zeros((total - len(points), 3))])
     m.geom_quat[s] = np.concatenate([orient, np.tile([1.0, 0, 0, 0], (total - len(points), 1))])
     m.geom_group[s] = np.where(np.arange(total) < len(points), 0, render.HIDDEN_GROUP)
-    render.upload_textures(m, self._renderer, self._tex, valid, material_ids, texture_seeds)
     return points
 
   def render(self, pose7: np.ndarray) -> np.ndarray:
