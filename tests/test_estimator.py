@@ -13,7 +13,7 @@ from ppdjax.configs import tiny
 from ppdjax.dataset import physics_stream
 from ppdjax.dataset.materials import MATERIAL_NAMES, material_slots
 from ppdjax.nn.estimator import DensityEstimator, combine_logits, slot_targets
-from ppdjax.sim.pushes import default_pushes
+from ppdjax.sim.pushes import default_pushes, pendulum_strike
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
 from ppdjax.sim.simulate import simulate
 from ppdjax.training import estimator as est
@@ -155,4 +155,5 @@ def test_decompose_checks_the_estimator_settings():
   with pytest.raises(ValueError, match="needs fit=True"):
     make_decompose_fn((None, tiny.get_config()), fit=False, estimator="anything")
   with pytest.raises(ValueError, match="paper's pushes"):
-    make_decompose_fn((None, tiny.get_config()), estimator="anything", pushes=default_pushes())
+    make_decompose_fn((None, tiny.get_config()), estimator="anything",
+                      pushes=pendulum_strike())

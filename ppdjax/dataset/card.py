@@ -40,7 +40,7 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
   fig, axes = plt.subplots(len(idx), 3, figsize=(7.5, 2.5 * len(idx)))
   for row, i in enumerate(np.atleast_1d(idx)):
     s = ds[int(i)]
-    names = [materials.MATERIAL_NAMES[m] for m in s["materials"] if m >= 0]
+    names = [materials.ALL_MATERIAL_NAMES[m] for m in s["materials"] if m >= 0]
     axes[row, 0].imshow(s["image"])
     axes[row, 0].set_title(f"#{i} tower {s['tower_id']}: " + ", ".join(names), fontsize=7)
     axes[row, 1].imshow(s["voxels"].max(1).T, origin="lower", cmap="Greys", vmin=0, vmax=1)
@@ -65,8 +65,10 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
   lines += [f"| {b} | {(blocks == b).sum()} |" for b in range(1, valid.shape[1] + 1)
             if (blocks == b).any()]
   lines += ["", "| material | blocks | density range seen (x100 kg/m³) |", "|---|---|---|"]
-  for k, name in enumerate(materials.MATERIAL_NAMES):
+  for k, name in enumerate(materials.ALL_MATERIAL_NAMES):
     sel = mats[valid] == k
+    if not sel.any() and name in materials.REAL_MATERIALS:
+      continue
     rng = f"{slots[sel].min() + 1}-{slots[sel].max() + 1}" if sel.any() else "-"
     lines.append(f"| {name} | {int(sel.sum())} | {rng} |")
   lines += ["", "| push | speed after push, median / p90 (m/s) | displacement after "

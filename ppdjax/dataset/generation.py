@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from ppdjax import primitives
 from ppdjax.dataset import (camera, card, depth, materials, render, storage, tool_generation,
                             tool_scene, towers, voxels)
-from ppdjax.sim.pushes import default_pushes
+from ppdjax.sim.pushes import default_pushes, pendulum_strike
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.sim.simulate import BACKENDS, simulate
 
@@ -34,9 +34,13 @@ TOOL_DEPTH_SOURCE = "MuJoCo's depth pass of the tool's parts (ppdjax.dataset.too
 
 def pushes_record(pushes) -> dict:
   """The pushes as the manifest stores them (`storage.Dataset.pushes` reads them back)."""
-  return {"sources": np.asarray(pushes.sources).tolist(),
-          "targets": np.asarray(pushes.targets).tolist(),
-          "magnitudes": np.asarray(pushes.magnitudes).tolist(), "duration": pushes.duration}
+  record = {"sources": np.asarray(pushes.sources).tolist(),
+            "targets": np.asarray(pushes.targets).tolist(),
+            "magnitudes": np.asarray(pushes.magnitudes).tolist(), "duration": pushes.duration}
+  if pushes.is_strike:
+    record.update(striker_masses=np.asarray(pushes.striker_masses).tolist(),
+                  restitution=float(pushes.restitution))
+  return record
 
 
 def check_config(cfg) -> None:
@@ -47,6 +51,8 @@ def check_config(cfg) -> None:
     rules = [("num_tools", cfg.num_tools >= 1), ("tools_per_shard", cfg.tools_per_shard >= 1)]
   else:
     rules = [("num_towers", cfg.num_towers >= 1),
+             ("block_counts", kind_of(cfg) != "pendulum" or (
+                 len(cfg.block_counts) >= 1 and all(2 <= n <= 5 for n in cfg.block_counts))),
              ("towers_per_shard", cfg.towers_per_shard >= 1),
              ("configs_per_tower", cfg.configs_per_tower >= 1),
              ("rotate", 0 <= cfg.rotate <= np.pi), ("size_noise", 0 <= cfg.size_noise < 1),
@@ -60,12 +66,19 @@ def check_config(cfg) -> None:
       raise ValueError(f"config.data.{key} has a bad value: {cfg[key]!r}")
 
 
-KINDS = ("towers", "tools")
+KINDS = ("towers", "tools", "pendulum")
 
 
 def kind_of(cfg) -> str:
-  """"towers" (the default) or "tools" (`tool_generation`)."""
+  """"towers" (the default), "tools" (`tool_generation`) or "pendulum" (towers of the real
+  blocks' materials, struck by the pendulum's ball: the paper's real setup, Sec. 5.3)."""
   return cfg.get("kind", "towers")
+
+
+def pushes_of(cfg):
+  """The pushes a dataset of this data section is recorded under."""
+  return {"tools": tool_scene.tool_pushes, "pendulum": pendulum_strike}.get(
+      kind_of(cfg), default_pushes)()
 
 
 def _plan(cfg):
@@ -91,11 +104,13 @@ def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray
   rng = np.random.default_rng([seed, shard])
   first = shard * cfg.towers_per_shard
   count = min(cfg.towers_per_shard, cfg.num_towers - first)
+  pendulum = kind_of(cfg) == "pendulum"
   prims, ids = [], []
   for _ in range(count):
-    p, m = towers.sample_configurations(rng, cfg.configs_per_tower,
-                                        num_blocks=cfg.get("num_blocks", 0) or None,
-                                        rotate=cfg.rotate, size_noise=cfg.size_noise)
+    blocks = int(rng.choice(cfg.block_counts)) if pendulum else cfg.get("num_blocks", 0) or None
+    p, m = towers.sample_configurations(rng, cfg.configs_per_tower, num_blocks=blocks,
+                                        rotate=cfg.rotate, size_noise=cfg.size_noise,
+                                        material_set="real" if pendulum else "paper")
     prims.append(p)
     ids.append(m)
   vox = voxels.voxelize(primitives.stack([jax.tree.map(lambda x: x[0], p) for p in prims]))
@@ -106,7 +121,7 @@ def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray
   images, _ = renderer.render(prims, np.maximum(ids, 0), tex_seeds)
   depths = np.asarray(depth.render_depths(prims, camera.camera_dict(cfg.image_size,
                                                                     cfg.image_size)))
-  traj = np.asarray(simulate(prims, steps=cfg.steps, backend=cfg.backend),
+  traj = np.asarray(simulate(prims, pushes_of(cfg), steps=cfg.steps, backend=cfg.backend),
                     np.float32)
   tower_id = np.repeat(np.arange(first, first + count), cfg.configs_per_tower).astype(np.int64)
   return {"voxels": np.repeat(vox, cfg.configs_per_tower, 0),
@@ -174,7 +189,7 @@ def generate(config, out: str, progress: bool = True) -> dict:
                  "settings": dataclasses.asdict(settings_for(cfg.backend)),
                  **({"tools": "MuJoCo C on the parts' convex pieces, pushes of "
                               f"{tool_scene.TOOL_PUSH_FORCE:g} N"} if unit == "tool" else {})},
-      "pushes": pushes_record(tool_scene.tool_pushes() if unit == "tool" else default_pushes()),
+      "pushes": pushes_record(pushes_of(cfg)),
       "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
       "depth": source,
       "shards": counts,

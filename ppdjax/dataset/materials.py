@@ -16,11 +16,20 @@ MATERIALS: dict[str, tuple[tuple[int, int], ...]] = {
 }
 MATERIAL_NAMES = tuple(MATERIALS)
 
+# The blocks of the paper's real towers (Sec. 5.3: pine, steel, aluminium, copper), each of
+# one density: the real one (500, 7850, 2700, 8960 kg/m^3) rounded to its slot.
+REAL_MATERIALS: dict[str, int] = {"pine": 5, "aluminium": 27, "steel": 79, "copper": 90}
+REAL_MATERIAL_NAMES = tuple(REAL_MATERIALS)
+# A dataset's material ids index this tuple (-1 pads): the paper's five, then the real four.
+ALL_MATERIAL_NAMES = MATERIAL_NAMES + REAL_MATERIAL_NAMES
+
 
 def material_slots(name: str) -> np.ndarray:
   """0-based density slots a material may take."""
+  if name in REAL_MATERIALS:
+    return np.array([REAL_MATERIALS[name] - 1])
   if name not in MATERIALS:
-    raise ValueError(f"unknown material {name!r}; expected one of {MATERIAL_NAMES}")
+    raise ValueError(f"unknown material {name!r}; expected one of {ALL_MATERIAL_NAMES}")
   return np.concatenate([np.arange(lo - 1, hi) for lo, hi in MATERIALS[name]])
 
 
@@ -90,15 +99,22 @@ def _ceramic(rng, size):
   return np.where(lines[..., None], img * 0.8, img)
 
 
-def _metal(rng, size):
+def _metal(rng, size, tint=(0.78, 0.80, 0.84)):
   streaks = rng.random(size)[:, None] * 0.6 + _value_noise(rng, size, 16) * 0.4
   shine = 0.45 + 0.3 * streaks + 0.15 * np.linspace(0, 1, size)[None, :]
-  tint = np.array([0.78, 0.80, 0.84]) * rng.uniform(0.85, 1.1)
-  return shine[..., None] * tint
+  return shine[..., None] * np.asarray(tint) * rng.uniform(0.85, 1.1)
+
+
+def _pine(rng, size):
+  return _wood(rng, size) * np.array([1.45, 1.6, 1.9])  # pale yellow softwood
 
 
 _FAMILIES = {"wood": _wood, "brick": _brick, "stone": _stone, "ceramic": _ceramic,
-             "metal": _metal}
+             "metal": _metal, "pine": _pine,
+             # brushed metals: aluminium light, steel darker and bluish, copper orange
+             "aluminium": functools.partial(_metal, tint=(0.86, 0.87, 0.88)),
+             "steel": functools.partial(_metal, tint=(0.58, 0.61, 0.66)),
+             "copper": functools.partial(_metal, tint=(0.86, 0.52, 0.32))}
 
 
 @functools.lru_cache(maxsize=len(MATERIALS) * TEXTURE_VARIANTS)
@@ -106,7 +122,7 @@ def texture(material: str, seed: int, size: int = TEXTURE_SIZE) -> np.ndarray:
   """(size, size, 3) uint8 procedural texture of `material`, randomised by `seed` (cached;
   do not modify the returned array)."""
   if material not in _FAMILIES:
-    raise ValueError(f"unknown material {material!r}; expected one of {MATERIAL_NAMES}")
-  rng = np.random.default_rng([MATERIAL_NAMES.index(material), int(seed)])
+    raise ValueError(f"unknown material {material!r}; expected one of {ALL_MATERIAL_NAMES}")
+  rng = np.random.default_rng([ALL_MATERIAL_NAMES.index(material), int(seed)])
   img = _FAMILIES[material](rng, size)
   return (np.clip(img, 0, 1) * 255).astype(np.uint8)

@@ -116,7 +116,7 @@ def upload_textures(model, renderer, tex_ids, valid, material_ids, texture_seeds
   """Writes each valid slot's material texture and uploads it to the renderer's GL context."""
   renderer._gl_context.make_current()  # pylint: disable=protected-access
   for slot in np.flatnonzero(valid):
-    write_texture(model, tex_ids[slot], materials.MATERIAL_NAMES[int(material_ids[slot])],
+    write_texture(model, tex_ids[slot], materials.ALL_MATERIAL_NAMES[int(material_ids[slot])],
                   int(texture_seeds[slot]))
     mujoco.mjr_uploadTexture(model, renderer._mjr_context, tex_ids[slot])  # pylint: disable=protected-access
 

@@ -34,13 +34,22 @@ from ppdjax.conventions import OBS_KEYS
 from ppdjax import primitives
 from ppdjax.dataset import camera
 from ppdjax.primitives import Primitives
-from ppdjax.sim.pushes import Pushes, default_pushes
+from ppdjax.sim.pushes import RESTITUTION, Pushes, default_pushes
 
 FORMAT_VERSION = 1
 # One .npy file per field: the observations, depth, the Primitives fields, and labels.
 FIELDS = OBS_KEYS + ("depth",) + primitives.FIELDS + ("materials", "tower_id", "split")
 SAMPLE_KEYS = OBS_KEYS + ("depth", "primitives", "materials", "tower_id")  # what a sample holds
 SPLITS = {"train": 0, "val": 1, "test": 2}
+
+
+def pushes_from_record(p: dict) -> Pushes:
+  """Pushes from a manifest's record (`generation.pushes_record` writes it)."""
+  strikers = p.get("striker_masses")
+  return Pushes(np.asarray(p["sources"], np.float32), np.asarray(p["targets"], np.float32),
+                np.asarray(p["magnitudes"], np.float32), int(p["duration"]),
+                None if strikers is None else np.asarray(strikers, np.float32),
+                float(p.get("restitution", RESTITUTION))).validate()
 
 
 class DatasetError(ValueError):
@@ -181,10 +190,7 @@ class Dataset:
     """The pushes the trajectories were recorded under (`sim.pushes.Pushes`). Datasets
     written before the manifest stored them all used the paper's four."""
     p = self.manifest.get("pushes")
-    if p is None:
-      return default_pushes()
-    return Pushes(np.asarray(p["sources"], np.float32), np.asarray(p["targets"], np.float32),
-                  np.asarray(p["magnitudes"], np.float32), int(p["duration"])).validate()
+    return default_pushes() if p is None else pushes_from_record(p)
 
   def __len__(self) -> int:
     return len(self._index)

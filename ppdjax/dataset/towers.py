@@ -72,25 +72,34 @@ def sample_geometry(rng: np.random.Generator, num_blocks: int | None = None, *,
   return size / 2 * scale, (pos - (lo + hi) / 2) * scale, quat
 
 
-def sample_configuration(rng: np.random.Generator, num_blocks: int):
-  """Material ids (n,) and densities (n,) kg/m^3 for one configuration."""
-  ids = rng.integers(0, len(materials.MATERIAL_NAMES), num_blocks)
-  slots = [rng.choice(materials.material_slots(materials.MATERIAL_NAMES[i])) for i in ids]
+MATERIAL_SETS = ("paper", "real")  # the paper's five of Table 1, or the real towers' four
+
+
+def sample_configuration(rng: np.random.Generator, num_blocks: int,
+                         material_set: str = "paper"):
+  """Material ids (n,) (into `materials.ALL_MATERIAL_NAMES`) and densities (n,) kg/m^3 for
+  one configuration; each block's material is uniform over the set."""
+  if material_set not in MATERIAL_SETS:
+    raise ValueError(f"material_set must be one of {MATERIAL_SETS}, got {material_set!r}")
+  names = materials.MATERIAL_NAMES if material_set == "paper" else materials.REAL_MATERIAL_NAMES
+  ids = rng.integers(0, len(names), num_blocks) + materials.ALL_MATERIAL_NAMES.index(names[0])
+  slots = [rng.choice(materials.material_slots(materials.ALL_MATERIAL_NAMES[i])) for i in ids]
   return ids.astype(np.int32), slot_to_density(slots)
 
 
 def sample_tower(rng: np.random.Generator, num_blocks: int | None = None, *,
-                 rotate: float = 0.0, num_slots: int = NUM_SLOTS):
+                 rotate: float = 0.0, num_slots: int = NUM_SLOTS, material_set: str = "paper"):
   """One tower with one configuration: (Primitives (float32), material names)."""
   half_size, pos, quat = sample_geometry(rng, num_blocks, rotate=rotate, num_slots=num_slots)
-  ids, density = sample_configuration(rng, len(half_size))
-  names = [materials.MATERIAL_NAMES[i] for i in ids]
+  ids, density = sample_configuration(rng, len(half_size), material_set)
+  names = [materials.ALL_MATERIAL_NAMES[i] for i in ids]
   return make(half_size, pos, quat, density, num_slots), names
 
 
 def sample_configurations(rng: np.random.Generator, num_configs: int = CONFIGS_PER_TOWER,
                           num_blocks: int | None = None, *, rotate: float = 0.0,
-                          size_noise: float = 0.0, num_slots: int = NUM_SLOTS):
+                          size_noise: float = 0.0, num_slots: int = NUM_SLOTS,
+                          material_set: str = "paper"):
   """One tower geometry with `num_configs` material configurations.
 
   Returns:
@@ -102,7 +111,7 @@ def sample_configurations(rng: np.random.Generator, num_configs: int = CONFIGS_P
   n = len(half_size)
   prims, ids = [], np.full((num_configs, num_slots), -1, np.int32)
   for c in range(num_configs):
-    ids[c, :n], density = sample_configuration(rng, n)
+    ids[c, :n], density = sample_configuration(rng, n, material_set)
     prims.append(make(half_size, pos, quat, density, num_slots))
   return stack(prims), ids
 

@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, NUM_SLOTS, density_to_slot
 from ppdjax.dataset import storage, towers
-from ppdjax.dataset.materials import MATERIAL_NAMES, material_slots
+from ppdjax.dataset.materials import ALL_MATERIAL_NAMES, material_slots
 from ppdjax.metrics import ROTATION_LENGTH, rotation_vector
 from ppdjax.primitives import Primitives, bottom_to_top_order
 
@@ -113,7 +113,7 @@ def oracle_scores(train: TrainingSet, materials_BxK: np.ndarray, prims: Primitiv
 
   Args:
     train: for the frequency order of the remaining slots.
-    materials_BxK: material ids (indices into MATERIAL_NAMES, -1 padding) in box order.
+    materials_BxK: material ids (indices into ALL_MATERIAL_NAMES, -1 padding) in box order.
     prims: the ground truth (to order boxes bottom to top).
     seed: the random guesses are a function of (seed, object, box).
   """
@@ -125,7 +125,7 @@ def oracle_scores(train: TrainingSet, materials_BxK: np.ndarray, prims: Primitiv
   for i in range(b):
     for j in range(k):
       if mats[i, j] >= 0:
-        slots = material_slots(MATERIAL_NAMES[mats[i, j]])
+        slots = material_slots(ALL_MATERIAL_NAMES[mats[i, j]])
         scores[i, j, slots] = 2.0 + rng.permutation(len(slots))
   return scores
 

@@ -110,7 +110,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
       times `estimator_weight`, join the network's for sampling and the MAP prior. Needs
       `fit` and the paper's pushes.
     estimator_weight: see `estimator`.
-    pushes: the pushes the observations were recorded with (None: the paper's four).
+    pushes: the pushes the observations were recorded with (None: those of the model's
+      training data, `generation.pushes_of(config.data)`: the paper's four for towers).
     settings: the engine the observations were simulated with: MjxSettings or
       BoxPlaneSettings; None: the default settings of the engine that made the model's
       training data (`config.data.backend`, `rollout_mjx.settings_for`).
@@ -132,11 +133,14 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   keys = OBS_KEYS + (("depth",) if camera is not None else ())
   if estimator is not None and not fit:
     raise ValueError("the estimator reads fitted boxes: it needs fit=True")
-  if estimator is not None and pushes is not None:
+  if pushes is None:
+    from ppdjax.dataset.generation import pushes_of  # pylint: disable=import-outside-toplevel
+    pushes = pushes_of(config.data)
+  if estimator is not None and (pushes.is_strike or pushes.num != 4 or not np.allclose(
+      pushes.sources, default_pushes().sources)):
     raise ValueError("the estimator was trained on the paper's pushes: leave pushes None")
   if isinstance(estimator, str):
     estimator = estimator_module.load(estimator)[0]
-  pushes = default_pushes() if pushes is None else pushes
   if settings is None:
     settings = settings_for(config.data.get("backend", "mjx"))
   graphdef, state = nnx.split(model)

@@ -168,9 +168,8 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
 
 
 @functools.lru_cache(maxsize=16)
-def _batched_fn(steps: int, settings: MjxSettings, duration: int):
-  def run(prims, sources, targets, magnitudes):
-    pushes = Pushes(sources, targets, magnitudes, duration)
+def _batched_fn(steps: int, settings: MjxSettings):
+  def run(prims, pushes):
     return jax.vmap(lambda p: rollout_object(p, pushes, steps=steps, settings=settings))(prims)
   return jax.jit(run)
 
@@ -183,7 +182,5 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS,
                       pos=flat.pos.astype(jnp.float32), quat=flat.quat.astype(jnp.float32),
                       density=flat.density.astype(jnp.float32),
                       valid=flat.valid.astype(bool))
-  fn = _batched_fn(steps, settings, int(pushes.duration))
-  out = fn(flat, jnp.asarray(pushes.sources, jnp.float32), jnp.asarray(pushes.targets, jnp.float32),
-           jnp.asarray(pushes.magnitudes, jnp.float32))
+  out = _batched_fn(steps, settings)(flat, pushes.with_arrays(*pushes.arrays()))
   return unflatten(out, batch)

@@ -20,10 +20,9 @@ _WRITTEN = ("geom_size", "geom_pos", "geom_quat", "geom_rbound", "geom_aabb", "b
 
 
 @jax.jit
-def _object_inputs(prims: Primitives, sources, targets, magnitudes):
+def _object_inputs(prims: Primitives, pushes: Pushes):
   def one(p):
     fields = {k: v for k, v in scene.object_fields(p).items() if k in _WRITTEN}
-    pushes = Pushes(sources, targets, magnitudes)
     return fields, push_wrenches(p, pushes), scene.rest_position(p)
   return jax.vmap(one)(prims)
 
@@ -43,8 +42,7 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS, nthread: 
   k = flat.num_slots
   n, p = flat.density.shape[0], pushes.num
   fields, wrenches, rest = jax.tree.map(np.asarray, _object_inputs(
-      jax.tree.map(jnp.asarray, flat), jnp.asarray(pushes.sources, jnp.float32),
-      jnp.asarray(pushes.targets, jnp.float32), jnp.asarray(pushes.magnitudes, jnp.float32)))
+      jax.tree.map(jnp.asarray, flat), pushes.with_arrays(*pushes.arrays())))
 
   model = copy.copy(scene.template_model(k))
   if iterations is not None:
