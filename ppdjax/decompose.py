@@ -4,7 +4,8 @@ decomposed into physical primitives.
 Reads the mesh (`ppdjax.load_object`: parts are the file's groups or connected
 components), observes it as the tools dataset does (`tool_scene.observe`: exact voxels, a
 textured image, MuJoCo C trajectories of the parts under the tools' four pushes), runs
-`make_decompose_fn` with a trained model, and writes OUT/decomposition.png (the input
+`make_decompose_fn` with a trained model (under the pushes of its training data), and
+writes OUT/decomposition.png (the input
 image, the recovered boxes coloured by density, the truth's boxes from the mesh) and
 OUT/decomposition.json (the boxes in the normalised frame, the transform from the file's
 coordinates, the parts and their densities).
@@ -30,6 +31,11 @@ _SAMPLES = flags.DEFINE_integer("samples", 512, "Density candidates.")
 _ENGINE = flags.DEFINE_enum("engine", "", ["", "mjx", "box_plane"], "Engine that simulates "
                             "the boxes (default: the model's training engine).")
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling and texture seed.")
+_TRAJECTORY = flags.DEFINE_string(
+    "trajectory", "", "A tracked trajectory (python -m ppdjax.track's .npz) to read instead "
+    "of simulating the mesh: the object struck once as the video model was trained "
+    "(default model then assets/video_model; the stickers' object frame must be the "
+    "mesh's normalised frame).")
 
 
 def _parse(text: str, number: bool):
@@ -47,7 +53,9 @@ def _parse(text: str, number: bool):
   return out
 
 
-def default_model() -> str:
+def default_model(tracked: bool = False) -> str:
+  if tracked:
+    return "assets/video_model"
   if os.path.isdir("assets/tools_model"):
     return "assets/tools_model"
   logging.warning("no tools model is shipped yet: decomposing with the block-tower model")
@@ -55,8 +63,9 @@ def default_model() -> str:
 
 
 def run(mesh: str, materials, densities, model: str, out: str, samples: int = 512,
-        engine: str = "", seed: int = 0) -> dict:
-  """Decomposes a mesh file; writes the picture and JSON into `out`; returns the JSON."""
+        engine: str = "", seed: int = 0, trajectory: str = "") -> dict:
+  """Decomposes a mesh file; writes the picture and JSON into `out`; returns the JSON.
+  With `trajectory` (a `ppdjax.track` .npz), that tracked motion is the observation's."""
   import jax
   import numpy as np
 
@@ -75,7 +84,10 @@ def run(mesh: str, materials, densities, model: str, out: str, samples: int = 51
                            [seed] * len(tool.parts), image_size=int(config.data.image_size),
                            steps=int(config.data.steps))
   truth, _ = boxes_of_parts(list(tool.parts), tool.densities)
-  decompose = make_decompose_fn(trained, num_samples=samples, pushes=tool_scene.tool_pushes(),
+  if trajectory:
+    obs["trajectories"] = tracked_observation(trajectory, config, tool_scene.rest_height(
+        list(tool.parts)))
+  decompose = make_decompose_fn(trained, num_samples=samples,
                                 settings=settings_for(engine) if engine else None)
   print(f"decomposing with {model} ({samples} density candidates; the first call compiles)")
   result = jax.tree.map(np.asarray, decompose(obs, jax.random.key(seed)))
@@ -94,11 +106,29 @@ def run(mesh: str, materials, densities, model: str, out: str, samples: int = 51
             "parts": [{"name": n, "material": m, "density": float(d)} for n, m, d in
                       zip(tool.names, tool.materials, tool.densities)],
             "boxes": boxes(result.primitives), "boxes_from_mesh": boxes(truth),
-            "trajectory_distance_m": float(result.score), "samples": samples}
+            "trajectory_distance_m": float(result.score), "samples": samples,
+            "trajectory": os.path.abspath(trajectory) if trajectory else "simulated"}
   with open(os.path.join(out, "decomposition.json"), "w") as f:
     json.dump(record, f, indent=1)
   print(f"wrote {out}/decomposition.png and {out}/decomposition.json")
   return record
+
+
+def tracked_observation(path: str, config, rest_height: float):
+  """(1, steps, 7) the tracked trajectory of `path` in the simulator's convention."""
+  import numpy as np
+
+  from ppdjax.video import files, pose
+  traj, initial_pose = files.read_trajectory(path)
+  steps, pushes = int(config.data.steps), int(config.model.num_pushes)
+  if pushes != 1:
+    raise ValueError(f"the model reads {pushes} pushes per object; {path} holds one tracked "
+                     "trajectory: use a model trained on one strike (assets/video_model)")
+  if len(traj) < steps:
+    raise ValueError(f"{path}: {len(traj)} steps tracked, the model reads {steps}: film "
+                     "longer or track with --steps")
+  return pose.relative_to_rest(traj[:steps], initial_pose, np.array([0.0, 0.0, rest_height])
+                               )[None]
 
 
 def main(argv):
@@ -107,7 +137,8 @@ def main(argv):
   import jax
   jax.config.update("jax_compilation_cache_dir", os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   run(_MESH.value, _parse(_MATERIALS.value, number=False), _parse(_DENSITIES.value, number=True),
-      _MODEL.value or default_model(), _OUT.value, _SAMPLES.value, _ENGINE.value, _SEED.value)
+      _MODEL.value or default_model(bool(_TRAJECTORY.value)), _OUT.value, _SAMPLES.value,
+      _ENGINE.value, _SEED.value, _TRAJECTORY.value)
 
 
 if __name__ == "__main__":

@@ -41,7 +41,8 @@ def main(argv):
                      push_time=_PUSH_TIME.value, steps=_STEPS.value or None,
                      smoothing=_SMOOTHING.value, progress=True)
   os.makedirs(os.path.dirname(os.path.abspath(_OUT.value)), exist_ok=True)
-  np.savez(_OUT.value, trajectory=traj, dt=np.float64(TIMESTEP))
+  np.savez(_OUT.value, trajectory=traj, dt=np.float64(TIMESTEP),
+           initial_pose=np.asarray(initial_pose, np.float64))
   print(f"{len(frames)} frames at {fps:g} fps -> {len(traj)} poses at dt {TIMESTEP:.5f} s: "
         f"{_OUT.value}")
 

@@ -190,6 +190,50 @@ def test_track_command_on_a_short_clip(tmp_path):
   traj = np.load(tmp_path / "traj.npz")["trajectory"]
   pos_mm, rot_deg = errors(traj)
   assert len(traj) == int(29 / FPS / TIMESTEP) and np.median(pos_mm) < 2.0
+  # python -m ppdjax.decompose --trajectory reads it in the simulator's convention
+  from ppdjax import decompose
+  from ppdjax.configs import video
+  config = video.get_config("tiny")
+  config.data.steps = len(traj)
+  obs = decompose.tracked_observation(str(tmp_path / "traj.npz"), config, 0.2)
+  moved = posemod.relative_to_rest(traj, true_pose(0.0), np.array([0.0, 0.0, 0.2]))
+  np.testing.assert_allclose(obs[0], moved)
+  assert obs.shape == (1, len(traj), 7) and np.linalg.norm(obs[0, 0, :3] - [0, 0, 0.2]) < 0.02
+  config.model.num_pushes = 4
+  with pytest.raises(ValueError, match="reads 4 pushes"):
+    decompose.tracked_observation(str(tmp_path / "traj.npz"), config, 0.2)
+
+
+def test_relative_to_rest_forgets_where_the_object_stood():
+  rng = np.random.default_rng(0)
+  rest = np.array([0.0, 0.0, 0.3])
+  local = np.concatenate([rest + rng.normal(0, 0.1, (20, 3)),
+                          Rotation.random(20, random_state=1).as_quat(scalar_first=True)], 1)
+  local[:, 3:] *= np.sign(local[:, 3:4])
+  # the same motion filmed with the object standing elsewhere, turned about z
+  where = np.eye(4)
+  where[:3, :3] = Rotation.from_euler("z", 0.7).as_matrix()
+  where[:3, 3] = [1.2, -0.4, 0.0]
+  shift = lambda p: posemod.matrix_to_pose(where @ posemod.pose_to_matrix(p))  # noqa: E731
+  world = np.stack([shift(p) for p in local])
+  start = shift(np.concatenate([rest, [1.0, 0, 0, 0]]))
+  np.testing.assert_allclose(posemod.relative_to_rest(world, start, rest), local, atol=1e-5)
+
+
+def test_tracked_trajectory_files_name_their_problems(tmp_path):
+  from ppdjax.video import files
+  with pytest.raises(ValueError, match="no such trajectory"):
+    files.read_trajectory(str(tmp_path / "none.npz"))
+  good = dict(trajectory=np.zeros((5, 7)), dt=TIMESTEP, initial_pose=np.zeros(7))
+  for change, message in [({"dt": 0.01}, "dt is 0.01"), ({"initial_pose": np.zeros(3)},
+                                                         "expected trajectory"),
+                          ({"trajectory": np.full((5, 7), np.nan)}, "NaN")]:
+    np.savez(tmp_path / "t.npz", **{**good, **change})
+    with pytest.raises(ValueError, match=message):
+      files.read_trajectory(str(tmp_path / "t.npz"))
+  np.savez(tmp_path / "t.npz", trajectory=np.zeros((5, 7)))
+  with pytest.raises(ValueError, match="missing dt, initial_pose"):
+    files.read_trajectory(str(tmp_path / "t.npz"))
 
 
 def test_track_files_name_their_problems(tmp_path):

@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY, NUM_SLOTS, density_to_slot
-from ppdjax.dataset.materials import MATERIAL_NAMES, material_slots
+from ppdjax.dataset.materials import ALL_MATERIAL_NAMES, material_slots
 from ppdjax.dataset.meshes import components, normalize
 from ppdjax.dataset.tools import Tool
 
@@ -83,8 +83,9 @@ def load_object(path: str, part_materials=None, part_densities=None
 
   Args:
     path: an OBJ/STL/PLY/GLB (or other trimesh-readable) file.
-    part_materials: a material per part (of `materials.MATERIAL_NAMES`): a mapping by
-      part name, a sequence in part order, or one name for all. Names are the file's
+    part_materials: a material per part (of `materials.ALL_MATERIAL_NAMES`: the paper's
+      five, or pine, aluminium, steel, copper): a mapping by part name, a sequence in part
+      order, or one name for all. Names are the file's
       groups, or part0, part1, ... (connected components, in trimesh's order).
     part_densities: kg/m^3 per part, the same forms; overrides the materials' typical
       densities (rounded to the 100 kg/m^3 density slots). With neither, every part is
@@ -117,8 +118,8 @@ def load_object(path: str, part_materials=None, part_densities=None
   materials = (_per_part(part_materials, names, "part_materials")
                if part_materials is not None else [DEFAULT_MATERIAL] * len(parts))
   for m in materials:
-    if m not in MATERIAL_NAMES:
-      raise ValueError(f"unknown material {m!r}; expected one of {MATERIAL_NAMES}")
+    if m not in ALL_MATERIAL_NAMES:
+      raise ValueError(f"unknown material {m!r}; expected one of {ALL_MATERIAL_NAMES}")
   if part_densities is None:
     slots = [typical_slot(m) for m in materials]
   else:

@@ -39,7 +39,7 @@ def tool_sample(seed: int, index: int, image_size: int, steps: int) -> dict[str,
   else:
     raise RuntimeError(f"tool {index} of seed {seed}: every attempt diverged")
   prims, owner = boxes_of_parts(parts, tool.densities)
-  ids = np.asarray([materials.MATERIAL_NAMES.index(tool.materials[o]) if o >= 0 else -1
+  ids = np.asarray([materials.ALL_MATERIAL_NAMES.index(tool.materials[o]) if o >= 0 else -1
                     for o in owner])
   return {**obs, **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS},
           "materials": ids, "tower_id": np.int64(index)}

@@ -4,6 +4,11 @@ camera JSON and a stickers JSON; each problem raises a ValueError naming the fil
   camera.json:   {"intrinsics": 3x3, "camera_from_world": 4x4}  (OpenCV camera axes)
   stickers.json: {"stickers": Nx3 (object frame, metres), "initial_pose": [px, py, pz,
                   qw, qx, qy, qz] (the pose at rest, world frame)}
+
+and what it writes, which `python -m ppdjax.decompose --trajectory` reads:
+
+  trajectory.npz: trajectory (T, 7) float32 world poses after each step, dt (s),
+                  initial_pose (7,)
 """
 
 from __future__ import annotations
@@ -13,6 +18,8 @@ import os
 
 import cv2
 import numpy as np
+
+from ppdjax.conventions import TIMESTEP
 
 
 def read_video(path: str) -> tuple[np.ndarray, float]:
@@ -62,3 +69,27 @@ def read_stickers(path: str) -> tuple[np.ndarray, np.ndarray]:
   """(N, 3) sticker centres and the (7,) pose at rest."""
   d = _read_json(path, ("stickers", "initial_pose"))
   return d["stickers"], d["initial_pose"]
+
+
+def read_trajectory(path: str) -> tuple[np.ndarray, np.ndarray]:
+  """(T, 7) tracked world poses and the (7,) pose at rest from a `ppdjax.track` .npz."""
+  if not os.path.isfile(path):
+    raise ValueError(f"{path}: no such trajectory file")
+  try:
+    with np.load(path) as f:
+      data = {k: np.asarray(f[k], np.float64) for k in ("trajectory", "dt", "initial_pose")
+              if k in f}
+  except (OSError, ValueError) as e:
+    raise ValueError(f"{path}: not a readable .npz ({e})") from None
+  missing = [k for k in ("trajectory", "dt", "initial_pose") if k not in data]
+  if missing:
+    raise ValueError(f"{path}: missing {', '.join(missing)} (written by python -m ppdjax.track)")
+  traj, pose0 = data["trajectory"], data["initial_pose"]
+  if traj.ndim != 2 or traj.shape[1] != 7 or pose0.shape != (7,):
+    raise ValueError(f"{path}: expected trajectory (T, 7) and initial_pose (7,), got "
+                     f"{traj.shape} and {pose0.shape}")
+  if not (np.all(np.isfinite(traj)) and np.all(np.isfinite(pose0))):
+    raise ValueError(f"{path}: trajectory or initial_pose contains NaN or inf")
+  if abs(float(data["dt"]) - TIMESTEP) > 1e-9:
+    raise ValueError(f"{path}: dt is {float(data['dt'])} s; the simulator's is {TIMESTEP} s")
+  return traj, pose0

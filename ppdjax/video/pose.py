@@ -125,3 +125,16 @@ def resample(times: np.ndarray, poses: np.ndarray, new_times: np.ndarray) -> np.
   rot = Slerp(times, Rotation.from_quat(poses[:, 3:], scalar_first=True))(new_times)
   q = rot.as_quat(scalar_first=True)
   return np.concatenate([p, q * np.where(q[:, :1] < 0, -1.0, 1.0)], -1)
+
+
+def relative_to_rest(trajectory: np.ndarray, initial_pose: np.ndarray,
+                     rest_position: np.ndarray) -> np.ndarray:
+  """(T, 7) a tracked trajectory in the simulator's convention: the motion since rest,
+  expressed in the object frame at rest (W0^-1 W(t)), placed at the convention's rest
+  pose (rest_position, identity orientation), so that a tower filmed anywhere on the
+  table, turned by any angle about z, reads as the simulated one."""
+  rest = np.eye(4)
+  rest[:3, 3] = rest_position
+  w0_inv = np.linalg.inv(pose_to_matrix(np.asarray(initial_pose, np.float64)))
+  return np.stack([matrix_to_pose(rest @ w0_inv @ pose_to_matrix(p))
+                   for p in np.asarray(trajectory, np.float64)]).astype(np.float32)
