@@ -100,7 +100,11 @@ def main(argv):
             "levels": LEVELS, "summary": summary, "clips": rows,
             "seconds": round(time.time() - t0, 1)}
   os.makedirs(FLAGS.out, exist_ok=True)
-  with open(os.path.join(FLAGS.out, "video.json"), "w") as f:
+  path = os.path.join(FLAGS.out, "video.json")
+  if os.path.exists(path):  # keep the real towers' results (experiments/video_towers.py)
+    with open(path) as f:
+      result = {**{k: v for k, v in json.load(f).items() if k == "towers"}, **result}
+  with open(path, "w") as f:
     json.dump(result, f, indent=1)
   lines = ["# Trajectory recovery from rendered videos (issue 19)", "", f"`{command}`", "",
            f"{FLAGS.towers} towers of seed {FLAGS.seed}, each pushed once and filmed at "
