@@ -9,8 +9,9 @@ steel and copper struck by a copper ball on a pendulum); fine-tune the block tow
 on it; observe the test towers (a fresh seed, 2, 3 and 4 blocks in 8 : 4 : 4): voxels, an
 image and depth as the dataset's, and the trajectory only through a rendered video with
 stickers, degraded and tracked (`ppdjax.video.observe`); decompose each (fit to the
-voxels and depth, 512 density samples, refinement) from the tracked trajectory and, to
-price the tracker, from the true one; report: density RMSE over all towers and the
+voxels and depth, 512 density samples, with and without refinement: config.eval.refine
+names the headline) from the tracked trajectory and, to price the tracker, from the true
+one; report: density RMSE over all towers and the
 2-block ones, "which block is heavier" on the 2-block towers (paper Fig. 9), into
 experiments/results/video_towers.{md,json}, video_heavier.png and video.json.
 """
@@ -45,8 +46,11 @@ flags.DEFINE_integer("workers", 0, "Processes filming and tracking (0: this one)
 flags.DEFINE_string("step", "all", "'all' (every step left), 'next', or a step name.")
 flags.DEFINE_integer("jobs", 1, "Steps run at once (with --step=all).")
 flags.DEFINE_bool("list", False, "Print the steps and their state, then exit.")
+flags.DEFINE_string("report_name", "video_towers", "The report's name in --results (another "
+                    "name for a validation set of towers: --config.test.seed=...).")
 FLAGS = flags.FLAGS
 EXTRA_STEPS = 12  # simulated beyond the recorded steps, so the last frame covers them
+VARIANTS = ("sample", "refine")  # +Sample, +Sample+Refine; config.eval.refine picks the headline
 
 
 class Pipeline:
@@ -56,7 +60,7 @@ class Pipeline:
     self.config, self.root = config, root
     self.data, self.workdir = os.path.join(root, "data"), os.path.join(root, "full")
     self.test_file = os.path.join(root, "test_towers.npz")
-    self.eval_file = os.path.join(root, "decompositions.npz")
+    self.eval_files = {v: os.path.join(root, f"decompositions_{v}.npz") for v in VARIANTS}
 
   def steps(self):
     return [("generate", lambda: os.path.exists(os.path.join(self.data, "manifest.json")),
@@ -64,7 +68,8 @@ class Pipeline:
             ("train", lambda: loop.trained_steps(self.workdir) >= total_steps(
                 self.config.train), self.train),
             ("observe", lambda: os.path.exists(self.test_file), self.observe),
-            ("evaluate", lambda: os.path.exists(self.eval_file), self.evaluate),
+            ("evaluate", lambda: all(map(os.path.exists, self.eval_files.values())),
+             self.evaluate),
             ("report", lambda: False, self.report)]
 
   def needs(self, name: str) -> tuple[str, ...]:
@@ -114,16 +119,17 @@ class Pipeline:
 
   def evaluate(self) -> None:
     import video_towers_report as report  # pylint: disable=import-outside-toplevel
-    if self.config.eval.refine:  # what refinement buys: the same without it
-      report.decompose_test(self.config, self.workdir, self.test_file,
-                            self.eval_file.replace(".npz", "_sample.npz"), refine=False)
-    report.decompose_test(self.config, self.workdir, self.test_file, self.eval_file)
+    for variant, path in self.eval_files.items():  # both, to show what refinement does
+      if not os.path.exists(path):
+        report.decompose_test(self.config, self.workdir, self.test_file, path,
+                              refine=variant == "refine")
 
   def report(self) -> None:
     import video_towers_report as report  # pylint: disable=import-outside-toplevel
     args = [a for a in sys.argv[1:] if not a.startswith("--step=")]
     report.write_report(self, FLAGS.results,
-                        "python experiments/video_towers.py " + " ".join(args))
+                        "python experiments/video_towers.py " + " ".join(args),
+                        FLAGS.report_name)
 
 
 def main(argv):

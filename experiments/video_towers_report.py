@@ -16,6 +16,23 @@ from ppdjax.infer.decompose import make_decompose_fn
 from ppdjax.training import checkpoints
 
 WAYS = ("tracked", "true")  # which trajectory the model reads
+VALIDATION_NAME = "video_towers_val"  # the report of the towers the headline was chosen on
+
+
+def validation_summary(results_dir: str, name: str):
+  """How config.eval.refine was chosen: the validation report's tracked RMSE with and
+  without refinement (None for the validation report itself, or before it exists)."""
+  path = os.path.join(results_dir, f"{VALIDATION_NAME}.json")
+  if name == VALIDATION_NAME or not os.path.exists(path):
+    return None
+  with open(path) as f:
+    val = json.load(f)
+  d = val["density"]
+  pick = lambda key: next(v["rmse_all"] for k, v in d.items() if k == key)  # noqa: E731
+  refine_first = val["decompose"]["refine"]
+  return {"report": f"{VALIDATION_NAME}.md", "seed": val["seed"], "density_rmse_tracked": {
+      "refine": pick("tracked" if refine_first else "tracked, +Refine"),
+      "sample": pick("tracked, +Sample only" if refine_first else "tracked")}}
 PAPER = {"rmse_all": 18.7, "rmse_2_blocks": 10.1, "random": 40.8, "pearson_model_truth": 0.90}
 TARGETS = {"rmse_all": 10.0, "rmse_2_blocks": 5.0, "pearson": 0.95}
 LOG2_LEVELS = np.arange(-4, 5)  # the paper's answer scale {2^k, k = -4..4}
@@ -163,24 +180,25 @@ def plot_heavier(h: dict, path: str) -> None:
   plt.close(fig)
 
 
-def write_report(pipe, results_dir: str, command: str) -> dict:
+def write_report(pipe, results_dir: str, command: str, name: str = "video_towers") -> dict:
+  """Writes RESULTS/{name}.md and .json, the figure, and the summary into video.json (key
+  "towers", or "towers_validation" for any other name)."""
   test = dict(np.load(pipe.test_file))
-  ev = dict(np.load(pipe.eval_file))
   blocks = test["valid"].sum(-1)
   two = np.flatnonzero(blocks == 2)
+  headline = "refine" if pipe.config.eval.refine else "sample"
   rows, heavy = {}, {}
-  for way in WAYS:
-    ok = np.flatnonzero(ev[f"{way}_valid"].any(-1))
-    rows[way], mass = summary(test, ev, way, ok, blocks)
-    heavy[way] = heavier(test, mass, two)
-  tracked_ok = np.flatnonzero(ev["tracked_valid"].any(-1))  # like for like: the tracker's cost
-  rows["true, tracked towers only"] = summary(test, ev, "true", tracked_ok, blocks)[0]
-  sample_file = pipe.eval_file.replace(".npz", "_sample.npz")  # without refinement, if run
-  if os.path.exists(sample_file):
-    ev_sample = dict(np.load(sample_file))
+  for variant in (headline,) + tuple(v for v in pipe.eval_files if v != headline):
+    ev = dict(np.load(pipe.eval_files[variant]))
+    tag = "" if variant == headline else (", +Refine" if variant == "refine"
+                                         else ", +Sample only")
     for way in WAYS:
-      ok = np.flatnonzero(ev_sample[f"{way}_valid"].any(-1))
-      rows[f"{way}, +Sample only"] = summary(test, ev_sample, way, ok, blocks)[0]
+      ok = np.flatnonzero(ev[f"{way}_valid"].any(-1))
+      rows[way + tag], mass = summary(test, ev, way, ok, blocks)
+      heavy[way + tag] = heavier(test, mass, two)
+    if not tag:  # like for like: the tracker's cost on the towers it tracked
+      tracked_ok = np.flatnonzero(ev["tracked_valid"].any(-1))
+      rows["true, tracked towers only"] = summary(test, ev, "true", tracked_ok, blocks)[0]
   result = {"command": command, "config": pipe.config.name, "seed": int(pipe.config.test.seed),
             "towers": int(len(blocks)), "blocks": {str(b): int((blocks == b).sum())
                                                    for b in (2, 3, 4)},
@@ -191,22 +209,25 @@ def write_report(pipe, results_dir: str, command: str) -> dict:
             "random_guess_rmse": random_guess_rmse(test), "paper": PAPER, "targets": TARGETS,
             "decompose": {"samples": int(pipe.config.eval.samples),
                           "refine": bool(pipe.config.eval.refine), "fit": True, "depth": True},
+            "validation": validation_summary(results_dir, name),
             "steps": pipeline_steps.read_log(pipe.root)}
   os.makedirs(results_dir, exist_ok=True)
-  with open(os.path.join(results_dir, "video_towers.json"), "w") as f:
+  with open(os.path.join(results_dir, f"{name}.json"), "w") as f:
     json.dump(result, f, indent=1)
+  key = "towers" if name == "video_towers" else "towers_validation"
+  figure = "video_heavier.png" if name == "video_towers" else f"{name}_heavier.png"
   video_json = os.path.join(results_dir, "video.json")  # the issue's results file
   merged = json.load(open(video_json)) if os.path.exists(video_json) else {}
-  merged["towers"] = {k: result[k] for k in ("command", "towers", "blocks", "video", "tracking",
-                                              "density", "random_guess_rmse", "paper")}
-  merged["towers"]["heavier"] = {w: {k: v for k, v in h.items() if "log2" != k[-4:]}
-                                 for w, h in heavy.items()}
+  merged[key] = {k: result[k] for k in ("command", "seed", "towers", "blocks", "video",
+                                         "tracking", "density", "random_guess_rmse", "paper")}
+  merged[key]["heavier"] = {w: {k: v for k, v in h.items() if "log2" != k[-4:]}
+                            for w, h in heavy.items()}
   with open(video_json, "w") as f:
     json.dump(merged, f, indent=1)
-  plot_heavier(heavy, os.path.join(results_dir, "video_heavier.png"))
-  with open(os.path.join(results_dir, "video_towers.md"), "w") as f:
-    f.write(report_md(result))
-  print(report_md(result))
+  plot_heavier({w: heavy[w] for w in WAYS}, os.path.join(results_dir, figure))
+  with open(os.path.join(results_dir, f"{name}.md"), "w") as f:
+    f.write(report_md(result, figure))
+  print(report_md(result, figure))
   return result
 
 
@@ -217,7 +238,7 @@ def _ci(row, key):
   return f"{row[key]:.1f} [{lo:.1f}, {hi:.1f}]"
 
 
-def report_md(r: dict) -> str:
+def report_md(r: dict, figure: str = "video_heavier.png") -> str:
   d, h, t = r["density"], r["heavier"], r["tracking"]
   rg = r["random_guess_rmse"]
   met = lambda ok: "yes" if ok else "**no**"  # noqa: E731
@@ -235,7 +256,14 @@ def report_md(r: dict) -> str:
       "through the sticker tracker; beside it, the same model fed the true trajectory "
       f"prices the tracker. Decomposition: boxes fitted to the voxels and depth, "
       f"{r['decompose']['samples']} density samples, the closest by trajectory"
-      + (" refined by Levenberg-Marquardt" if r["decompose"]["refine"] else "")
+      + (" refined by Levenberg-Marquardt" if r["decompose"]["refine"] else
+         " (+Sample; Levenberg-Marquardt refinement after it is the +Refine rows)")
+      + ("" if not r["validation"] else
+         f"; the headline's method was chosen on validation towers of seed "
+         f"{r['validation']['seed']} (tracked RMSE +Sample "
+         f"{r['validation']['density_rmse_tracked']['sample']:.1f}, +Refine "
+         f"{r['validation']['density_rmse_tracked']['refine']:.1f}: "
+         f"{r['validation']['report']})")
       + ". Density RMSE in "
       "slots (100 kg/m³) of the box nearest each true block, 95 % bootstrap intervals over "
       "towers.", "",
@@ -273,7 +301,7 @@ def report_md(r: dict) -> str:
     lines.append(f"| {way} | {row['towers']} | {row['pearson_levels']:.3f} | "
                  f"{row['pearson_log2']:.3f} | {row['same_level_percent']:.1f} | "
                  f"{row['heavier_right_percent']:.1f} |")
-  lines += ["", "![which is heavier](video_heavier.png)", "", "## Tracking", "",
+  lines += ["", f"![which is heavier]({figure})", "", "## Tracking", "",
             f"{t['tracked']} of {t['clips']} clips tracked; median over clips of each clip's "
             f"median error: {t['position_mm_median']:.2f} mm (90th percentile of clips "
             f"{t['position_mm_p90_of_clip_medians']:.2f} mm), {t['rotation_deg_median']:.2f}°."]
