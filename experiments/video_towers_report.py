@@ -10,6 +10,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import pipeline_steps
+from ppdjax import primitives
 from ppdjax.conventions import density_to_slot
 from ppdjax.dataset import camera, generation, materials
 from ppdjax.infer.decompose import make_decompose_fn
@@ -57,7 +58,7 @@ def decompose_test(config, workdir: str, test_file: str, out_file: str,
     traj = d[f"{way}_trajectory"]
     ok = np.flatnonzero(np.isfinite(traj).all((1, 2)))
     fields = {f: np.full((n, k) + d[f].shape[2:], np.nan, np.float32)
-              for f in ("half_size", "pos", "quat", "density")}
+              for f in primitives.FIELDS if f != "valid"}
     valid, score = np.zeros((n, k), bool), np.full(n, np.nan, np.float32)
     size = int(e.batch_size)
     for start in tqdm(range(0, len(ok), size), desc=f"decompose ({way})"):
@@ -182,7 +183,7 @@ def plot_heavier(h: dict, path: str) -> None:
 
 def write_report(pipe, results_dir: str, command: str, name: str = "video_towers") -> dict:
   """Writes RESULTS/{name}.md and .json, the figure, and the summary into video.json (key
-  "towers", or "towers_validation" for any other name)."""
+  "real_towers", or "real_towers_validation" for any other name)."""
   test = dict(np.load(pipe.test_file))
   blocks = test["valid"].sum(-1)
   two = np.flatnonzero(blocks == 2)
@@ -214,7 +215,7 @@ def write_report(pipe, results_dir: str, command: str, name: str = "video_towers
   os.makedirs(results_dir, exist_ok=True)
   with open(os.path.join(results_dir, f"{name}.json"), "w") as f:
     json.dump(result, f, indent=1)
-  key = "towers" if name == "video_towers" else "towers_validation"
+  key = "real_towers" if name == "video_towers" else "real_towers_validation"
   figure = "video_heavier.png" if name == "video_towers" else f"{name}_heavier.png"
   video_json = os.path.join(results_dir, "video.json")  # the issue's results file
   merged = json.load(open(video_json)) if os.path.exists(video_json) else {}
@@ -265,8 +266,9 @@ def report_md(r: dict, figure: str = "video_heavier.png") -> str:
          f"{r['validation']['density_rmse_tracked']['refine']:.1f}: "
          f"{r['validation']['report']})")
       + ". Density RMSE in "
-      "slots (100 kg/m³) of the box nearest each true block, 95 % bootstrap intervals over "
-      "towers.", "",
+      "slots (100 kg/m³) of the box nearest each true block (two blocks may share one "
+      "box, then both take its density and the mass ratio of a 2-block tower is 1), 95 % "
+      "bootstrap intervals over towers.", "",
       "## Targets", "",
       "| target | ours (tracked video) | goal | paper | met |", "|---|--:|--:|--:|:-:|",
       f"| density RMSE, all towers | {_ci(tracked, 'rmse_all')} | ≤ 10 | 18.7 | "

@@ -103,7 +103,8 @@ def main(argv):
   path = os.path.join(FLAGS.out, "video.json")
   if os.path.exists(path):  # keep the real towers' results (experiments/video_towers.py)
     with open(path) as f:
-      result = {**{k: v for k, v in json.load(f).items() if k == "towers"}, **result}
+      result = {**result, **{k: v for k, v in json.load(f).items()
+                             if k.startswith("real_towers")}}
   with open(path, "w") as f:
     json.dump(result, f, indent=1)
   lines = ["# Trajectory recovery from rendered videos (issue 19)", "", f"`{command}`", "",

@@ -33,7 +33,7 @@ _ENGINE = flags.DEFINE_enum("engine", "", ["", "mjx", "box_plane"], "Engine that
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling and texture seed.")
 _TRAJECTORY = flags.DEFINE_string(
     "trajectory", "", "A tracked trajectory (python -m ppdjax.track's .npz) to read instead "
-    "of simulating the mesh: the object struck once as the video model was trained "
+    "of simulating the mesh's motion: the object struck once as the video model was trained "
     "(default model then assets/video_model; the stickers' object frame must be the "
     "mesh's normalised frame).")
 
@@ -82,12 +82,15 @@ def run(mesh: str, materials, densities, model: str, out: str, samples: int = 51
                     zip(tool.names, tool.materials, tool.densities)))
   obs = tool_scene.observe(list(tool.parts), tool.materials, tool.densities,
                            [seed] * len(tool.parts), image_size=int(config.data.image_size),
-                           steps=int(config.data.steps))
+                           steps=int(config.data.steps), trajectories=not trajectory)
   truth, _ = boxes_of_parts(list(tool.parts), tool.densities)
   if trajectory:
+    from ppdjax.video.files import tracked_observation
     obs["trajectories"] = tracked_observation(trajectory, config, tool_scene.rest_height(
         list(tool.parts)))
+  # simulated here under the tools' pushes; a tracked trajectory under the model's own
   decompose = make_decompose_fn(trained, num_samples=samples,
+                                pushes=None if trajectory else tool_scene.tool_pushes(),
                                 settings=settings_for(engine) if engine else None)
   print(f"decomposing with {model} ({samples} density candidates; the first call compiles)")
   result = jax.tree.map(np.asarray, decompose(obs, jax.random.key(seed)))
@@ -112,23 +115,6 @@ def run(mesh: str, materials, densities, model: str, out: str, samples: int = 51
     json.dump(record, f, indent=1)
   print(f"wrote {out}/decomposition.png and {out}/decomposition.json")
   return record
-
-
-def tracked_observation(path: str, config, rest_height: float):
-  """(1, steps, 7) the tracked trajectory of `path` in the simulator's convention."""
-  import numpy as np
-
-  from ppdjax.video import files, pose
-  traj, initial_pose = files.read_trajectory(path)
-  steps, pushes = int(config.data.steps), int(config.model.num_pushes)
-  if pushes != 1:
-    raise ValueError(f"the model reads {pushes} pushes per object; {path} holds one tracked "
-                     "trajectory: use a model trained on one strike (assets/video_model)")
-  if len(traj) < steps:
-    raise ValueError(f"{path}: {len(traj)} steps tracked, the model reads {steps}: film "
-                     "longer or track with --steps")
-  return pose.relative_to_rest(traj[:steps], initial_pose, np.array([0.0, 0.0, rest_height])
-                               )[None]
 
 
 def main(argv):

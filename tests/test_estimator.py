@@ -154,6 +154,7 @@ def test_decompose_checks_the_estimator_settings():
   from ppdjax.infer.decompose import make_decompose_fn
   with pytest.raises(ValueError, match="needs fit=True"):
     make_decompose_fn((None, tiny.get_config()), fit=False, estimator="anything")
-  with pytest.raises(ValueError, match="paper's pushes"):
-    make_decompose_fn((None, tiny.get_config()), estimator="anything",
-                      pushes=pendulum_strike())
+  weaker = default_pushes(magnitude=1e3)  # the tools' strength
+  for pushes in (pendulum_strike(), weaker):
+    with pytest.raises(ValueError, match="paper's four pushes"):
+      make_decompose_fn((None, tiny.get_config()), estimator="anything", pushes=pushes)

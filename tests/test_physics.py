@@ -127,7 +127,7 @@ def test_one_compiled_function_ignores_padding(prims, mjx_traj):
       half_size=np.where(valid[..., None], prims.half_size, np.float32(0.45)),
       pos=np.where(valid[..., None], prims.pos, np.float32(-0.4)),
       density=np.where(valid, prims.density, np.float32(9999.0)))
-  fn = rollout_mjx._batched_fn(256, rollout_mjx.DEFAULT_SETTINGS, 1)  # pylint: disable=protected-access
+  fn = rollout_mjx._batched_fn(256, rollout_mjx.DEFAULT_SETTINGS)  # pylint: disable=protected-access
   before = fn._cache_size()  # pylint: disable=protected-access
   out = np.asarray(ppdjax.simulate(garbage, backend="mjx"))
   assert fn._cache_size() == before  # pylint: disable=protected-access

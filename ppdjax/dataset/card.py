@@ -65,10 +65,11 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
   lines += [f"| {b} | {(blocks == b).sum()} |" for b in range(1, valid.shape[1] + 1)
             if (blocks == b).any()]
   lines += ["", "| material | blocks | density range seen (x100 kg/m³) |", "|---|---|---|"]
+  real_set = bool((mats[valid] >= len(materials.MATERIAL_NAMES)).any())
   for k, name in enumerate(materials.ALL_MATERIAL_NAMES):
     sel = mats[valid] == k
-    if not sel.any() and name in materials.REAL_MATERIALS:
-      continue
+    if not sel.any() and (name in materials.REAL_MATERIALS) != real_set:
+      continue  # the other material set's rows
     rng = f"{slots[sel].min() + 1}-{slots[sel].max() + 1}" if sel.any() else "-"
     lines.append(f"| {name} | {int(sel.sum())} | {rng} |")
   lines += ["", "| push | speed after push, median / p90 (m/s) | displacement after "

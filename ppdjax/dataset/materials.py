@@ -17,7 +17,8 @@ MATERIALS: dict[str, tuple[tuple[int, int], ...]] = {
 MATERIAL_NAMES = tuple(MATERIALS)
 
 # The blocks of the paper's real towers (Sec. 5.3: pine, steel, aluminium, copper), each of
-# one density: the real one (500, 7850, 2700, 8960 kg/m^3) rounded to its slot.
+# one density: the real one (500, 7850, 2700, 8960 kg/m^3) rounded to a slot (steel's
+# 7,850 half-way up to 7,900; `density_to_slot(7850)` rounds half to even, to 7,800).
 REAL_MATERIALS: dict[str, int] = {"pine": 5, "aluminium": 27, "steel": 79, "copper": 90}
 REAL_MATERIAL_NAMES = tuple(REAL_MATERIALS)
 # A dataset's material ids index this tuple (-1 pads): the paper's five, then the real four.
@@ -117,7 +118,7 @@ _FAMILIES = {"wood": _wood, "brick": _brick, "stone": _stone, "ceramic": _cerami
              "copper": functools.partial(_metal, tint=(0.86, 0.52, 0.32))}
 
 
-@functools.lru_cache(maxsize=len(MATERIALS) * TEXTURE_VARIANTS)
+@functools.lru_cache(maxsize=len(ALL_MATERIAL_NAMES) * TEXTURE_VARIANTS)
 def texture(material: str, seed: int, size: int = TEXTURE_SIZE) -> np.ndarray:
   """(size, size, 3) uint8 procedural texture of `material`, randomised by `seed` (cached;
   do not modify the returned array)."""

@@ -144,6 +144,9 @@ def simulate_tool(parts, densities, pushes: Pushes | None = None, *,
   push (default `tool_pushes()`), by MuJoCo C with MuJoCo's default solver settings (as
   `backend="mujoco"`). Raises RuntimeError if the solver diverges."""
   pushes = tool_pushes() if pushes is None else pushes
+  if pushes.is_strike:
+    raise ValueError("simulate_tool applies forces; strikes (Pushes.striker_masses) are "
+                     "simulated by ppdjax.simulate on boxes")
   import mujoco  # pylint: disable=import-outside-toplevel
   model = mujoco.MjModel.from_xml_string(tool_xml(parts, densities))
   data = mujoco.MjData(model)
@@ -201,14 +204,15 @@ def render_tool(parts, materials, texture_seeds, *, height: int = 224, width: in
 
 
 def observe(parts, materials, densities, texture_seeds, *, image_size: int = 224,
-            steps: int = STEPS, pushes: Pushes | None = None) -> dict[str, np.ndarray]:
+            steps: int = STEPS, pushes: Pushes | None = None,
+            trajectories: bool = True) -> dict[str, np.ndarray]:
   """What the model observes of a tool (normalised parts): "voxels" (32, 32, 32) uint8,
   "image" (S, S, 3) uint8, "depth" (S, S) float32, "trajectories" (P, steps, 7) float32
-  under `pushes` (default `tool_pushes()`). Raises RuntimeError if the simulation
-  diverges."""
-  traj = simulate_tool(parts, densities, pushes, steps=steps)
+  under `pushes` (default `tool_pushes()`; left out with trajectories=False). Raises
+  RuntimeError if the simulation diverges."""
+  traj = simulate_tool(parts, densities, pushes, steps=steps) if trajectories else None
   union, _ = voxelize_parts(parts)
   image, depth = render_tool(parts, materials, texture_seeds, height=image_size,
                              width=image_size, depth=True)
-  return {"voxels": union.astype(np.uint8), "image": image, "depth": depth,
-          "trajectories": traj.astype(np.float32)}
+  out = {"voxels": union.astype(np.uint8), "image": image, "depth": depth}
+  return out if traj is None else {**out, "trajectories": traj.astype(np.float32)}

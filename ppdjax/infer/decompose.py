@@ -79,6 +79,14 @@ def check_observation(obs: dict, config) -> bool:
   return batched
 
 
+def is_paper_pushes(pushes: Pushes) -> bool:
+  """Whether `pushes` are the paper's four (`default_pushes()`), values and all."""
+  paper = default_pushes()
+  return (not pushes.is_strike and pushes.num == paper.num
+          and pushes.duration == paper.duration
+          and all(np.allclose(a, b) for a, b in zip(pushes.arrays()[:3], paper.arrays()[:3])))
+
+
 def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       camera: dict | None = None, refine: bool = False,
                       refine_steps: int = 12, prior_weight: float = 0.0,
@@ -136,9 +144,9 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   if pushes is None:
     from ppdjax.dataset.generation import pushes_of  # pylint: disable=import-outside-toplevel
     pushes = pushes_of(config.data)
-  if estimator is not None and (pushes.is_strike or pushes.num != 4 or not np.allclose(
-      pushes.sources, default_pushes().sources)):
-    raise ValueError("the estimator was trained on the paper's pushes: leave pushes None")
+  if estimator is not None and not is_paper_pushes(pushes):
+    raise ValueError("the estimator was trained on the paper's four pushes; these pushes "
+                     "(given, or the model's training data's) are others")
   if isinstance(estimator, str):
     estimator = estimator_module.load(estimator)[0]
   if settings is None:

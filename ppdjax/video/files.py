@@ -93,3 +93,20 @@ def read_trajectory(path: str) -> tuple[np.ndarray, np.ndarray]:
   if abs(float(data["dt"]) - TIMESTEP) > 1e-9:
     raise ValueError(f"{path}: dt is {float(data['dt'])} s; the simulator's is {TIMESTEP} s")
   return traj, pose0
+
+
+def tracked_observation(path: str, config, rest_height: float) -> np.ndarray:
+  """(1, steps, 7) the tracked trajectory of `path` as a model with `config` reads it: in
+  the simulator's convention (`pose.relative_to_rest`, the object at rest with its
+  object-frame origin `rest_height` above the ground), cut to config.data.steps."""
+  from ppdjax.video import pose  # pylint: disable=import-outside-toplevel
+  traj, initial_pose = read_trajectory(path)
+  steps, pushes = int(config.data.steps), int(config.model.num_pushes)
+  if pushes != 1:
+    raise ValueError(f"the model reads {pushes} pushes per object; {path} holds one tracked "
+                     "trajectory: use a model trained on one strike (assets/video_model)")
+  if len(traj) < steps:
+    raise ValueError(f"{path}: {len(traj)} steps tracked, the model reads {steps}: film "
+                     "longer or track with --steps")
+  return pose.relative_to_rest(traj[:steps], initial_pose, np.array([0.0, 0.0, rest_height])
+                               )[None]
