@@ -307,15 +307,16 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
 def test_saved_batch_records_give_back_the_same_tables(tiny_run, tiny_dataset, tmp_path):
   """A rerun over saved batches computes (and compiles) nothing and reports the same; a
   folder of another evaluation is refused, naming what differs."""
-  kw = dict(samples=SAMPLES, batch_size=4, max_objects=8, with_baselines=False,
-            progress=False, partial_dir=str(tmp_path / "partial"))
+  e = tiny.get_config().eval  # the evaluate command's settings: its compiled programs
+  kw = dict(samples=e.samples, batch_size=e.batch_size, max_objects=8,  # are on disk
+            prior_weight=e.prior_weight, progress=False, partial_dir=str(tmp_path / "partial"))
   first = evaluation.evaluate(tiny_run[0], tiny_dataset, **kw)
   again = evaluation.evaluate(tiny_run[0], tiny_dataset, max_seconds=1e-9, **kw)
   for name, row in first["table2"].items():
     for k in ("top1", "top5", "rmse", "mae"):
       assert again["table2"][name][k] == row[k], (name, k)
   with pytest.raises(partial.OtherEvaluation, match="samples"):
-    evaluation.evaluate(tiny_run[0], tiny_dataset, **{**kw, "samples": SAMPLES + 1})
+    evaluation.evaluate(tiny_run[0], tiny_dataset, **{**kw, "samples": e.samples + 1})
 
 
 @pytest.mark.slow  # three evaluations: about 40 s on 2 cores
