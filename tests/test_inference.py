@@ -160,6 +160,7 @@ def decompose(tiny_run):
                                   refine_steps=2, settings=cheap)
 
 
+@pytest.mark.slow  # compiling decompose with refinement: about a minute on 2 cores
 def test_decompose_one_and_a_batch_with_refinement(decompose, tiny_dataset):
   """One object and a batch of one agree; refinement (LM through MJX, in the same jit) is
   kept only where it is closer, so the answer is never further than the best sample."""
