@@ -98,8 +98,9 @@ class Pushes:
     return (f32(self.sources), f32(self.targets), f32(self.magnitudes),
             f32(self.striker_masses))
 
-  def with_arrays(self, sources, targets, magnitudes, striker_masses) -> "Pushes":
-    """The same pushes (duration, restitution) with these arrays (inside a jit)."""
+  def float32(self) -> "Pushes":
+    """The same pushes with float32 JAX arrays (what the jitted rollouts take)."""
+    sources, targets, magnitudes, striker_masses = self.arrays()
     return self.replace(sources=sources, targets=targets, magnitudes=magnitudes,
                         striker_masses=striker_masses)
 

@@ -182,5 +182,5 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS,
                       pos=flat.pos.astype(jnp.float32), quat=flat.quat.astype(jnp.float32),
                       density=flat.density.astype(jnp.float32),
                       valid=flat.valid.astype(bool))
-  out = _batched_fn(steps, settings)(flat, pushes.with_arrays(*pushes.arrays()))
+  out = _batched_fn(steps, settings)(flat, pushes.float32())
   return unflatten(out, batch)

@@ -42,7 +42,7 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS, nthread: 
   k = flat.num_slots
   n, p = flat.density.shape[0], pushes.num
   fields, wrenches, rest = jax.tree.map(np.asarray, _object_inputs(
-      jax.tree.map(jnp.asarray, flat), pushes.with_arrays(*pushes.arrays())))
+      jax.tree.map(jnp.asarray, flat), pushes.float32()))
 
   model = copy.copy(scene.template_model(k))
   if iterations is not None:
