@@ -255,6 +255,10 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   text = open(os.path.join(out, "results.md")).read()
   assert "Table 2" in text and "Table 4" in text and "| PPD+Sample |" in text
   assert os.path.exists(os.path.join(out, "confusion.png"))
+  # the oracle's pick among the same samples: at most +Sample's RMSE, top-1 within coverage
+  o = results["oracle_pick"]["PPD+Sample"]
+  assert o["rmse"] <= rows["PPD+Sample"]["rmse"] + 1e-9 and o["top1"] <= o["coverage"] + 1e-9
+  assert "+Sample's ceiling" in text
 
 
 @pytest.mark.slow  # the fits compile inside the evaluation: about a minute more on 2 cores
@@ -280,6 +284,20 @@ def test_evaluate_cli_with_the_fit_rows(tiny_run, tiny_dataset, tmp_path):
   faces = results["face_error_mm"]  # the fits' faces lie within half a voxel (15.6 mm)
   assert set(faces) == {"ppd", "fit", "fit_depth"} and faces["fit"]["max"] <= 15.7
   assert faces["fit_depth"]["max"] <= 31.3  # and the depth moves them by half a voxel at most
+
+
+def test_the_oracle_pick_takes_the_sample_closest_to_the_truth():
+  """Hand case: two boxes (a third not in the tower), three samples; the second is one
+  slot off on each box, the others far on one; box 0's true slot is in no sample."""
+  from ppdjax.infer import rows
+  slots = np.array([[[40, 11, 0], [21, 12, 0], [90, 10, 0]]])  # (B=1, S=3, K=3)
+  slot, valid = np.array([[20, 11, -1]]), np.array([[True, True, False]])
+  logits = np.zeros((1, 3, 100))
+  rec = rows.oracle_pick("PPD+Sample", logits, slots, slot, valid, np.array([[1, 1, 0]], bool))
+  # picked: sample 1 (errors 1 + 1 = 2; sample 0: 400 + 0; sample 2: 4900 + 1)
+  assert rec[("oracle_pick", "PPD+Sample", "sq_err")].sum() == pytest.approx(2.0)
+  assert rec[("oracle_pick", "PPD+Sample", "top1")].sum() == 0  # one off on both boxes
+  np.testing.assert_array_equal(rec[("coverage", "PPD+Sample")], [[False, True, False]])
 
 
 def test_evaluation_subsets():

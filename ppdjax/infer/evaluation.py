@@ -99,7 +99,7 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj
 # rows use: on the validation split of unseen towers that start refined best (top-1 62.6 %
 # against 59.9 % from τ = 0.05; experiments/results/prior_study_val.md).
 REFINE_FROM_TAU = 0.0
-RECORDS_VERSION = 1  # of `rows.batch_records`' layout: saved batches of another are not reused
+RECORDS_VERSION = 2  # of `rows.batch_records`' layout: saved batches of another are not reused
 
 
 def _weights_hash(model) -> str:

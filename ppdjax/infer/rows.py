@@ -47,6 +47,20 @@ def row_counts(scores, slot, valid):
   return {n: np.asarray(v) for n, v in c.items()}
 
 
+def oracle_pick(row, logits, slots, slot, valid, pvalid) -> dict:
+  """+Sample's ceiling on these candidates, keyed ("oracle_pick", row, name): the sample
+  whose slots are closest to the truth (least squared slot error over the true boxes)
+  picked by an oracle instead of by trajectory distance, and ("coverage", row) per box:
+  whether any sample holds the true slot. What +Sample loses to its selection rule is the
+  gap to the first; what it loses to the proposals, the first's gap to 100 %."""
+  truth = np.maximum(slot, 0)[:, None, :]
+  err = np.where(valid[:, None, :], (slots - truth).astype(np.float64) ** 2, 0.0).sum(-1)
+  out = {("oracle_pick", row, k): v
+         for k, v in row_counts(sample_scores(logits, slots, err, pvalid), slot, valid).items()}
+  out[("coverage", row)] = np.any(slots == truth, axis=1) & valid
+  return out
+
+
 def _sweep(row, logits, slots, objective, mae, pvalid, slot, valid) -> dict:
   """A +Sample row's records for every τ in PRIOR_WEIGHTS (free: the candidates are
   simulated once), keyed ("sweep", row, τ, name)."""
@@ -78,6 +92,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
             "PPD+Sample": sample_scores(logits, slots, objective(prior_weight), pvalid)}
   mae = {"PPD": omae[:, 0], "PPD+Sample": omae[rows, best]}
   rec.update(_sweep("PPD+Sample", logits, slots, objective, omae, pvalid, slot, valid))
+  rec.update(oracle_pick("PPD+Sample", logits, slots, slot, valid, pvalid))
   for p in prefixes:
     rec[("prefix", "PPD", p)] = omae[rows, np.argmin(dist[:, :p], -1)]
   if with_baselines:
@@ -106,6 +121,8 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     mae[name + "+Sample"] = fm[rows, f_best]
     rec.update(_sweep(name + "+Sample", glogits, out["fit_slots"][group], f_objective, fm,
                       fvalid, slot, valid))
+    rec.update(oracle_pick(name + "+Sample", glogits, out["fit_slots"][group], slot, valid,
+                           fvalid))
     if group != "true":  # +Refine and +Joint start from the most precise fit
       sample_row, pvalid = name + "+Sample", fvalid
     for p in prefixes:
