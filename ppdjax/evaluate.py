@@ -27,6 +27,12 @@ _BATCH_SIZE = flags.DEFINE_integer("batch_size", None, "Objects per jitted call 
 _PRIOR_WEIGHT = flags.DEFINE_float("prior_weight", None, "+Sample selects by distance - "
                                    "prior_weight * log prior (metres per nat; default: "
                                    "eval.prior_weight; 0 is the paper's closest trajectory).")
+_SELECTION_HORIZON = flags.DEFINE_integer(
+    "selection_horizon", None, "+Sample's distance covers the first N steps (one of "
+    "16, 32, 64, 128; 0: all, the paper's; default: eval.selection_horizon).")
+_HORIZON_SWEEP = flags.DEFINE_bool(
+    "horizon_sweep", False, "Also sweep τ at every horizon of --selection_horizon's choices "
+    "(results.md's 'by τ and by the steps the distance covers'; about 0.6 s more per batch).")
 _FIT = flags.DEFINE_bool("fit", None, "Also the +Fit rows: boxes fitted to the voxels "
                          "(default: eval.fit).")
 _DEPTH = flags.DEFINE_bool("depth", None, "Also the +Fit(depth) rows: the fitted boxes refined "
@@ -64,6 +70,9 @@ def main(argv):
   logging.set_verbosity(logging.WARNING)
   from ppdjax.dataset.storage import DatasetError
   from ppdjax.infer import evaluation, partial, tables
+  if _SELECTION_HORIZON.value not in (None,) + tables.SELECTION_HORIZONS:
+    sys.exit(f"error: --selection_horizon must be one of {tables.SELECTION_HORIZONS} "
+             f"(0: all steps), got {_SELECTION_HORIZON.value}")
   from ppdjax.training import checkpoints
   try:
     model, config = checkpoints.load(_WORKDIR.value)
@@ -74,11 +83,13 @@ def main(argv):
                                         depth=_DEPTH.value, refine_prior=_REFINE_PRIOR.value,
                                         estimator=_ESTIMATOR.value,
                                         estimator_weight=_ESTIMATOR_WEIGHT.value,
-                                        joint=_JOINT.value, true_shapes=_TRUE_SHAPES.value)
+                                        joint=_JOINT.value, true_shapes=_TRUE_SHAPES.value,
+                                        selection_horizon=_SELECTION_HORIZON.value)
     out = _OUT.value or os.path.join(_WORKDIR.value, "eval")
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,
                                   with_baselines=_BASELINES.value, seed=_SEED.value,
+                                  horizon_sweep=_HORIZON_SWEEP.value,
                                   partial_dir=os.path.join(out, "partial"),
                                   max_seconds=_MAX_SECONDS.value, **settings)
   except (checkpoints.CheckpointError, DatasetError, partial.OtherEvaluation) as e:

@@ -36,10 +36,23 @@ def pose_residual(sim_PTx7: jax.Array, obs_PTx7: jax.Array) -> jax.Array:
   return jnp.concatenate([sim_PTx7[..., :3] - obs_PTx7[..., :3], ROTATION_LENGTH * rot], -1)
 
 
-def trajectory_distance(sim_PTx7: jax.Array, obs_PTx7: jax.Array) -> jax.Array:
-  """Mean over pushes and steps of the pose-error norm (metres): what sampling minimises."""
+def trajectory_distance(sim_PTx7: jax.Array, obs_PTx7: jax.Array,
+                        horizon: int = 0) -> jax.Array:
+  """Mean over pushes and steps of the pose-error norm (metres): what sampling minimises.
+  `horizon` > 0: over the first `horizon` steps only (0: all)."""
+  return horizon_distances(sim_PTx7, obs_PTx7, (horizon,))[..., 0]
+
+
+def horizon_distances(sim_PTx7: jax.Array, obs_PTx7: jax.Array,
+                      horizons: tuple[int, ...]) -> jax.Array:
+  """(..., H) `trajectory_distance` over the first h steps for each h of `horizons` (0 or
+  more than T: all steps), from one residual computation."""
   r = pose_residual(sim_PTx7, obs_PTx7)
-  return jnp.sqrt(jnp.sum(r * r, -1) + 1e-12).mean((-2, -1))
+  err = jnp.sqrt(jnp.sum(r * r, -1) + 1e-12).mean(-2)  # (..., T) mean over pushes
+  t = err.shape[-1]
+  ends = [t if h <= 0 or h > t else h for h in horizons]
+  cum = jnp.cumsum(err, -1)
+  return jnp.stack([cum[..., e - 1] / e for e in ends], -1)
 
 
 def trajectory_mae(sim_PTx7: jax.Array, obs_PTx7: jax.Array) -> jax.Array:

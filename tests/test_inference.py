@@ -76,6 +76,12 @@ def test_trajectory_metrics_on_hand_cases():
       [1.0, -1, -1, -1]))), 0.0, atol=1e-3)
   np.testing.assert_allclose(metrics.rotation_vector(-q), metrics.rotation_vector(q),
                              atol=1e-5)
+  # over the first h steps: errors of 1, 2, 3 mm at steps 0, 1, 2 (both pushes)
+  grow = obs.at[..., 0].add(0.001 * jnp.arange(1, 4)[None, :])
+  d = metrics.horizon_distances(grow, obs, (1, 2, 0, 99))
+  np.testing.assert_allclose(d, [0.001, 0.0015, 0.002, 0.002], rtol=1e-4)
+  assert float(metrics.trajectory_distance(grow, obs, horizon=2)) == pytest.approx(0.0015,
+                                                                                  rel=1e-4)
 
 
 @pytest.fixture(scope="module")
@@ -298,6 +304,50 @@ def test_the_oracle_pick_takes_the_sample_closest_to_the_truth():
   assert rec[("oracle_pick", "PPD+Sample", "sq_err")].sum() == pytest.approx(2.0)
   assert rec[("oracle_pick", "PPD+Sample", "top1")].sum() == 0  # one off on both boxes
   np.testing.assert_array_equal(rec[("coverage", "PPD+Sample")], [[False, True, False]])
+
+
+def _fake_batch_output(b=4, s=16, k=3, seed=0):
+  """What `Evaluator.batch` returns for b objects, with random candidates: the network's
+  boxes, one voxel-fit group and the baselines."""
+  from types import SimpleNamespace
+  from ppdjax.infer.groups import candidate_layout
+  rng = np.random.default_rng(seed)
+  layout = candidate_layout(s, ("fit",), True)
+  c = max(x.stop for x in layout.values())
+  boxes = SimpleNamespace(valid=np.ones((b, k), bool))
+  shape = {n: np.ones(b) for n in ("matched", "predicted", "true")}
+  out = {"pred": boxes, "logits": rng.normal(size=(b, k, 100)), "shape": shape,
+         "slots": rng.integers(0, 100, (b, s, k)), "logp": rng.normal(size=(b, s)),
+         "hdist": rng.random((b, c, len(tables.SELECTION_HORIZONS))), "mae": rng.random((b, c)),
+         "faces": {"ppd": rng.random((b, k, 6))}, "fitted": {"fit": boxes},
+         "group_logits": {"fit": rng.normal(size=(b, k, 100))}, "shape_fit": shape,
+         "fit_slots": {"fit": rng.integers(0, 100, (b, s, k))},
+         "fit_logp": {"fit": rng.normal(size=(b, s))}}
+  out["dist"] = out["hdist"][..., tables.SELECTION_HORIZONS.index(0)]
+  slot = rng.integers(0, 100, (b, k))
+  return out, slot, rng.normal(size=(b, 3, k, 100)), layout
+
+
+def test_the_selection_horizon_picks_by_the_distance_over_its_steps():
+  from ppdjax.infer import rows
+  out, slot, base, layout = _fake_batch_output()
+  kw = dict(samples=16, prior_weight=0.0, prefixes=(1, 8, 16), with_baselines=True,
+            refine=False, layout=layout)
+  full = rows.batch_records(out, slot, slot >= 0, base, **kw)
+  swept = rows.batch_records(out, slot, slot >= 0, base, selection_horizon=32,
+                             horizon_sweep=True, **kw)
+  h32 = tables.SELECTION_HORIZONS.index(32)
+  # τ = 0 at 32 steps: the +Sample row's MAE is that of the candidate closest over 32 steps
+  d = out["hdist"][:, layout["ppd"], h32]
+  expect = out["mae"][:, layout["ppd"]][np.arange(4), d.argmin(-1)]
+  np.testing.assert_allclose(swept[("mae", "PPD+Sample")], expect)
+  np.testing.assert_allclose(swept[("hsweep", "PPD+Sample", 0, 0.0, "mae")],
+                             full[("mae", "PPD+Sample")])
+  assert not any(k[0] == "hsweep" for k in full)  # only when asked
+  # Table 4's best of N stays on the whole trajectory whatever the selection horizon
+  np.testing.assert_array_equal(swept[("prefix", "PPD", 8)], full[("prefix", "PPD", 8)])
+  with pytest.raises(ValueError, match="selection_horizon"):
+    rows.batch_records(out, slot, slot >= 0, base, selection_horizon=33, **kw)
 
 
 def test_evaluation_subsets():

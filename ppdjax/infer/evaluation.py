@@ -48,7 +48,8 @@ from ppdjax.infer import baselines, partial, rows, sampling
 from ppdjax.infer.groups import candidate_layout, decode_groups, fit_groups
 from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
-from ppdjax.infer.tables import BASELINES, PREFIXES, model_switches, summarize
+from ppdjax.infer.tables import (BASELINES, PREFIXES, SELECTION_HORIZONS, model_switches,
+                                 summarize)
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, settings_for
@@ -65,7 +66,8 @@ def simultaneous_candidates() -> int:
 
 def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj, keys, *,
               samples, with_baselines, chunk, pushes, settings):
-  """Per object: (distance, MAE) of every candidate (`candidate_layout`), the network's
+  """Per object: (distance (C, H) over each of SELECTION_HORIZONS, MAE (C,)) of every
+  candidate (`candidate_layout`), the network's
   candidate slots on its boxes, and a tuple of them on each of `fitted` (a tuple of the
   fit groups' boxes, in layout order, scored by `fit_logits`, a tuple alike). `keys`
   (B, 4): each object's own, so that a batch split over devices draws the same."""
@@ -88,7 +90,8 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj
                 pool.replace(density=slot_to_density_jax(shape_slots)),
                 sampling.with_slots(t, bs)]
     cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
-    dist, mae = sampling.score_candidates(cands, traj, pushes, settings)
+    dist, mae = sampling.score_candidates(cands, traj, pushes, settings,
+                                          horizons=SELECTION_HORIZONS)
     return dist, mae, slots, tuple(fit_slots)
 
   return jax.lax.map(one, (pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys),
@@ -99,7 +102,7 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj
 # rows use: on the validation split of unseen towers that start refined best (top-1 62.6 %
 # against 59.9 % from τ = 0.05; experiments/results/prior_study_val.md).
 REFINE_FROM_TAU = 0.0
-RECORDS_VERSION = 2  # of `rows.batch_records`' layout: saved batches of another are not reused
+RECORDS_VERSION = 3  # of `rows.batch_records`' layout: saved batches of another are not reused
 
 
 def _weights_hash(model) -> str:
@@ -176,7 +179,8 @@ class Evaluator:
     dist, mae, slots, fit_slots = self._simulate(
         pred, fitted, logits, fit_logits, true, jnp.asarray(base_slots),
         jax.tree.map(jnp.asarray, pool), obs["trajectories"], jax.random.split(key, (b, 4)))
-    out = jax.device_get({**decoded, "dist": dist, "mae": mae, "slots": slots})
+    out = jax.device_get({**decoded, "hdist": dist, "mae": mae, "slots": slots})
+    out["dist"] = out["hdist"][..., SELECTION_HORIZONS.index(0)]  # the whole trajectory
     out["logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, jnp.asarray(out["slots"]),
                                                           pred.valid))
     out["fit_slots"] = {g: np.asarray(s) for g, s in zip(self.groups, fit_slots)}
@@ -216,14 +220,14 @@ class Evaluator:
 
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
                  "depth", "refine_prior", "estimator", "estimator_weight", "joint",
-                 "true_shapes")
+                 "true_shapes", "selection_horizon")
 
 
 def eval_settings(config, **overrides) -> dict:
   """`evaluate`'s settings from a preset's `eval` section; overrides that are not None win."""
   defaults = {"fit": False, "depth": False, "refine_prior": 0.0, "estimator": "",
               "estimator_weight": 1.0, "joint": False,
-              "true_shapes": False}  # older presets lack them
+              "true_shapes": False, "selection_horizon": 0}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -250,13 +254,19 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              prior_weight: float = 0.0, subset: str = "first", fit: bool = False,
              depth: bool = False, refine_prior: float = 0.0, estimator: str = "",
              estimator_weight: float = 1.0, joint: bool = False, true_shapes: bool = False,
-             progress: bool = True, partial_dir: str = "", max_seconds: float = 0.0) -> dict:
+             selection_horizon: int = 0, horizon_sweep: bool = False, progress: bool = True,
+             partial_dir: str = "", max_seconds: float = 0.0) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
   `results["prior_sweeps"][row]` scores each +Sample row's selection (and
   `results["prior_sweep"]` PPD+Sample's, as before) for every τ in PRIOR_WEIGHTS (free:
-  the candidates are simulated once). Choose τ on the validation split. With
+  the candidates are simulated once), and `results["selection_sweeps"][row][h][τ]` for
+  the distance over the first h steps of SELECTION_HORIZONS too; +Sample's rows select on
+  the first `selection_horizon` steps (0: all, the paper's); `horizon_sweep` records the
+  τ sweep at every horizon too (`results["selection_sweeps"]`). Choose both on the
+  validation split. `results["seconds_by_part"]`: where this call's time went (reading
+  batches, the baselines' scores, the jitted calls with their compilation, the records). With
   `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
   split ("spread": many towers, since a tower's 8 configurations are stored together).
   `fit` adds the +Fit rows (boxes fitted to the voxels), `depth` the +Fit(depth) rows
@@ -287,7 +297,11 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "prior_weight": prior_weight, "fit": fit, "depth": depth,
               "refine_prior": refine_prior if (fit or depth) and refine else 0.0,
               "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
-              "joint": joint, "true_shapes": true_shapes}
+              "joint": joint, "true_shapes": true_shapes, "selection_horizon": selection_horizon,
+              "horizon_sweep": horizon_sweep}
+  if selection_horizon not in SELECTION_HORIZONS:
+    raise ValueError(f"selection_horizon must be one of {SELECTION_HORIZONS} (0: all steps), "
+                     f"got {selection_horizon}")
   if max_seconds and not partial_dir:
     raise ValueError("max_seconds needs partial_dir: where the batches done are kept")
   saved = (partial.PartialRecords(partial_dir, {
@@ -302,6 +316,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   prefixes = sorted({p for p in PREFIXES if p <= samples} | {samples})
   records = collections.defaultdict(list)
   key = jax.random.key(seed)
+  parts = collections.Counter()  # seconds: read, baselines, device, records
+  clock = time.perf_counter
   bar = tqdm(total=n, desc="evaluating", unit="object", disable=not progress)
   for start in range(0, n, batch_size):
     idx = objects[start:start + batch_size]
@@ -319,17 +335,24 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                        estimator_weight=estimator_weight, joint=joint, true_shapes=true_shapes,
                        pushes=test.pushes, settings=settings_for(test.engine))
       idx = np.pad(idx, (0, batch_size - keep), mode="edge")  # one compiled shape
+      t = clock()
       batch = test.take(idx, keys=OBS_KEYS + ("primitives", "materials")
                         + (("depth",) if depth else ()))
       slot = baselines.true_slots(batch["primitives"])
+      t, parts["read"] = clock(), parts["read"] + clock() - t
       base = (baselines.baseline_scores(train, batch, seed * 1_000_003 + start)
               if with_baselines else None)
+      t, parts["baselines"] = clock(), parts["baselines"] + clock() - t
       out = ev.batch(batch, base, jax.random.fold_in(key, start))
       out = jax.tree.map(lambda x: x[:keep], out)
+      t, parts["device"] = clock(), parts["device"] + clock() - t
       rec = rows.batch_records(out, slot[:keep], slot[:keep] >= 0,
                                None if base is None else base[:keep], samples=samples,
                                prior_weight=prior_weight, prefixes=prefixes,
-                               with_baselines=with_baselines, refine=refine, layout=ev.layout)
+                               with_baselines=with_baselines, refine=refine, layout=ev.layout,
+                               selection_horizon=selection_horizon,
+                               horizon_sweep=horizon_sweep)
+      parts["records"] += clock() - t
       if saved:
         saved.save(start, rec)
       computed += 1
@@ -346,5 +369,6 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       "workdir": trained if isinstance(trained, str) else None, "data": data_dir,
       "split": split, "objects": int(n), **settings,
       "refine_steps": refine_steps if refine else 0, "subset": subset,
-      "seconds": round(time.perf_counter() - t_start, 1)})
+      "seconds": round(time.perf_counter() - t_start, 1),
+      "seconds_by_part": {k: round(v, 1) for k, v in parts.items()}})
   return results

@@ -92,14 +92,18 @@ def with_slots(prims: Primitives, slots: jax.Array) -> Primitives:
 
 def score_candidates(candidates: Primitives, observed_PTx7: jax.Array, pushes: Pushes,
                      settings: Settings = DEFAULT_SETTINGS, *,
-                     keep_trajectories: bool = False):
-  """(distance (S,), MAE (S,)[, trajectories (S, P, T, 7)]) of candidates (S, K)."""
+                     keep_trajectories: bool = False, horizons: tuple[int, ...] = ()):
+  """(distance (S,), MAE (S,)[, trajectories (S, P, T, 7)]) of candidates (S, K).
+
+  With `horizons`, distance is (S, H): over the first h steps for each h (0: all steps;
+  `metrics.horizon_distances`)."""
   steps = observed_PTx7.shape[-2]
 
   def one(p):
     sim = simulate(p, pushes, steps=steps, settings=settings)
-    scores = (metrics.trajectory_distance(sim, observed_PTx7),
-              metrics.trajectory_mae(sim, observed_PTx7))
+    dist = (metrics.horizon_distances(sim, observed_PTx7, horizons) if horizons
+            else metrics.trajectory_distance(sim, observed_PTx7))
+    scores = (dist, metrics.trajectory_mae(sim, observed_PTx7))
     return scores + (sim,) if keep_trajectories else scores
   return jax.vmap(one)(candidates)
 

@@ -25,6 +25,8 @@ PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine") + tuple(
 PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
 # τ swept for +Sample (m per nat); the estimator study chose 0.1, so the sweep goes past it
 PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
+# +Sample's distance over the first h steps, swept beside τ (0: all steps, the paper's)
+SELECTION_HORIZONS = (16, 32, 64, 128, 0)
 
 # --- the paper's published numbers (block towers), the one copy every report reads -------
 
@@ -155,6 +157,13 @@ def summarize(switches: dict, rec: dict) -> dict:
       mae = counts.pop("mae")
       sweep[str(tau)] = {**metrics.summarize(counts), "mae": float(np.mean(mae))}
   results["prior_sweep"] = results["prior_sweeps"].get("PPD+Sample", {})  # as before
+  results["selection_sweeps"] = {}  # +Sample row -> horizon -> τ -> metrics
+  for row, h, tau in sorted({k[1:4] for k in rec if k[0] == "hsweep"},
+                            key=lambda k: (PPD_ROWS.index(k[0]), k[1] or 10**9, k[2])):
+    counts = group("hsweep", row, h, tau)
+    mae = counts.pop("mae")
+    results["selection_sweeps"].setdefault(row, {}).setdefault(str(h), {})[str(tau)] = {
+        **metrics.summarize(counts), "mae": float(np.mean(mae))}
   results["oracle_pick"] = {}  # +Sample row -> its ceiling on the same candidates
   for row in sorted({k[1] for k in rec if k[0] == "oracle_pick"}, key=PPD_ROWS.index):
     counts = group("oracle_pick", row)
@@ -246,6 +255,17 @@ def prior_sweep_md(sweeps: dict) -> list[str]:
   return lines
 
 
+def selection_sweep_md(sweep: dict) -> list[str]:
+  """Markdown lines: one +Sample row's top-1 / RMSE for each τ (rows) and horizon (columns)."""
+  hs = list(sweep)
+  lines = ["| τ (m per nat) | " + " | ".join(f"first {h} steps" if h != "0" else "all steps"
+                                            for h in hs) + " |", "|--:|" + "--:|" * len(hs)]
+  for tau in sweep[hs[0]]:
+    lines.append(f"| {tau} | " + " | ".join(
+        "{top1:.1f} / {rmse:.2f}".format(**sweep[h][tau]) for h in hs) + " |")
+  return lines
+
+
 def oracle_pick_md(results: dict) -> list[str]:
   """Markdown lines: each +Sample row beside the same candidates picked by an oracle (the
   sample with the least slot error) and how many true slots any sample holds."""
@@ -270,7 +290,8 @@ def results_md(results: dict, command: str = "") -> str:
     lines += ["```", command, "```", ""]
   lines += [f"{results['samples']} density samples per object"
             + (f", refinement {results['refine_steps']} LM steps" if results["refine"] else "")
-            + f"; {results['seconds']:.0f} s in all. Shape F1: **{results['f1']:.1f}** "
+            + f"; {results['seconds']:.0f} s in all" + seconds_by_part(results)
+            + f". Shape F1: **{results['f1']:.1f}** "
             f"(paper: {PAPER_SHAPE_F1})" + shape_line(results) + ".", "",
             "## Table 2: density and trajectory", ""]
   lines += table2_md(results["table2"], observes)
@@ -291,7 +312,13 @@ def results_md(results: dict, command: str = "") -> str:
   if sweeps:
     lines += ["## +Sample selection: distance − τ · log prior", ""]
     lines += prior_sweep_md(sweeps)
-    lines += ["", f"Table 2's +Sample rows use τ = {results['prior_weight']}.", ""]
+    lines += ["", f"Table 2's +Sample rows use τ = {results['prior_weight']}"
+              + (f" on the first {results['selection_horizon']} steps"
+                 if results.get("selection_horizon") else "") + ".", ""]
+  for row, sweep in results.get("selection_sweeps", {}).items():
+    lines += [f"## {row}: top-1 / RMSE by τ and by the steps the distance covers", ""]
+    lines += selection_sweep_md(sweep)
+    lines += [""]
   if results.get("oracle_pick"):
     lines += ["## +Sample's ceiling: the best of the same samples picked by their densities",
               ""]
@@ -305,6 +332,16 @@ def results_md(results: dict, command: str = "") -> str:
               f"{r['median_distance_ratio']:.3f}; mean distance {r['mean_distance_sample_m']:.4f}"
               f" → {r['mean_distance_refined_m']:.4f} m.", ""]
   return "\n".join(lines)
+
+
+def seconds_by_part(results: dict) -> str:
+  """' (reading a s, baselines b s, ...)' of the batches this call computed, where known."""
+  parts = results.get("seconds_by_part")
+  names = {"read": "reading", "baselines": "baselines' scores",
+           "device": "jitted calls with their compilation", "records": "records"}
+  return (" (of the batches computed: " + ", ".join(f"{names.get(k, k)} {v:.0f} s"
+                                                    for k, v in parts.items()) + ")"
+          if parts else "")
 
 
 def shape_line(results: dict) -> str:
