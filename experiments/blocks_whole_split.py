@@ -1,0 +1,68 @@
+"""The full model on the whole test split, added to blocks.json / blocks.md.
+
+`experiments/blocks.py` evaluates the full model on `--max_objects` (512) test objects
+(with +Joint and the true boxes); this adds a separate evaluation of every test object
+(`python -m ppdjax.evaluate ... --out=DIR`, the command in its results.json) as
+blocks.json's "whole_split", which the targets then read, and rewrites blocks.md:
+
+    python experiments/blocks_whole_split.py --eval=DIR --machine="one NVIDIA H100 80GB HBM3" \
+        --data_command="python -m ppdjax.generate ..."
+
+The evaluation's results.md, results.json and confusion.png are copied to
+RESULTS/blocks_whole_split/.
+"""
+
+import json
+import os
+import shutil
+
+from absl import app, flags
+
+import blocks_report
+
+_EVAL = flags.DEFINE_string("eval", None, "The whole-split evaluation's output folder.",
+                            required=True)
+_RESULTS = flags.DEFINE_string("results", "experiments/results", "Where blocks.json is.")
+_DATA_COMMAND = flags.DEFINE_string("data_command", "", "The command that made the dataset it "
+                                    "read, when not the pipeline's own.")
+_MACHINE = flags.DEFINE_string("machine", None, "The machine it ran on, for the README.",
+                               required=True)
+
+
+def main(argv):
+  del argv
+  src = os.path.join(_EVAL.value, "results.json")
+  if not os.path.exists(src):
+    raise app.UsageError(f"{src} does not exist: --eval names an evaluation's output folder")
+  with open(src) as f:
+    full = json.load(f)
+  blocks_path = os.path.join(_RESULTS.value, "blocks.json")
+  with open(blocks_path) as f:
+    r = json.load(f)
+  if full["split"] != "test" or full["objects"] < 1000:
+    raise app.UsageError(f"{src} evaluated {full['objects']} objects of {full['split']!r}: "
+                         "not the whole test split")
+  out = os.path.join(_RESULTS.value, "blocks_whole_split")
+  os.makedirs(out, exist_ok=True)
+  for name in ("results.json", "results.md", "confusion.png"):
+    if os.path.exists(os.path.join(_EVAL.value, name)):
+      shutil.copyfile(os.path.join(_EVAL.value, name), os.path.join(out, name))
+  with open(os.path.join(out, "README.md"), "w") as f:
+    f.write(f"# The full model on the whole test split ({full['objects']} objects)\n\n"
+            f"Machine: {_MACHINE.value}. Commands:\n\n```\n"
+            + (f"{_DATA_COMMAND.value}\n" if _DATA_COMMAND.value else "")
+            + f"{full['command']}\n```\n\n"
+            "Tables in `results.md`; blocks.json's \"whole_split\" and blocks.md's targets "
+            "read them (`python experiments/blocks_whole_split.py`).\n")
+  command = ((_DATA_COMMAND.value + "\n") if _DATA_COMMAND.value else "") + full["command"]
+  r["whole_split"] = blocks_report.whole_split(r, full, command)
+  r["whole_split"]["machine"] = _MACHINE.value
+  with open(blocks_path, "w") as f:
+    json.dump(r, f, indent=1)
+  with open(os.path.join(_RESULTS.value, "blocks.md"), "w") as f:
+    f.write(blocks_report.markdown(r, r["command"]))
+  print(f"wrote {blocks_path}, blocks.md and {out}")
+
+
+if __name__ == "__main__":
+  app.run(main)
