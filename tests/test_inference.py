@@ -350,6 +350,29 @@ def test_the_selection_horizon_picks_by_the_distance_over_its_steps():
     rows.batch_records(out, slot, slot >= 0, base, selection_horizon=33, **kw)
 
 
+def test_batches_are_read_ahead_in_order_once_each():
+  import threading
+  seen, started = [], {}
+  second_read_early = threading.Event()
+
+  def read(start):
+    started[start] = threading.current_thread().name
+    seen.append(start)
+    if start == 20:
+      second_read_early.set()
+    return start * 2
+
+  out = []
+  for start, item in evaluation._ahead(read, range(0, 30, 10), prefetch=True):
+    if start == 10:  # batch 20 is read while batch 10 is being worked on
+      assert second_read_early.wait(5)
+    out.append((start, item))
+  assert out == [(0, 0), (10, 20), (20, 40)] and sorted(seen) == [0, 10, 20]
+  assert all(name != threading.current_thread().name for name in started.values())
+  plain = list(evaluation._ahead(read, range(0, 30, 10), prefetch=False))
+  assert plain == out and read.waited >= 0
+
+
 def test_evaluation_subsets():
   np.testing.assert_array_equal(evaluation.evaluation_objects(10), np.arange(10))
   np.testing.assert_array_equal(evaluation.evaluation_objects(10, 3), [0, 1, 2])
@@ -379,7 +402,7 @@ def test_saved_batch_records_give_back_the_same_tables(tiny_run, tiny_dataset, t
   e = tiny.get_config().eval  # the evaluate command's settings: its compiled programs
   kw = dict(samples=e.samples, batch_size=e.batch_size, max_objects=8,  # are on disk
             prior_weight=e.prior_weight, progress=False, partial_dir=str(tmp_path / "partial"))
-  first = evaluation.evaluate(tiny_run[0], tiny_dataset, **kw)
+  first = evaluation.evaluate(tiny_run[0], tiny_dataset, prefetch=False, **kw)
   again = evaluation.evaluate(tiny_run[0], tiny_dataset, max_seconds=1e-9, **kw)
   for name, row in first["table2"].items():
     for k in ("top1", "top5", "rmse", "mae"):
