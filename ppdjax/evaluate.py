@@ -32,7 +32,7 @@ _SELECTION_HORIZON = flags.DEFINE_integer(
     "16, 32, 64, 128; 0: all, the paper's; default: eval.selection_horizon).")
 _HORIZON_SWEEP = flags.DEFINE_bool(
     "horizon_sweep", False, "Also sweep τ at every horizon of --selection_horizon's choices "
-    "(results.md's 'by τ and by the steps the distance covers'; about 0.6 s more per batch).")
+    "(results.md's 'by τ and by the steps the distance covers'; about 0.4 s more per batch).")
 _FIT = flags.DEFINE_bool("fit", None, "Also the +Fit rows: boxes fitted to the voxels "
                          "(default: eval.fit).")
 _DEPTH = flags.DEFINE_bool("depth", None, "Also the +Fit(depth) rows: the fitted boxes refined "

@@ -350,6 +350,18 @@ def test_the_selection_horizon_picks_by_the_distance_over_its_steps():
     rows.batch_records(out, slot, slot >= 0, base, selection_horizon=33, **kw)
 
 
+def test_the_records_count_hits_as_the_metrics_do():
+  from ppdjax.infer import rows
+  rng = np.random.default_rng(3)
+  scores = rng.integers(0, 5, (6, 4, 100)).astype(np.float32)  # many ties
+  slot, valid = rng.integers(-1, 100, (6, 4)), rng.random((6, 4)) > 0.3
+  want = metrics.density_counts(jnp.asarray(scores), jnp.asarray(np.maximum(slot, 0)),
+                                jnp.asarray(valid))
+  got = rows.row_counts(scores, slot, valid)
+  for k, v in want.items():
+    np.testing.assert_array_equal(got[k], np.asarray(v), err_msg=k)
+
+
 def test_batches_are_read_ahead_in_order_once_each():
   import threading
   seen, started = [], {}
