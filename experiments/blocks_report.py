@@ -189,14 +189,8 @@ def markdown(r: dict, command: str) -> str:
   if ws:
     lines += whole_split_md(ws)
   lines += ["", "## Table 2: density and trajectory"
-            + (f" ({r['objects']} objects, with +Joint and the true boxes)" if ws else ""), "",
-            "| Method | Top 1 | Top 5 | Top 10 | RMSE | MAE (mm) | paper: Top 1 / 5 / 10 / RMSE / MAE |",
-            "|---|--:|--:|--:|--:|--:|---|"]
-  for name, row in r["table2"].items():
-    paper = tables.PAPER_TABLE2.get(name)
-    lines.append(f"| {name} ({row.get('objects', r['objects'])}) | "
-                 + " | ".join(tables.with_ci(row, k) for k in KEYS) + " | "
-                 + (" / ".join(str(x) for x in paper) if paper else "–") + " |")
+            + (f" ({r['objects']} objects, with +Joint and the true boxes)" if ws else ""), ""]
+  lines += table2_lines(r["table2"], r["objects"])
   lines += ["", "Objects evaluated in parentheses; 95 % bootstrap intervals over objects in "
             "brackets.", "",
             f"Shape F1 of the full model: **{r['f1']:.1f}** (paper {tables.PAPER_SHAPE_F1})"
@@ -228,6 +222,19 @@ def markdown(r: dict, command: str) -> str:
   return "\n".join(lines)
 
 
+def table2_lines(table2: dict, objects: int) -> list[str]:
+  """Markdown lines of a Table 2: each row's objects in parentheses (`objects` where the
+  row does not say), 95 % intervals in brackets, the paper's row beside."""
+  lines = ["| Method | Top 1 | Top 5 | Top 10 | RMSE | MAE (mm) | paper: Top 1 / 5 / 10 / RMSE "
+           "/ MAE |", "|---|--:|--:|--:|--:|--:|---|"]
+  for name, row in table2.items():
+    paper = tables.PAPER_TABLE2.get(name)
+    lines.append(f"| {name} ({row.get('objects', objects)}) | "
+                 + " | ".join(tables.with_ci(row, k) for k in KEYS) + " | "
+                 + (" / ".join(str(x) for x in paper) if paper else "–") + " |")
+  return lines
+
+
 def whole_split_md(ws: dict) -> list[str]:
   """Markdown lines: Tables 2 and 5 of the full model on the whole test split, and what
   +Sample could reach on its own candidates."""
@@ -236,13 +243,8 @@ def whole_split_md(ws: dict) -> list[str]:
            f"{ws['samples']} density samples, LM refinement from the closest sample, "
            f"+Sample at τ = {ws['prior_weight']}; {ws['seconds']:.0f} s on "
            f"{ws.get('machine', 'the machine in blocks_whole_split/README.md')}. Objects in "
-           "parentheses, 95 % intervals in brackets.", "", "| Method | Top 1 | Top 5 | Top 10 | RMSE | MAE (mm) | paper |",
-           "|---|--:|--:|--:|--:|--:|---|"]
-  for name, row in ws["table2"].items():
-    paper = tables.PAPER_TABLE2.get(name)
-    lines.append(f"| {name} ({row['objects']}) | "
-                 + " | ".join(tables.with_ci(row, k) for k in KEYS) + " | "
-                 + (" / ".join(str(x) for x in paper) if paper else "–") + " |")
+           "parentheses, 95 % intervals in brackets.", ""]
+  lines += table2_lines(ws["table2"], ws["objects"])
   lines += ["", f"Shape F1 **{ws['f1']:.1f}**" + tables.shape_line(ws) + ".", "",
             "Table 5 on the whole split (density RMSE in slots; Texture and Physics: the "
             "ablations, whole split):", ""]
