@@ -26,6 +26,7 @@ import os
 import sys
 import time
 
+import jax
 import numpy as np
 from absl import app, flags
 
@@ -137,8 +138,7 @@ def main(argv):
 
 def jax_free_index(prims, i):
   """Tower i of a stacked Primitives, as NumPy arrays."""
-  return prims.replace(**{k: np.asarray(getattr(prims, k))[i]
-                          for k in ("half_size", "pos", "quat", "density", "valid")})
+  return jax.tree.map(lambda x: np.asarray(x)[i], prims)
 
 
 if __name__ == "__main__":

@@ -144,3 +144,36 @@ def test_step_log_counts_overlapping_calls_once(tmp_path):
   assert log["total_seconds"] == 27.0 and log["wall_seconds"] == 22.0
   assert "| a | 2 | 14 | cpu |" in pipeline_steps.steps_md(log)
   assert pipeline_steps.read_log(str(tmp_path / "none"))["steps"] == {}
+
+
+def test_the_whole_split_joins_blocks_json_and_the_targets_read_it(tmp_path):
+  """blocks_whole_split.py on the committed run's files: the targets then read the whole
+  split's rows; an evaluation of a few objects is refused."""
+  results = os.path.join(ROOT, "experiments", "results")
+  with open(os.path.join(results, "blocks.json")) as f:
+    blocks = json.load(f)
+  blocks.pop("whole_split", None)
+  (tmp_path / "res").mkdir()
+  (tmp_path / "res" / "blocks.json").write_text(json.dumps(blocks))
+  ev = os.path.join(results, "blocks_whole_split")
+  run = lambda d: subprocess.run(
+      [sys.executable, "experiments/blocks_whole_split.py", f"--eval={d}",
+       f"--results={tmp_path / 'res'}", "--machine=test"], cwd=ROOT, capture_output=True,
+      text=True, timeout=120, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+  done = run(ev)
+  assert done.returncode == 0, done.stderr[-2000:]
+  with open(tmp_path / "res" / "blocks.json") as f:
+    joined = json.load(f)
+  with open(os.path.join(ev, "results.json")) as f:
+    full = json.load(f)
+  row = joined["whole_split"]["table2"]["PPD (full)+Fit(depth)+Sample+Refine"]
+  assert row["objects"] == full["objects"] == 4800
+  assert row["top1"] == full["table2"]["PPD+Fit(depth)+Sample+Refine"]["top1"]
+  md = (tmp_path / "res" / "blocks.md").read_text()
+  assert f"| PPD (full)+Fit(depth)+Sample+Refine top-1 | {row['top1']:.2f} |" in md
+  assert (tmp_path / "res" / "blocks_whole_split" / "results.md").exists()
+  small = tmp_path / "small"
+  small.mkdir()
+  (small / "results.json").write_text(json.dumps({**full, "objects": 64}))
+  refused = run(small)
+  assert refused.returncode != 0 and "not the whole test split" in refused.stderr
