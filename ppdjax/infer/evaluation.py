@@ -280,12 +280,13 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
   `results["prior_sweeps"][row]` scores each +Sample row's selection (and
   `results["prior_sweep"]` PPD+Sample's, as before) for every τ in PRIOR_WEIGHTS (free:
-  the candidates are simulated once), and `results["selection_sweeps"][row][h][τ]` for
-  the distance over the first h steps of SELECTION_HORIZONS too; +Sample's rows select on
-  the first `selection_horizon` steps (0: all, the paper's); `horizon_sweep` records the
-  τ sweep at every horizon too (`results["selection_sweeps"]`). Choose both on the
-  validation split. `results["seconds_by_part"]`: where this call's time went (reading
-  batches, the baselines' scores, the jitted calls with their compilation, the records). With
+  the candidates are simulated once). +Sample's rows select on the distance over the first
+  `selection_horizon` steps (0: all, the paper's); `horizon_sweep` also records the τ
+  sweep at every horizon of SELECTION_HORIZONS (`results["selection_sweeps"][row][h][τ]`).
+  Choose τ and the horizon on the validation split. `results["oracle_pick"][row]`: the
+  row's ceiling on its own candidates (`rows.oracle_pick`). `results["seconds_by_part"]`:
+  where this call's time went (waiting for batches to be read, the baselines' scores, the
+  jitted calls with their compilation, the records). With
   `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
   split ("spread": many towers, since a tower's 8 configurations are stored together).
   `fit` adds the +Fit rows (boxes fitted to the voxels), `depth` the +Fit(depth) rows
