@@ -59,6 +59,7 @@ def test_shipped_video_model_names_the_blocks_materials():
   assert (np.abs(slots - true) <= 2).mean() >= 0.75
 
 
+@pytest.mark.slow  # about 10 s on 2 cores; `make test-all` (the fast suite stays under 10 minutes)
 def test_shipped_tools_model_finds_the_parts_of_test_tools():
   """Two test tools of the tools dataset (seed 0; a saw and a hammer, 2 parts each): the
   tools model gives the right box count and meets the largest part (shape F1 on the whole

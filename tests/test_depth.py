@@ -62,6 +62,7 @@ def _face_errors(fit, truth):
   return np.abs(faces(fit) - faces(truth))[np.asarray(truth.valid)]  # (boxes, 6) metres
 
 
+@pytest.mark.slow  # about 20 s on 2 cores; `make test-all` (the fast suite stays under 10 minutes)
 def test_depth_makes_the_faces_the_camera_sees_sub_voxel(towers):
   """Also under jax.jit (options and camera bound with functools.partial)."""
   prims, vox, deps, cam = towers

@@ -63,6 +63,7 @@ def test_physics_batch_is_the_simulation_of_its_boxes(batch):
   np.testing.assert_allclose(c[..., :3], traj[:6, ..., :3], atol=5e-3)
 
 
+@pytest.mark.slow  # about 8 s on 2 cores; `make test-all` (the fast suite stays under 10 minutes)
 def test_estimator_reads_boxes_in_any_order():
   e = small_config().estimator
   model = DensityEstimator(e, rngs=nnx.Rngs(params=0))
