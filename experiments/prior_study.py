@@ -30,7 +30,7 @@ from tqdm.auto import tqdm
 
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage
-from ppdjax.infer import baselines, evaluation, rows, sampling, tables
+from ppdjax.infer import baselines, batches, evaluation, rows, sampling, tables
 from ppdjax.infer.refine import refine_batch
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
@@ -68,7 +68,7 @@ def main(argv):
   t0 = time.perf_counter()
   model, config = checkpoints.load(_WORKDIR.value)
   data = storage.open_dataset(_DATA.value, _SPLIT.value)
-  objects = evaluation.evaluation_objects(len(data), _MAX.value, "spread")
+  objects = batches.evaluation_objects(len(data), _MAX.value, "spread")
   taus = [float(t) for t in _TAUS.value]
   weights = [float(w) for w in _WEIGHTS.value]
   if any(w < 0 for w in weights) or any(t < 0 for t in taus):

@@ -15,7 +15,7 @@ from ppdjax import metrics
 from ppdjax.configs import tiny
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage, towers
-from ppdjax.infer import evaluation, partial, refine, sampling, tables
+from ppdjax.infer import batches, evaluation, partial, refine, sampling, tables
 from ppdjax.primitives import quat_mul
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
 from ppdjax.training import checkpoints
@@ -375,24 +375,24 @@ def test_batches_are_read_ahead_in_order_once_each():
     return start * 2
 
   out = []
-  for start, item in evaluation._ahead(read, range(0, 30, 10), prefetch=True):
+  for start, item in batches.read_ahead(read, range(0, 30, 10), prefetch=True):
     if start == 10:  # batch 20 is read while batch 10 is being worked on
       assert second_read_early.wait(5)
     out.append((start, item))
   assert out == [(0, 0), (10, 20), (20, 40)] and sorted(seen) == [0, 10, 20]
   assert all(name != threading.current_thread().name for name in started.values())
-  plain = list(evaluation._ahead(read, range(0, 30, 10), prefetch=False))
+  plain = list(batches.read_ahead(read, range(0, 30, 10), prefetch=False))
   assert plain == out and read.waited >= 0
 
 
 def test_evaluation_subsets():
-  np.testing.assert_array_equal(evaluation.evaluation_objects(10), np.arange(10))
-  np.testing.assert_array_equal(evaluation.evaluation_objects(10, 3), [0, 1, 2])
-  np.testing.assert_array_equal(evaluation.evaluation_objects(10, 3, "spread"), [0, 4, 9])
-  assert len(evaluation.evaluation_objects(4800, 128, "spread")) == 128
-  np.testing.assert_array_equal(evaluation.evaluation_objects(5, 9, "spread"), np.arange(5))
+  np.testing.assert_array_equal(batches.evaluation_objects(10), np.arange(10))
+  np.testing.assert_array_equal(batches.evaluation_objects(10, 3), [0, 1, 2])
+  np.testing.assert_array_equal(batches.evaluation_objects(10, 3, "spread"), [0, 4, 9])
+  assert len(batches.evaluation_objects(4800, 128, "spread")) == 128
+  np.testing.assert_array_equal(batches.evaluation_objects(5, 9, "spread"), np.arange(5))
   with pytest.raises(ValueError, match="subset"):
-    evaluation.evaluation_objects(10, 3, "random")
+    batches.evaluation_objects(10, 3, "random")
 
 
 def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):

@@ -30,7 +30,6 @@ they are made (`partial`) are reused by a later call: long evaluations resume.
 from __future__ import annotations
 
 import collections
-import concurrent.futures
 import functools
 import hashlib
 import os
@@ -46,6 +45,7 @@ from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
                                 slot_to_density_jax)
 from ppdjax.dataset import storage
 from ppdjax.infer import baselines, partial, rows, sampling
+from ppdjax.infer.batches import evaluation_objects, read_ahead
 from ppdjax.infer.groups import candidate_layout, decode_groups, fit_groups
 from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
@@ -237,36 +237,6 @@ def eval_settings(config, **overrides) -> dict:
   return out
 
 
-def evaluation_objects(total: int, max_objects: int = 0, subset: str = "first") -> np.ndarray:
-  """Indices of the objects to evaluate: all, the first N, or N spread evenly ("spread")."""
-  if subset not in ("first", "spread"):
-    raise ValueError(f"subset must be 'first' or 'spread', got {subset!r}")
-  if max_objects < 0:
-    raise ValueError(f"max_objects must be >= 0, got {max_objects}")
-  n = total if not max_objects else min(max_objects, total)
-  if subset == "first" or n == total:
-    return np.arange(n)
-  return np.unique(np.linspace(0, total - 1, n).round().astype(np.int64))
-
-
-def _ahead(read, starts, prefetch: bool):
-  """(start, read(start)) for each start; with `prefetch`, the next batch is read in a
-  background thread while the caller computes the current one (reading 64 objects' images
-  and depth takes about 2 s, a fifth of a batch on an H100). The time spent waiting for a
-  read is added to `read.waited`."""
-  starts = list(starts)
-  read.waited = 0.0
-  with concurrent.futures.ThreadPoolExecutor(1) as pool:
-    future = pool.submit(read, starts[0]) if prefetch and starts else None
-    for i, start in enumerate(starts):
-      t = time.perf_counter()
-      item = future.result() if prefetch else read(start)
-      read.waited += time.perf_counter() - t
-      if prefetch and i + 1 < len(starts):
-        future = pool.submit(read, starts[i + 1])
-      yield start, item
-
-
 def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              refine: bool = False, refine_steps: int = 12, batch_size: int = 16,
              max_objects: int = 0, with_baselines: bool = True, seed: int = 0,
@@ -352,7 +322,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
     batch = test.take(np.pad(idx, (0, batch_size - len(idx)), mode="edge"), keys=keys_read)
     return len(idx), None, batch, baselines.true_slots(batch["primitives"])
 
-  for start, (keep, rec, batch, slot) in _ahead(read, range(0, n, batch_size), prefetch):
+  for start, (keep, rec, batch, slot) in read_ahead(read, range(0, n, batch_size), prefetch):
     t = clock()
     if rec is None:
       if ev is None:
