@@ -127,7 +127,8 @@ class Pipeline:
       results = evaluation.evaluate(
           self.workdir(variant), self.data, split="test", samples=e.samples if full else 1,
           batch_size=e.batch_size, with_baselines=full, prior_weight=e.prior_weight if full
-          else 0.0, fit=bool(full and e.fit), progress=True,
+          else 0.0, fit=bool(full and e.fit), true_shapes=bool(full and e.get("true_shapes")),
+          progress=True,
           partial_dir=os.path.join(self.eval_dir(variant), "partial"),
           max_seconds=FLAGS.step_seconds)
     except partial.EvaluationPaused as paused:  # saved so far; the next call goes on
@@ -135,7 +136,8 @@ class Pipeline:
       return
     command = (f"python -m ppdjax.evaluate --workdir={variant} --data=data --split=test "
                f"--samples={results['samples']} --norefine"
-               + ("" if full else " --nobaselines") + (" --fit" if results["fit"] else ""))
+               + ("" if full else " --nobaselines") + (" --fit" if results["fit"] else "")
+               + (" --true_shapes" if results["true_shapes"] else ""))
     tables.write_results(results, self.eval_dir(variant), command)
 
   def report(self) -> None:

@@ -17,6 +17,11 @@ STEPS = 256  # recorded steps per push
 REST_DEPTH = 1e-6  # m: at rest, the object's lowest point is this far below the ground
 NUM_SLOTS = 5  # K: primitives per object, padded with invalid slots
 VOXEL_RESOLUTION = 32  # occupancy grids are 32^3 over the unit cube
+# Boxes are listed bottom to top (`primitives.bottom_to_top`); boxes whose centres lie
+# within one voxel in height (chained) share a level and go from -x to +x, so that the
+# parts of a tool lying flat have an order the voxels show (the centres of a tower's
+# blocks are 2.7+ voxels apart in height, over 36,000 sampled towers: by height alone).
+ORDER_LEVEL = 1.0 / VOXEL_RESOLUTION  # m
 
 # Density classes (paper Table 1): slot k in 0..99 is density (k + 1) * 100 kg/m^3.
 NUM_DENSITY_SLOTS = 100

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from ppdjax.conventions import NUM_SLOTS
+from ppdjax.conventions import NUM_SLOTS, ORDER_LEVEL
 
 QUAT_TOL = 1e-3  # allowed | |q| - 1 | for a "unit" quaternion
 
@@ -225,9 +225,24 @@ def ray_box_hits(origin: jax.Array, direction: jax.Array, prims: Primitives) -> 
 
 
 def bottom_to_top_order(prims: Primitives) -> jax.Array:
-  """(..., K) box indices by increasing centre height, padding last (stable for ties)."""
-  key = jnp.where(prims.valid, prims.pos[..., 2], jnp.inf)
-  return jnp.argsort(key, axis=-1, stable=True)
+  """(..., K) box indices bottom to top, padding last: by level, then by centre x.
+
+  Levels: boxes sorted by centre height, a new level wherever the next centre is more than
+  `ORDER_LEVEL` (one voxel) higher. A tower's blocks each get their own level (the order
+  is by height); the parts of a tool lying flat share one and go from -x to +x, an order
+  the voxels show where sub-voxel height differences would not. Stable for exact ties.
+  """
+  z = jnp.where(prims.valid, prims.pos[..., 2], jnp.inf)
+  by_z = jnp.argsort(z, axis=-1, stable=True)
+  z_sorted = jnp.take_along_axis(z, by_z, axis=-1)
+  steps = jnp.diff(z_sorted, axis=-1) > ORDER_LEVEL  # inf - inf is nan: no step
+  level_sorted = jnp.concatenate(
+      [jnp.zeros_like(steps[..., :1], jnp.int32), jnp.cumsum(steps, -1, dtype=jnp.int32)], -1)
+  level = jnp.take_along_axis(level_sorted, jnp.argsort(by_z, axis=-1), axis=-1)
+  level = jnp.where(prims.valid, level, jnp.iinfo(jnp.int32).max)
+  by_x = jnp.argsort(jnp.where(prims.valid, prims.pos[..., 0], jnp.inf), axis=-1, stable=True)
+  then_level = jnp.argsort(jnp.take_along_axis(level, by_x, axis=-1), axis=-1, stable=True)
+  return jnp.take_along_axis(by_x, then_level, axis=-1)
 
 
 def bottom_to_top(prims: Primitives) -> Primitives:

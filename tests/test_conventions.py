@@ -87,6 +87,30 @@ def test_bottom_to_top_orders_targets_baselines_and_evaluation_alike(rng):
                                 slots[np.asarray(ordered.valid)])
 
 
+def test_boxes_on_one_level_go_along_x_and_towers_by_height(rng):
+  # a tool lying flat: centres a fraction of a voxel apart in height, far apart along x;
+  # its order must not hang on the sub-voxel heights (the voxels do not show them)
+  voxel = 1.0 / conventions.VOXEL_RESOLUTION
+  pos = np.array([[0.3, 0.0, 0.2 * voxel], [-0.4, 0.02, 0.0], [0.0, -0.1, -0.3 * voxel],
+                  [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+  valid = np.array([True, True, True, False, False])
+  order = lambda p, v: np.asarray(primitives.bottom_to_top_order(primitives.Primitives(
+      jnp.full((5, 3), 0.05), jnp.asarray(p), jnp.tile(jnp.array([1.0, 0, 0, 0]), (5, 1)),
+      jnp.ones(5), jnp.asarray(v))))
+  np.testing.assert_array_equal(order(pos, valid)[:3], [1, 2, 0])
+  assert set(order(pos, valid)[3:]) == {3, 4}  # padding last
+  # a box more than a voxel higher starts a new level, whatever its x; levels chain
+  pos[0, 2] = 1.5 * voxel
+  np.testing.assert_array_equal(order(pos, valid)[:3], [1, 2, 0])
+  pos[1, 2] = 2.9 * voxel  # now above box 0 by more than a voxel: the top level
+  np.testing.assert_array_equal(order(pos, valid)[:3], [2, 0, 1])
+  # towers: blocks are whole voxels apart in height, so the order is by height alone
+  prims = towers.sample_towers(11, 64)
+  key = np.where(np.asarray(prims.valid), np.asarray(prims.pos[..., 2]), np.inf)
+  np.testing.assert_array_equal(np.asarray(primitives.bottom_to_top_order(prims)),
+                                np.argsort(key, -1, kind="stable"))
+
+
 def test_slots_and_densities_in_numpy_and_jax():
   slots = np.arange(100)
   np.testing.assert_array_equal(density_to_slot(slot_to_density(slots)), slots)

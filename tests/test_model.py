@@ -128,9 +128,9 @@ def test_targets_order_bottom_to_top_and_end(rng):
   boxes = _random_boxes(rng, 6)
   tgt = losses.targets(boxes)
   n = np.asarray(boxes.valid.sum(-1))
+  ordered = np.asarray(primitives.bottom_to_top(boxes).pos)  # the rule: test_conventions
   for b in range(6):
-    z = np.asarray(tgt["pos"][b, :n[b], 2])
-    assert np.all(np.diff(z) >= 0)
+    np.testing.assert_array_equal(np.asarray(tgt["pos"][b, :n[b]]), ordered[b, :n[b]])
     assert tgt["token"][b, n[b]] == model.END
     assert tgt["density_mask"][b].sum() == n[b] + 1
     assert tgt["geometry_mask"][b].sum() == n[b]
