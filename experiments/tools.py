@@ -80,6 +80,7 @@ class Pipeline:
     c.train.joint_steps = c.finetune.joint_steps
     c.train.learning_rate = c.finetune.learning_rate
     c.train.eval_every = c.finetune.eval_every
+    c.train.geometry_weight = c.finetune.get("geometry_weight", c.train.geometry_weight)
     c.train.warmup_steps = min(c.train.warmup_steps, c.finetune.geometry_steps)
     return c
 
