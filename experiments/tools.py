@@ -54,6 +54,8 @@ VARIANTS = ("full", "no_image", "no_trajectory")
 class Pipeline:
   """The steps, each a (name, done?, action); state lives only on disk."""
 
+  variants = VARIANTS
+
   def __init__(self, config, root: str):
     self.config, self.root = config, root
     self.data = os.path.join(root, "data")

@@ -90,6 +90,9 @@ def markdown(r: dict, command: str) -> str:
             + (f" With the fit (+Fit's boxes): {with_ci(r['shape_fit'], 'f1')}."
                if r.get("shape_fit") else ""), "",
             "![decomposed test tools](tools_decomposition.png)", "",
+            "Fine-tuning on the tools (validation every 50 steps; the joint stage starts where "
+            "the density loss appears):", "",
+            "![learning curves](tools_learning_curves.png)", "",
             "## Steps (wall time)", ""] + pipeline_steps.steps_md(r) + [""]
   return "\n".join(lines)
 
@@ -100,6 +103,9 @@ def write_all(pipe, results_dir: str, assets_dir: str, command: str) -> dict:
   model_dir = os.path.join(assets_dir, "tools_model")
   checkpoints.export(pipe.workdir("full"), model_dir)
   figure(pipe, os.path.join(results_dir, "tools_decomposition.png"), model_dir)
+  plots.plot_variant_curves({v: os.path.join(pipe.workdir(v), "metrics.jsonl")
+                             for v in pipe.variants},
+                            os.path.join(results_dir, "tools_learning_curves.png"))
   r["command"] = command
   with open(os.path.join(results_dir, "tools.json"), "w") as f:
     json.dump(r, f, indent=1)

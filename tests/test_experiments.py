@@ -123,6 +123,7 @@ def test_tools_pipeline_runs_and_reports_table3(tmp_path):
   assert table["objects"] >= 1 and "f1" in table["shape"]
   assert "train:pretrain" in table["steps"] and table["wall_seconds"] > 0
   assert os.path.exists(os.path.join(results, "tools_decomposition.png"))
+  assert os.path.exists(os.path.join(results, "tools_learning_curves.png"))
   assert os.path.exists(os.path.join(assets, "tools_model", "config.json"))
   listed = subprocess.run([sys.executable, "experiments/tools.py", "--list",
                            "--config=ppdjax/configs/tools.py:tiny", f"--root={root}"],
