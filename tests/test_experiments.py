@@ -178,3 +178,29 @@ def test_the_whole_split_joins_blocks_json_and_the_targets_read_it(tmp_path):
   (small / "results.json").write_text(json.dumps({**full, "objects": 64}))
   refused = run(small)
   assert refused.returncode != 0 and "not the whole test split" in refused.stderr
+
+
+def test_tool_shape_errors_find_the_attribute_that_misses():
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import numpy as np
+  from ppdjax.primitives import Primitives
+  import tool_shape_errors  # pylint: disable=import-outside-toplevel
+
+  # two tools of two boxes each: a bar along x and a thin plate beside it
+  half = np.array([[[0.3, 0.05, 0.04], [0.1, 0.08, 0.01]]] * 2, np.float32)
+  pos = np.array([[[-0.15, 0.0, 0.0], [0.3, 0.0, 0.0]]] * 2, np.float32)
+  quat = np.tile(np.array([1.0, 0, 0, 0], np.float32), (2, 2, 1))
+  true = Primitives(half, pos, quat, np.full((2, 2), 500.0, np.float32), np.ones((2, 2), bool))
+  same = tool_shape_errors.analyse(true, true)
+  assert same["f1"] == 100.0 and same["matched"] == 100.0 and same["count_exact"] == 100.0
+  assert same["errors"]["centre_voxels"]["median"] == 0.0
+  # the second tool's bar is 4 voxels off along y: only the centre swap brings it back
+  shifted = pos.copy()
+  shifted[1, 0, 1] += 4 / 32
+  moved = true.replace(pos=shifted)
+  out = tool_shape_errors.analyse(moved, true)
+  assert out["matched"] == 75.0 and out["f1"] == 75.0
+  assert out["matched_with_true"]["centre"] == 100.0
+  assert out["matched_with_true"]["sizes"] == 75.0
+  assert out["by_thinnest_side"]["0-1 voxels"]["matched"] == 100.0  # the plates (0.6 voxel)
+  assert out["by_thinnest_side"]["2-4 voxels"]["matched"] == 50.0  # the bars (2.6 voxels)
