@@ -50,7 +50,8 @@ def collect(pipe) -> dict:
 def figure(pipe, path: str, model_dir: str) -> str:
   """The first FIGURE_TOOLS test tools decomposed by the full model, stacked in one PNG."""
   test = storage.open_dataset(pipe.data, "test")
-  decompose = make_decompose_fn(model_dir, num_samples=pipe.config.eval.samples,
+  # the network's boxes, as `python -m ppdjax.decompose --mesh` (the fit is worse on tools)
+  decompose = make_decompose_fn(model_dir, num_samples=pipe.config.eval.samples, fit=False,
                                 pushes=test.pushes)
   panels = []
   for i in range(min(FIGURE_TOOLS, len(test))):
