@@ -259,6 +259,27 @@ def test_cosine_schedule_and_bad_schedule():
     train_state.learning_rate(t)
 
 
+def test_density_weight_is_zero_before_the_joint_phase_and_ramps_in_it():
+  t = tiny.get_config().train
+  t.stream_steps, t.geometry_steps, t.joint_steps, t.density_weight = 3, 5, 10, 0.5
+  first = t.stream_steps + t.geometry_steps  # the joint phase's first step
+  assert [train_state.density_weight(t, s) for s in range(first)] == [0.0] * first
+  assert train_state.density_weight(t, first) == 0.5  # no ramp: at once, as the paper
+  t.density_ramp_steps = 4
+  assert [train_state.density_weight(t, first + i) for i in range(6)] == pytest.approx(
+      [0.125, 0.25, 0.375, 0.5, 0.5, 0.5])
+  assert train_state.density_weight(t, first - 1) == 0.0
+  t.density_ramp_steps = -1
+  with pytest.raises(ValueError, match="density_ramp_steps"):
+    loop.check_config(_with_train(t))
+
+
+def _with_train(t):
+  config = tiny.get_config()
+  config.train = t
+  return config
+
+
 def test_clipping_bounds_the_first_update():
   """With train.clip_norm = 1, Adam's moments see the gradient rescaled to norm 1 (a 1e6
   gradient unclipped would put 1e5 into the first moment); its first step is ±rate."""

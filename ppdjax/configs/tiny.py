@@ -58,6 +58,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.geometry_steps = 40  # phase 1: geometry only (w = 0)
   config.train.joint_steps = 80  # phase 2: geometry + w x density
   config.train.density_weight = 0.5  # w of Eq. 4-5 (docs/training.md says why 0.5)
+  config.train.density_ramp_steps = 0  # > 0: w rises linearly over the joint phase's first steps
   config.train.end_weight = 1.0  # the end token's loss, in every phase (losses.loss_fn)
   config.train.geometry_weight = 1.0  # the dataset's geometry loss
   config.train.stream_weight = 0.0  # > 0: phases 1-2 add a stream batch's geometry loss

@@ -20,7 +20,7 @@ from ppdjax.dataset import storage
 from ppdjax.plots import plot_learning_curve
 from ppdjax.training import checkpoints, sharding
 from ppdjax.training.loader import Loader
-from ppdjax.training.state import Trainer, phase, total_steps
+from ppdjax.training.state import Trainer, density_weight, phase, total_steps
 
 
 # Keys added since runs were first saved, with the value that reproduces older runs.
@@ -28,7 +28,7 @@ ADDED_KEYS = {"model.voxel_width": 1, "model.voxel_coords": False, "model.voxel_
               "train.schedule": "constant", "train.end_weight": None,
               "train.geometry_weight": 1.0, "train.stream_steps": 0, "train.stream_weight": 0.0,
               "train.augment": True, "train.init_from": "",
-              "train.clip_norm": 0.0, "train.warmup_steps": 0}
+              "train.clip_norm": 0.0, "train.warmup_steps": 0, "train.density_ramp_steps": 0}
 # Keys a resumed run may change without invalidating its checkpoints.
 RESUMABLE_CHANGES = ("train.joint_steps", "train.log_every", "train.eval_every",
                      "train.eval_batches", "train.prefetch", "train.keep_checkpoints")
@@ -46,7 +46,8 @@ def check_config(config) -> None:
     if not value > 0:
       raise ValueError(f"config.{name} must be > 0, got {value}")
   for name in ("stream_steps", "geometry_steps", "joint_steps", "eval_batches", "prefetch",
-               "end_weight", "geometry_weight", "stream_weight", "clip_norm", "warmup_steps"):
+               "end_weight", "geometry_weight", "stream_weight", "clip_norm", "warmup_steps",
+               "density_ramp_steps"):
     if t.get(name) is not None and t.get(name, 0) < 0:
       raise ValueError(f"config.train.{name} must be >= 0, got {t[name]}")
   if total_steps(t) == 0:
@@ -134,7 +135,7 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
           trainer.save(step, None)
         break
       now_phase = phase(t, step)
-      w = t.density_weight if now_phase == 2 else 0.0
+      w = density_weight(t, step)
       pending.append(trainer.train_step(next(loader) if now_phase else None, step, w))
       done = step + 1
       if (done % t.log_every == 0 or done == total
