@@ -4,7 +4,7 @@ predicted box and what replacing one attribute of it by the truth's would give.
   python -m ppdjax.generate --config=ppdjax/configs/tools.py --config.seed=7 \
       --config.data.num_tools=200 --config.data.render_workers=2 --out=DIR
   python experiments/tool_shape_errors.py --model=assets/tools_model --data=DIR \
-      --out=experiments/results/tool_shape_errors/NAME.json
+      --out=experiments/results/tools_order_study/shape_errors/NAME.json
 
 Every sample of --data is used (a fresh seed: none was trained on). Per true box: the
 predicted box of highest IoU (`primitives.box_iou`), matched if IoU > 0.5; the fraction

@@ -31,10 +31,11 @@ _SAMPLES = flags.DEFINE_integer("samples", 512, "Density candidates.")
 _ENGINE = flags.DEFINE_enum("engine", "", ["", "mjx", "box_plane"], "Engine that simulates "
                             "the boxes (default: the model's training engine).")
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling and texture seed.")
-_FIT = flags.DEFINE_bool("fit", False, "Replace the network's boxes by boxes fitted to the "
-                         "voxels (`ppdjax.fit_boxes`). Off: on the tools' test split the "
-                         "tools model's own boxes reach shape F1 50.2, the fit 35.9 (a fitted "
-                         "box is at least a voxel thick; experiments/results/tools.md).")
+_FIT = flags.DEFINE_bool("fit", None, "Replace the network's boxes by boxes fitted to the "
+                         "voxels (`ppdjax.fit_boxes`). Default: off for a mesh observed as "
+                         "a tool (on the tools' test split the tools model's own boxes reach "
+                         "shape F1 50.2, the fit 35.9: a fitted box is at least a voxel "
+                         "thick), on with --trajectory (block towers: the fit is exact).")
 _TRAJECTORY = flags.DEFINE_string(
     "trajectory", "", "A tracked trajectory (python -m ppdjax.track's .npz) to read instead "
     "of simulating the mesh's motion: the object struck once as the video model was trained "
@@ -67,10 +68,12 @@ def default_model(tracked: bool = False) -> str:
 
 
 def run(mesh: str, materials, densities, model: str, out: str, samples: int = 512,
-        engine: str = "", seed: int = 0, trajectory: str = "", fit: bool = False) -> dict:
+        engine: str = "", seed: int = 0, trajectory: str = "", fit: bool | None = None
+        ) -> dict:
   """Decomposes a mesh file; writes the picture and JSON into `out`; returns the JSON.
   With `trajectory` (a `ppdjax.track` .npz), that tracked motion is the observation's;
-  `fit`: boxes fitted to the voxels instead of the network's (`make_decompose_fn`)."""
+  `fit`: boxes fitted to the voxels instead of the network's (`make_decompose_fn`; None:
+  with a trajectory only, see --fit)."""
   import jax
   import numpy as np
 
@@ -94,6 +97,7 @@ def run(mesh: str, materials, densities, model: str, out: str, samples: int = 51
     obs["trajectories"] = tracked_observation(trajectory, config, tool_scene.rest_height(
         list(tool.parts)))
   # simulated here under the tools' pushes; a tracked trajectory under the model's own
+  fit = bool(trajectory) if fit is None else fit
   decompose = make_decompose_fn(trained, num_samples=samples, fit=fit,
                                 pushes=None if trajectory else tool_scene.tool_pushes(),
                                 settings=settings_for(engine) if engine else None)
