@@ -306,6 +306,27 @@ def test_the_oracle_pick_takes_the_sample_closest_to_the_truth():
   np.testing.assert_array_equal(rec[("coverage", "PPD+Sample")], [[False, True, False]])
 
 
+def test_sample_rows_pick_the_closest_candidate_at_micrometre_distances():
+  """+Sample's rows read the candidate that `argmin` of the objective picks, however close
+  the distances: at τ = 0 they are metres of a few micrometres' difference (a float32
+  offset once tied them all and the lowest slot won)."""
+  from ppdjax.infer import rows
+  out, slot, base, layout = _fake_batch_output(b=8, s=64)
+  out["hdist"] = 2e-3 + 1e-6 * out["hdist"]  # 2 mm apart by at most a micrometre
+  out["dist"] = out["hdist"][..., tables.SELECTION_HORIZONS.index(0)]
+  rec = rows.batch_records(out, slot, slot >= 0, base, samples=64, prior_weight=0.0,
+                           prefixes=(1, 64), with_baselines=True, refine=False, layout=layout)
+  for name, group, slots in (("PPD+Sample", "ppd", out["slots"]),
+                             ("PPD+Fit+Sample", "fit", out["fit_slots"]["fit"])):
+    picked = slots[np.arange(8), np.argmin(out["dist"][:, layout[group]], -1)]
+    np.testing.assert_array_equal(rec[("guess", name)], picked, name)
+    valid = slot >= 0
+    np.testing.assert_array_equal(rec[("counts", name, "top1")],
+                                  ((picked == slot) & valid).sum(-1), name)
+    np.testing.assert_array_equal(rec[("counts", name, "sq_err")],
+                                  np.where(valid, (picked - slot) ** 2, 0).sum(-1), name)
+
+
 def _fake_batch_output(b=4, s=16, k=3, seed=0):
   """What `Evaluator.batch` returns for b objects, with random candidates: the network's
   boxes, one voxel-fit group and the baselines."""

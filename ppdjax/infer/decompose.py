@@ -90,7 +90,7 @@ def is_paper_pushes(pushes: Pushes) -> bool:
 def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       camera: dict | None = None, refine: bool = False,
                       refine_steps: int = 12, prior_weight: float = 0.0,
-                      refine_prior: float = 0.0, estimator=None,
+                      mass_match: bool = False, refine_prior: float = 0.0, estimator=None,
                       estimator_weight: float = 1.0, pushes: Pushes | None = None,
                       settings: Settings | None = None):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
@@ -110,6 +110,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
       distance is below every candidate's.
     refine_steps: LM iterations.
     prior_weight: τ of `select_densities` (0: the closest trajectory wins).
+    mass_match: `select_densities`' second pass: candidates scaled to the closest one's
+      total mass and simulated again (twice the rollouts; continuous densities).
     refine_prior: > 0 makes refinement a MAP step under the network's density scores
       (`refine.refine_densities`'s prior_weight; 1e-5: a one-σ move costs about 3 mm of
       trajectory residual); 0 is plain least squares.
@@ -170,7 +172,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     keys = jax.random.split(key, traj.shape[0])
     sel = jax.vmap(lambda p, l, o, kk: select_densities(
         p, l, o, pushes, num_samples=num_samples, key=kk, prior_weight=prior_weight,
-        settings=settings))(prims, logits, traj, keys)
+        mass_match=mass_match, settings=settings))(prims, logits, traj, keys)
     prims = prims.replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
     if refine:  # from the closest candidate whatever τ chose, as the evaluation's +Refine

@@ -16,6 +16,9 @@ from ppdjax.infer import sampling
 from ppdjax.infer.tables import BASELINES, FIT_ROWS, PRIOR_WEIGHTS, SELECTION_HORIZONS
 
 
+SAMPLED_ABOVE = 1e9  # slots no sample has rank below every sampled one (objectives >= 0)
+
+
 def sample_scores(logits, slots, objective, valid):
   """(B, K, 100) +Sample ranking: slots a sample has, by that sample's best objective first.
 
@@ -29,7 +32,10 @@ def sample_scores(logits, slots, objective, valid):
   lsm = np.asarray(logits, np.float64)
   lsm = lsm - lsm.max(-1, keepdims=True)
   lsm = lsm - np.log(np.exp(lsm).sum(-1, keepdims=True))  # log-softmax, on the host
-  out = np.where(np.isfinite(best), 1e6 - np.where(np.isfinite(best), best, 0.0), lsm - 1e6)
+  # float64 throughout: objectives differ by micrometres of trajectory distance (τ = 0), so
+  # an offset such as 1e6 − objective in float32 (steps of 0.06) would tie every candidate
+  out = np.where(np.isfinite(best), -np.where(np.isfinite(best), best, 0.0),
+                 lsm - SAMPLED_ABOVE)
   return np.where(valid[..., None], out, logits)
 
 
@@ -44,7 +50,7 @@ def row_counts(scores, slot, valid, ks=(1, 5, 10)):
   """`metrics.density_counts` in NumPy (the same counts, tested): the records are made on
   the host, where a sweep's hundreds of small calls would each cost a round trip to an
   accelerator."""
-  scores = np.asarray(scores, np.float32)
+  scores = np.asarray(scores, np.float64)  # never float32: see `sample_scores`
   truth = np.maximum(slot, 0)
   own = np.take_along_axis(scores, truth[..., None], -1)
   earlier = np.arange(scores.shape[-1]) < truth[..., None]

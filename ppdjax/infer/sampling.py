@@ -5,6 +5,13 @@ The network proposes boxes and, per box, a distribution over the 100 density slo
 keeps the one that minimises `selection_objective` (the trajectory distance, optionally
 less τ · log prior). Distances and units: `ppdjax.metrics` (pose residual in metres,
 rotations at 0.5 m per radian).
+
+Mass-matched selection (`mass_match`, ours): the distance is stiff in an object's total
+mass and soft in how the mass is split between its boxes
+(experiments/results/selection_study), so on the 100 kg/m³ grid the closest candidate is
+the one with the best total, whatever its split. A second pass scales every candidate to
+the total mass of the closest one and simulates them again: then the distance compares
+splits. The answer's densities are continuous (off the slot grid).
 """
 
 from __future__ import annotations
@@ -14,7 +21,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from ppdjax import metrics
-from ppdjax.conventions import NUM_DENSITY_SLOTS, slot_to_density_jax
+from ppdjax.conventions import (MAX_DENSITY, MIN_DENSITY, NUM_DENSITY_SLOTS,
+                                density_to_slot_jax, slot_to_density_jax)
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
@@ -25,7 +33,8 @@ class Selection:
   """What sampling found for one object (S candidates, K boxes).
 
   Attributes:
-    density: (K,) kg/m^3 of the best candidate.
+    density: (K,) kg/m^3 of the best candidate (scaled to the matched mass with
+      `mass_match`).
     score: trajectory distance of the best candidate (metres, `metrics.trajectory_distance`).
     scores: (S,) every candidate's distance, in draw order (candidate 0 is the most likely).
     slots: (S, K) the candidates' density slots (0 for padded boxes).
@@ -90,6 +99,20 @@ def with_slots(prims: Primitives, slots: jax.Array) -> Primitives:
   return out.replace(density=slot_to_density_jax(slots))
 
 
+def total_mass(prims: Primitives) -> jax.Array:
+  """(...,) kg: Σ density · volume over the valid boxes (overlaps counted twice)."""
+  volume = jnp.prod(2.0 * prims.half_size, -1)
+  return jnp.sum(jnp.where(prims.valid, prims.density * volume, 0.0), -1)
+
+
+def scale_to_mass(prims: Primitives, mass: jax.Array) -> Primitives:
+  """`prims` (..., K) with every valid box's density times mass / total_mass, within the
+  slot range [100, 10,000] kg/m³ (a clipped box leaves the total off)."""
+  scale = mass / jnp.maximum(total_mass(prims), 1e-12)
+  scaled = jnp.clip(prims.density * scale[..., None], MIN_DENSITY, MAX_DENSITY)
+  return prims.replace(density=jnp.where(prims.valid, scaled, prims.density))
+
+
 def score_candidates(candidates: Primitives, observed_PTx7: jax.Array, pushes: Pushes,
                      settings: Settings = DEFAULT_SETTINGS, *,
                      keep_trajectories: bool = False, horizons: tuple[int, ...] = ()):
@@ -117,6 +140,7 @@ def selection_objective(distance: jax.Array, log_prior_: jax.Array,
 def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax.Array,
                      pushes: Pushes | None = None, *, num_samples: int, key: jax.Array,
                      include_mode: bool = True, prior_weight: float = 0.0,
+                     mass_match: bool = False,
                      settings: Settings = DEFAULT_SETTINGS) -> Selection:
   """Samples joint density assignments and keeps the one that best explains the motion.
 
@@ -130,6 +154,9 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
     include_mode: make candidate 0 the most likely assignment.
     prior_weight: τ in metres per nat: the winner minimises distance − τ · log p(slots)
       under the network's distribution (0: the paper's closest trajectory).
+    mass_match: a second pass (twice the rollouts): every candidate scaled to the total
+      mass of the closest one (`scale_to_mass`), simulated again, and the winner chosen
+      among those by the same objective (its log prior at the nearest slots).
     settings: the engine's settings (those the dataset was simulated with: MJX or box-plane).
 
   Returns:
@@ -138,10 +165,16 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   pushes = default_pushes() if pushes is None else pushes
   slots, distinct = candidate_slots(density_logits[:, :NUM_DENSITY_SLOTS], prims.valid,
                                     num_samples, key, include_mode=include_mode)
-  scores, mae, sims = score_candidates(with_slots(prims, slots), observed, pushes, settings,
+  candidates = with_slots(prims, slots)
+  scores, mae, sims = score_candidates(candidates, observed, pushes, settings,
                                        keep_trajectories=True)
-  best = jnp.argmin(selection_objective(
-      scores, log_prior(density_logits, slots, prims.valid), prior_weight))
-  return Selection(density=slot_to_density_jax(slots[best]), score=scores[best],
+  logp = log_prior(density_logits, slots, prims.valid)
+  if mass_match:
+    candidates = scale_to_mass(candidates, total_mass(candidates)[jnp.argmin(scores)])
+    scores, mae, sims = score_candidates(candidates, observed, pushes, settings,
+                                         keep_trajectories=True)
+    logp = log_prior(density_logits, density_to_slot_jax(candidates.density), prims.valid)
+  best = jnp.argmin(selection_objective(scores, logp, prior_weight))
+  return Selection(density=candidates.density[best], score=scores[best],
                    scores=scores, slots=slots, distinct=distinct, mae=mae,
                    trajectories=sims[best])
