@@ -536,3 +536,18 @@ def test_bootstrap_interval_covers_a_proportion():
   assert metrics.bootstrap_interval(lambda i: 1.0, 5) == (1.0, 1.0)
   with pytest.raises(ValueError, match="at least one object"):
     metrics.bootstrap_interval(lambda i: 0.0, 0)
+
+
+def test_scale_to_mass_keeps_the_split_and_matches_the_total():
+  """Mass-matched selection's rescaling: valid boxes scaled by one factor to the target
+  total mass, padded boxes untouched, densities kept in the slot range."""
+  prims = ppdjax.Primitives(
+      half_size=jnp.full((2, 3, 3), 0.05), pos=jnp.zeros((2, 3, 3)),
+      quat=jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (2, 3, 1)),
+      density=jnp.asarray([[1000.0, 3000.0, 100.0], [500.0, 9000.0, 100.0]]),
+      valid=jnp.asarray([[True, True, False], [True, True, False]]))
+  target = 2.0 * sampling.total_mass(prims)
+  out = sampling.scale_to_mass(prims, target)
+  np.testing.assert_allclose(out.density[0], [2000.0, 6000.0, 100.0], rtol=1e-6)
+  assert float(out.density[1, 1]) == 10000.0  # clipped at the slot range's top
+  np.testing.assert_allclose(sampling.total_mass(out)[0], target[0], rtol=1e-6)
