@@ -51,7 +51,7 @@ VARIANTS = ("paper", "mass_match")
 def make_candidates_fn(model, camera, samples: int, pushes, settings):
   """One jitted call per batch: decode, fit the boxes (voxels, then depth), draw the
   candidates, simulate them (the paper's pass) and again scaled to the closest one's
-  total mass (`sampling.scale_to_mass`, the mass-matched pass)."""
+  total mass (`sampling.match_closest_mass`, the mass-matched pass)."""
   graphdef, state = nnx.split(model)
 
   @jax.jit
@@ -67,8 +67,7 @@ def make_candidates_fn(model, camera, samples: int, pushes, settings):
       out = {}
       for name in VARIANTS:
         if name == "mass_match":
-          cands = sampling.scale_to_mass(
-              cands, sampling.total_mass(cands)[jnp.argmin(out["paper"]["dist"])])
+          cands = sampling.match_closest_mass(cands, out["paper"]["dist"])
         dist, mae = sampling.score_candidates(cands, o, pushes, settings)
         out[name] = {"dist": dist, "mae": mae, "density": cands.density,
                      "logp": sampling.log_prior(lg, density_to_slot_jax(cands.density),

@@ -113,6 +113,12 @@ def scale_to_mass(prims: Primitives, mass: jax.Array) -> Primitives:
   return prims.replace(density=jnp.where(prims.valid, scaled, prims.density))
 
 
+def match_closest_mass(candidates: Primitives, distance: jax.Array) -> Primitives:
+  """Candidates (S, K) scaled to the total mass of the one at the least distance (S,): the
+  second pass of mass-matched selection."""
+  return scale_to_mass(candidates, total_mass(candidates)[jnp.argmin(distance)])
+
+
 def score_candidates(candidates: Primitives, observed_PTx7: jax.Array, pushes: Pushes,
                      settings: Settings = DEFAULT_SETTINGS, *,
                      keep_trajectories: bool = False, horizons: tuple[int, ...] = ()):
@@ -170,7 +176,7 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
                                        keep_trajectories=True)
   logp = log_prior(density_logits, slots, prims.valid)
   if mass_match:
-    candidates = scale_to_mass(candidates, total_mass(candidates)[jnp.argmin(scores)])
+    candidates = match_closest_mass(candidates, scores)
     scores, mae, sims = score_candidates(candidates, observed, pushes, settings,
                                          keep_trajectories=True)
     logp = log_prior(density_logits, density_to_slot_jax(candidates.density), prims.valid)
