@@ -6,11 +6,19 @@
 The peer of the full pipeline is the model step on a batch already on the device (the
 ceiling); the ratio says how much the disk-to-device loader costs. Prints a markdown table
 and writes it as JSON (--out).
+
+With --variants, the model step of each variant of the preset (config overrides, e.g.
+`image_bf16:model.image_dtype=bfloat16;no_image:model.use_image=False`) beside the
+preset's, in one process on the same batch, at the first of --batch_sizes:
+
+  python experiments/bench_train.py --data=DIR --batch_sizes=256 \
+      --variants="image_bf16:model.image_dtype=bfloat16" --out=bench_train_variants.json
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import tempfile
 import time
 
@@ -23,6 +31,8 @@ flags.DEFINE_string("data", None, "Dataset directory.", required=True)
 flags.DEFINE_string("batch_sizes", "32,64,128", "Global batch sizes to time.")
 flags.DEFINE_integer("steps", 40, "Timed steps per measurement (after 3 warm-up steps).")
 flags.DEFINE_string("out", "", "Write the rows as JSON here.")
+flags.DEFINE_string("variants", "", "'name:key=value,key=value;name:...': time these "
+                    "variants' model step beside the preset's (ratios), nothing else.")
 FLAGS = flags.FLAGS
 
 
@@ -45,6 +55,8 @@ def main(argv):
   from ppdjax.training.state import Trainer
 
   ds = storage.open_dataset(FLAGS.data, "train")
+  if FLAGS.variants:
+    return compare_variants(ds, int(FLAGS.batch_sizes.split(",")[0]))
   rows = []
   for bs in [int(b) for b in FLAGS.batch_sizes.split(",")]:
     config = FLAGS.config.copy_and_resolve_references()
@@ -90,6 +102,62 @@ def main(argv):
     with open(FLAGS.out, "w") as f:
       json.dump({"device": dev.device_kind, "devices": jax.device_count(), "rows": rows}, f,
                 indent=1)
+
+
+def _parse_value(text: str):
+  for kind in (int, float):
+    try:
+      return kind(text)
+    except ValueError:
+      pass
+  return {"True": True, "False": False}.get(text, text)
+
+
+def compare_variants(ds, bs: int) -> None:
+  """Model-step samples/s of the preset and of each --variants override set, in turn in
+  this process on one fixed batch (a joint-phase step, the stream's loss beside it when
+  the preset has one), with the ratio to the preset."""
+  from ppdjax.training.loader import BATCH_KEYS, Loader
+  from ppdjax.training.state import Trainer
+  variants = [("preset", {})]
+  for item in filter(None, FLAGS.variants.split(";")):
+    name, _, sets = item.partition(":")
+    variants.append((name, dict(kv.split("=", 1) for kv in sets.split(","))))
+  rows = []
+  for name, overrides in variants:
+    config = FLAGS.config.copy_and_resolve_references()
+    config.train.batch_size = bs
+    for key, value in overrides.items():
+      section, _, field = key.rpartition(".")
+      config[section][field] = _parse_value(value)
+    t = config.train
+    joint_step = t.get("stream_steps", 0) + t.geometry_steps  # the first joint step
+    with tempfile.TemporaryDirectory() as workdir:
+      trainer = Trainer(config, workdir)
+      loader = Loader(ds, bs, seed=0, start_step=0, prefetch=1, mesh=trainer.mesh)
+      fixed = next(loader)
+      loader.close()
+      clock = time.perf_counter()
+      jax.block_until_ready(trainer.train_step(fixed, joint_step, 0.5))
+      first = time.perf_counter() - clock
+      rate = _rate(lambda: trainer.train_step(fixed, joint_step, 0.5), FLAGS.steps, bs)
+      trainer.close()
+    rows.append({"variant": name, "overrides": overrides, "batch_size": bs,
+                 "model_step_samples_s": round(rate, 1), "first_step_s": round(first, 1),
+                 "vs_preset": round(rate / rows[0]["model_step_samples_s"], 3) if rows else 1.0})
+    print(json.dumps(rows[-1]), flush=True)
+  dev = jax.devices()[0]
+  print(f"\n{FLAGS.config.name} preset, batch {bs}, on {jax.device_count()} x {dev.device_kind}\n")
+  print("| variant | overrides | model step (samples/s) | × preset | first step (s) |")
+  print("|---|---|--:|--:|--:|")
+  for r in rows:
+    sets = ", ".join(f"{k}={v}" for k, v in r["overrides"].items()) or "–"
+    print(f"| {r['variant']} | {sets} | {r['model_step_samples_s']} | {r['vs_preset']} | "
+          f"{r['first_step_s']} |")
+  if FLAGS.out:
+    with open(FLAGS.out, "w") as f:
+      json.dump({"command": "python experiments/bench_train.py " + " ".join(sys.argv[1:]),
+                 "device": f"{jax.device_count()} x {dev.device_kind}", "rows": rows}, f, indent=1)
 
 
 if __name__ == "__main__":

@@ -145,6 +145,8 @@ class Pipeline:
     if kind == "generate":
       return ()
     if kind == "train":
+      if variant == GEOMETRY:  # the stream alone: it starts beside the generation
+        return ()
       init = self.train_config(variant).train.get("init_from", "")
       return ("generate",) + ((f"train:{GEOMETRY}",) if init == self.workdir(GEOMETRY) else ())
     if kind in ("evaluate", "validate"):

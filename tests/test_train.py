@@ -350,3 +350,16 @@ def test_a_truncated_checkpoint_is_named_and_training_resumes_from_an_intact_one
   assert os.path.isdir(os.path.join(workdir, checkpoints.UNREADABLE, "8"))
   assert [r["step"] for r in _rows(workdir)] == list(range(1, 11))
   load(workdir, "latest")
+
+
+def test_a_geometry_stream_run_reads_no_dataset_and_validates_on_a_held_out_stream(tmp_path):
+  """The pipeline's geometry stage starts before the dataset exists: a run of stream steps
+  alone opens no split and reports the held-out stream's geometry metrics."""
+  config = short_config(geometry_steps=0, joint_steps=0, stream_steps=2)
+  config.model.use_image = config.model.use_trajectory = False
+  config.train.batch_size = 4
+  final = loop.train_and_evaluate(config, str(tmp_path / "no_dataset_here"),
+                                  str(tmp_path / "run"), progress=False)
+  assert 0.0 <= final["shape_f1"] <= 100.0 and np.isfinite(final["geometry_loss"])
+  assert _rows(str(tmp_path / "run"), "val")[-1]["step"] == 2
+  assert not os.path.exists(tmp_path / "no_dataset_here")

@@ -40,8 +40,11 @@ def get_config() -> ml_collections.ConfigDict:
   config.model.voxel_coords = False  # voxel centres as 3 extra input channels (CoordConv)
   config.model.voxel_keep = 1  # pool the voxels down to keep^3 (1: the paper's; 4 keeps position)
   config.model.resnet_width = 16  # 64 is ResNet-18 proper (paper preset); 16 for CPUs
+  # the ResNet's compute type ("bfloat16": convolutions in bfloat16, parameters float32)
+  config.model.image_dtype = "float32"
   config.model.image_weights = ""  # optional .npz of converted torchvision ResNet-18 weights
   config.model.num_pushes = 4
+  config.model.trajectory_unroll = 1  # time steps per scan iteration of the trajectory LSTMs
   config.model.max_primitives = 5
   config.model.use_voxels = True  # ablation switches: a disabled encoder's feature is 0
   config.model.use_image = True

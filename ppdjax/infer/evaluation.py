@@ -106,6 +106,16 @@ REFINE_FROM_TAU = 0.0
 RECORDS_VERSION = 3  # of `rows.batch_records`' layout: saved batches of another are not reused
 
 
+_log_priors = jax.jit(jax.vmap(sampling.log_prior))  # (B, S) of each object's candidates
+
+
+def shape_pool(key, samples: int, num_slots: int):
+  """Table 4's "Sample Phys.+Shape" pool for one batch: `samples` random tower shapes
+  (`baselines.random_shapes`) seeded from the batch's key."""
+  return baselines.random_shapes(int(jax.random.randint(key, (), 0, 2**31 - 1)), samples,
+                                 num_slots=num_slots)
+
+
 def _weights_hash(model) -> str:
   """sha1 of a model's parameters: which model saved batch records (`partial`)."""
   h = hashlib.sha1()
@@ -132,6 +142,7 @@ class Evaluator:
     if joint and not self.fits:
       raise ValueError("+Joint moves fitted boxes' faces: it needs fit or depth")
     self.baselines_on = baselines_on
+    self.seconds = collections.Counter()  # per stage of `batch` (`_timed`)
     pushes = default_pushes() if pushes is None else pushes
     # every group sampled and scored; "true" (the oracle boxes) after the fits
     self.groups = self.fits + (("true",) if true_shapes else ())
@@ -163,44 +174,54 @@ class Evaluator:
         camera=camera if depth else None, pushes=pushes, settings=settings,
         at_once=8 if jax.default_backend() == "cpu" else 64))
 
-  def batch(self, batch: dict, base_scores: np.ndarray | None, key) -> dict:
-    """Per-object arrays for one batch (see `evaluate` for what they become)."""
+  def _timed(self, stage: str, fn, *args):
+    """fn(*args), waited for, its seconds added to self.seconds[stage] (where a batch's
+    time goes: the first batch's include compilation)."""
+    t = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    self.seconds[stage] += time.perf_counter() - t
+    return out
+
+  def batch(self, batch: dict, base_scores: np.ndarray | None, key, pool=None) -> dict:
+    """Per-object arrays for one batch (see `evaluate` for what they become). `pool`:
+    Table 4's random tower shapes (`shape_pool`; drawn here from `key` when None)."""
     obs = {k: jnp.asarray(batch[k])
            for k in OBS_KEYS + (("depth",) if "fit_depth" in self.fits else ())}
     true = bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
-    decoded = self._decode(self.state, obs, true, self.est_state)
+    decoded = self._timed("decode", self._decode, self.state, obs, true, self.est_state)
     pred, logits = decoded["pred"], decoded["logits"]
     fitted = tuple(decoded["fitted"][g] for g in self.groups)
     fit_logits = tuple(decoded["group_logits"][g] for g in self.groups)
     b, k = true.density.shape
     base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
                   else np.zeros((b, len(BASELINES), k), np.int32))
-    pool = baselines.random_shapes(int(jax.random.randint(key, (), 0, 2**31 - 1)),
-                                   self.samples, num_slots=k)
-    dist, mae, slots, fit_slots = self._simulate(
-        pred, fitted, logits, fit_logits, true, jnp.asarray(base_slots),
-        jax.tree.map(jnp.asarray, pool), obs["trajectories"], jax.random.split(key, (b, 4)))
+    if pool is None:  # (unused without the baselines: one shape then)
+      pool = shape_pool(key, self.samples if self.baselines_on else 1, k)
+    dist, mae, slots, fit_slots = self._timed(
+        "sample", self._simulate, pred, fitted, logits, fit_logits, true,
+        jnp.asarray(base_slots), jax.tree.map(jnp.asarray, pool), obs["trajectories"],
+        jax.random.split(key, (b, 4)))
     out = jax.device_get({**decoded, "hdist": dist, "mae": mae, "slots": slots})
     out["dist"] = out["hdist"][..., SELECTION_HORIZONS.index(0)]  # the whole trajectory
-    out["logp"] = np.asarray(jax.vmap(sampling.log_prior)(logits, jnp.asarray(out["slots"]),
-                                                          pred.valid))
+    out["logp"] = np.asarray(_log_priors(logits, slots, pred.valid))
     out["fit_slots"] = {g: np.asarray(s) for g, s in zip(self.groups, fit_slots)}
-    out["fit_logp"] = {g: np.asarray(jax.vmap(sampling.log_prior)(fl, s, f.valid))
+    out["fit_logp"] = {g: np.asarray(_log_priors(fl, s, f.valid))
                        for g, s, f, fl in zip(self.groups, fit_slots, fitted, fit_logits)}
     if self.refine or self.joint:  # from the closest sample, on the most precise boxes
       group = self.fits[-1] if self.fits else "ppd"
       prims, prior, d0, m0 = self._best_sample(out, decoded, group, REFINE_FROM_TAU)
       if self.refine:
-        out["refine"] = jax.device_get(self._refine(prims, prior, obs["trajectories"], d0, m0))
+        out["refine"] = jax.device_get(self._timed("refine", self._refine, prims, prior,
+                                                   obs["trajectories"], d0, m0))
         out["refine"]["sample_dist"] = d0  # the start's distance
       if self.joint:
         depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((len(d0),))
-        out["joint"] = jax.device_get(self._joint(prims, prior, obs["trajectories"], depth,
-                                                  true))
+        out["joint"] = jax.device_get(self._timed("joint", self._joint, prims, prior,
+                                                  obs["trajectories"], depth, true))
     if self.refine and "true" in self.groups:  # the oracle column refined alike
       prims, prior, d0, m0 = self._best_sample(out, decoded, "true", REFINE_FROM_TAU)
-      out["refine_true"] = jax.device_get(self._refine(prims, prior, obs["trajectories"], d0,
-                                                       m0))
+      out["refine_true"] = jax.device_get(self._timed("refine", self._refine, prims, prior,
+                                                      obs["trajectories"], d0, m0))
     return out
 
   def _best_sample(self, out: dict, decoded: dict, group: str, tau: float):
@@ -320,9 +341,14 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
     if rec is not None:
       return len(idx), rec, None, None
     batch = test.take(np.pad(idx, (0, batch_size - len(idx)), mode="edge"), keys=keys_read)
-    return len(idx), None, batch, baselines.true_slots(batch["primitives"])
+    # the host's share of a batch, made here so that reading ahead hides it
+    pool = (shape_pool(jax.random.fold_in(key, start), samples,
+                       batch["primitives"].density.shape[-1]) if with_baselines else None)
+    return len(idx), None, (batch, pool), baselines.true_slots(batch["primitives"])
 
-  for start, (keep, rec, batch, slot) in read_ahead(read, range(0, n, batch_size), prefetch):
+  for start, (keep, rec, read_batch, slot) in read_ahead(read, range(0, n, batch_size),
+                                                         prefetch):
+    batch, pool = read_batch if read_batch is not None else (None, None)
     t = clock()
     if rec is None:
       if ev is None:
@@ -339,9 +365,11 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       base = (baselines.baseline_scores(train, batch, seed * 1_000_003 + start)
               if with_baselines else None)
       t, parts["baselines"] = clock(), parts["baselines"] + clock() - t
-      out = ev.batch(batch, base, jax.random.fold_in(key, start))
+      out = ev.batch(batch, base, jax.random.fold_in(key, start), pool)
       out = jax.tree.map(lambda x: x[:keep], out)
       t, parts["device"] = clock(), parts["device"] + clock() - t
+      if not computed:  # the stages' seconds after the first batch (its compilation)
+        first = dict(ev.seconds, device=parts["device"])
       rec = rows.batch_records(out, slot[:keep], slot[:keep] >= 0,
                                None if base is None else base[:keep], samples=samples,
                                prior_weight=prior_weight, prefixes=prefixes,
@@ -368,4 +396,11 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       "seconds": round(time.perf_counter() - t_start, 1),
       "seconds_by_part": {"read": round(read.waited, 1),
                           **{k: round(v, 1) for k, v in parts.items()}}})
+  if computed:
+    # where the device time of a batch goes once compiled: per jitted stage
+    after = {k: v - first.get(k, 0.0) for k, v in ev.seconds.items()}
+    after["host"] = parts["device"] - first["device"] - sum(after.values())  # the rest
+    results["seconds_by_stage"] = {
+        "first_batch": round(first["device"], 1), "batches_after_first": computed - 1,
+        "after_first": {k: round(v, 2) for k, v in after.items()}}
   return results

@@ -58,10 +58,12 @@ class GroupedLSTM(nnx.Module):
   """G independent single-layer LSTMs stepped together; one `lax.scan` over time.
 
   The trajectory encoder runs a forward and a backward LSTM for each of the P pushes
-  (G = 2P), each with its own weights, as one batched recurrence.
+  (G = 2P), each with its own weights, as one batched recurrence. `unroll` steps run per
+  iteration of the scan (the same arithmetic; fewer loop iterations on an accelerator).
   """
 
-  def __init__(self, groups: int, in_features: int, hidden: int, *, rngs: nnx.Rngs):
+  def __init__(self, groups: int, in_features: int, hidden: int, *, rngs: nnx.Rngs,
+               unroll: int = 1):
     init = nnx.initializers.lecun_normal(in_axis=-2, out_axis=-1, batch_axis=0)
     ortho = nnx.initializers.orthogonal(column_axis=-1)
     self.wx = nnx.Param(init(rngs.params(), (groups, in_features, 4 * hidden)))
@@ -69,7 +71,7 @@ class GroupedLSTM(nnx.Module):
         jax.random.split(rngs.params(), groups)))
     bias = jnp.zeros((groups, 4, hidden)).at[:, 1].set(1.0)  # forget gate starts open
     self.b = nnx.Param(bias.reshape(groups, 4 * hidden))
-    self.hidden = hidden
+    self.hidden, self.unroll = hidden, unroll
 
   def __call__(self, x_BGTxF: jax.Array) -> jax.Array:
     """Final hidden states (B, G, H) of each group over its (B, G, T, F) sequence."""
@@ -82,7 +84,7 @@ class GroupedLSTM(nnx.Module):
       return _lstm_update(xw_t + jnp.einsum("gbh,ghk->gbk", h, wh), c), None
 
     zeros = jnp.zeros((g, b, self.hidden), xw.dtype)
-    (_, h), _ = jax.lax.scan(step, (zeros, zeros), xw)
+    (_, h), _ = jax.lax.scan(step, (zeros, zeros), xw, unroll=self.unroll)
     h = jnp.swapaxes(h, 0, 1)
     return h
 
@@ -172,8 +174,8 @@ class TrajectoryEncoder(nnx.Module):
   """A bidirectional LSTM per push; [h→; h←] per push, concatenated, projected → f_T."""
 
   def __init__(self, num_pushes: int, hidden: int, out_features: int, dropout: float, *,
-               rngs: nnx.Rngs):
-    self.lstm = GroupedLSTM(2 * num_pushes, TRAJ_FEATURES, hidden, rngs=rngs)
+               rngs: nnx.Rngs, unroll: int = 1):
+    self.lstm = GroupedLSTM(2 * num_pushes, TRAJ_FEATURES, hidden, rngs=rngs, unroll=unroll)
     self.dropout = nnx.Dropout(dropout)
     self.proj = nnx.Linear(2 * num_pushes * hidden, out_features, rngs=rngs)
 
@@ -217,9 +219,16 @@ class PPD(nnx.Module):
     self.voxel_encoder = (VoxelEncoder(f, c.get("voxel_width", 1), c.get("voxel_coords", False),
                                        c.get("voxel_keep", 1), rngs=rngs)
                           if c.use_voxels else None)
-    self.image_encoder = ResNet18(f, c.resnet_width, rngs=rngs) if c.use_image else None
+    image_dtype = c.get("image_dtype", "float32")
+    if image_dtype not in ("float32", "bfloat16"):
+      raise ValueError(f"config.model.image_dtype must be 'float32' or 'bfloat16', "
+                       f"got {image_dtype!r}")
+    self.image_encoder = (ResNet18(f, c.resnet_width, rngs=rngs,
+                                   dtype=None if image_dtype == "float32" else jnp.bfloat16)
+                          if c.use_image else None)
     self.trajectory_encoder = (TrajectoryEncoder(c.num_pushes, c.hidden, f, c.dropout,
-                                                 rngs=rngs) if c.use_trajectory else None)
+                                                 rngs=rngs, unroll=c.get("trajectory_unroll", 1))
+                               if c.use_trajectory else None)
     self.fuse = nnx.Linear(3 * f, f, rngs=rngs)
     self.cells = nnx.List([LSTMCell((PRIM_DIM + f) if i == 0 else c.hidden, c.hidden,
                                     rngs=rngs) for i in range(c.generator_layers)])

@@ -28,10 +28,12 @@ ADDED_KEYS = {"model.voxel_width": 1, "model.voxel_coords": False, "model.voxel_
               "train.schedule": "constant", "train.end_weight": None,
               "train.geometry_weight": 1.0, "train.stream_steps": 0, "train.stream_weight": 0.0,
               "train.augment": True, "train.init_from": "",
-              "train.clip_norm": 0.0, "train.warmup_steps": 0, "train.density_ramp_steps": 0}
+              "train.clip_norm": 0.0, "train.warmup_steps": 0, "train.density_ramp_steps": 0,
+              "model.image_dtype": "float32", "model.trajectory_unroll": 1}
 # Keys a resumed run may change without invalidating its checkpoints.
 RESUMABLE_CHANGES = ("train.joint_steps", "train.log_every", "train.eval_every",
-                     "train.eval_batches", "train.prefetch", "train.keep_checkpoints")
+                     "train.eval_batches", "train.prefetch", "train.keep_checkpoints",
+                     "model.trajectory_unroll")  # the same arithmetic, scheduled differently
 
 
 def check_config(config) -> None:
@@ -94,7 +96,8 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
 
   Args:
     config: a preset with `model` and `train` sections.
-    data_dir: a generated dataset with train and val splits.
+    data_dir: a generated dataset with train and val splits (not read by a run of the
+      geometry stream alone, which validates on a held-out stream of fresh towers).
     workdir: checkpoints, config.json, metrics.jsonl, tensorboard/ and learning_curve.png.
     progress: show a progress bar.
     time_limit_s: if set, stop after about this many seconds of steps with a checkpoint
@@ -102,17 +105,20 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
   """
   check_config(config)
   t = config.train
-  train_ds = storage.open_dataset(data_dir, "train")
-  val_ds = storage.open_dataset(data_dir, "val")
-  pushes = train_ds[0]["trajectories"].shape[0]
-  if pushes != config.model.num_pushes:
-    raise ValueError(f"{data_dir} has {pushes} pushes per sample; config.model.num_pushes "
-                     f"is {config.model.num_pushes}")
   sharding.check_batch_size(t.batch_size)
-  steps_per_epoch = len(train_ds) // t.batch_size
-  if steps_per_epoch == 0:
-    raise ValueError(f"the train split has {len(train_ds)} samples, fewer than "
-                     f"train.batch_size={t.batch_size}")
+  # a run of the geometry stream alone reads no dataset (it may start before one exists)
+  stream_only = total_steps(t) == t.get("stream_steps", 0)
+  train_ds = val_ds = None
+  if not stream_only:
+    train_ds = storage.open_dataset(data_dir, "train")
+    val_ds = storage.open_dataset(data_dir, "val")
+    pushes = train_ds[0]["trajectories"].shape[0]
+    if pushes != config.model.num_pushes:
+      raise ValueError(f"{data_dir} has {pushes} pushes per sample; config.model.num_pushes "
+                       f"is {config.model.num_pushes}")
+    if len(train_ds) < t.batch_size:
+      raise ValueError(f"the train split has {len(train_ds)} samples, fewer than "
+                       f"train.batch_size={t.batch_size}")
   _check_resume(workdir, config)
   checkpoints.save_config(workdir, config)
 
@@ -121,8 +127,9 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
   total = total_steps(t)
   log = MetricsLog(workdir, start, enabled=jax.process_index() == 0)
   stream_steps = t.get("stream_steps", 0)  # the loader's step counts dataset steps only
-  loader = Loader(train_ds, t.batch_size, seed=t.seed, start_step=max(start - stream_steps, 0),
-                  prefetch=t.prefetch, mesh=trainer.mesh)
+  loader = (None if stream_only else
+            Loader(train_ds, t.batch_size, seed=t.seed, start_step=max(start - stream_steps, 0),
+                   prefetch=t.prefetch, mesh=trainer.mesh))
   bar = tqdm(total=total, initial=start, desc="train", unit="step", disable=not progress,
              dynamic_ncols=True)
   pending, tick, step, last_val = [], time.perf_counter(), start, None
@@ -161,7 +168,8 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
     raise
   finally:
     bar.close()
-    loader.close()
+    if loader is not None:
+      loader.close()
     trainer.close()
     log.close()
   if last_val is None:  # nothing left to train: report the run's last validation

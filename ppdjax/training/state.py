@@ -18,6 +18,7 @@ from ppdjax.training import checkpoints, sharding
 from ppdjax.training.loader import BATCH_KEYS, model_inputs
 
 STREAM_SEED = 7_919  # offsets the stream's key from the dropout key of the same seed
+VAL_STREAM_SEED = 7_920  # a held-out stream: validation of a run that reads no dataset
 
 
 class TrainState(nnx.Module):
@@ -248,20 +249,33 @@ class Trainer:
     self.state, aux = self._train(self.state, batch, jnp.int32(step), jnp.float32(w))
     return aux
 
-  def evaluate(self, dataset: storage.Dataset, num_batches: int) -> dict:
-    """Validation loss and metrics (density top-1/5/10 %, RMSE in slots, shape F1 %)."""
-    devices = jax.device_count()
-    bs = min(self.config.train.batch_size, len(dataset) // devices * devices)
-    if bs == 0:
-      raise ValueError(f"the validation split has {len(dataset)} samples, fewer than the "
-                       f"{devices} devices")
+  def evaluate(self, dataset: storage.Dataset | None, num_batches: int) -> dict:
+    """Validation loss and metrics (density top-1/5/10 %, RMSE in slots, shape F1 %).
+
+    `dataset` None (a geometry-stage run, which reads no dataset): `num_batches` batches
+    of fresh towers from a held-out stream (voxels only; geometry and F1 are what count).
+    """
+    devices, t = jax.device_count(), self.config.train
+    if dataset is None:
+      if not num_batches:
+        raise ValueError("validation on the stream needs train.eval_batches > 0")
+      key = jax.random.key(t.seed + VAL_STREAM_SEED)
+      batches = (jax.device_get(stream.geometry_batch(jax.random.fold_in(key, i),
+                                                      t.batch_size, False))
+                 for i in range(num_batches))
+    else:
+      bs = min(t.batch_size, len(dataset) // devices * devices)
+      if bs == 0:
+        raise ValueError(f"the validation split has {len(dataset)} samples, fewer than the "
+                         f"{devices} devices")
+      batches = (model_inputs(b) for b in storage.batches(
+          dataset, bs, seed=0, part=(jax.process_index(), jax.process_count()),
+          keys=BATCH_KEYS))
     sums, aux_sum, n = None, None, 0
-    batches = storage.batches(dataset, bs, seed=0, part=(jax.process_index(), jax.process_count()),
-                           keys=BATCH_KEYS)
     for i, batch in enumerate(batches):
       if num_batches and i >= num_batches:
         break
-      batch = sharding.global_batch(model_inputs(batch), sharding.batch_sharded(self.mesh))
+      batch = sharding.global_batch(batch, sharding.batch_sharded(self.mesh))
       aux, counts = jax.device_get(self._eval(self.state, batch,
                                               jnp.float32(self.config.train.density_weight)))
       sums = counts if sums is None else jax.tree.map(np.add, sums, counts)
