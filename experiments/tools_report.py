@@ -14,7 +14,7 @@ import pipeline_steps
 
 from ppdjax import make_decompose_fn, plots
 from ppdjax.dataset import storage
-from ppdjax.infer.tables import table2_md, with_ci
+from ppdjax.infer.tables import oracle_pick_md, prior_sweep_md, table2_md
 from ppdjax.training import checkpoints
 
 FIGURE_TOOLS = 4
@@ -68,6 +68,12 @@ def figure(pipe, path: str, model_dir: str) -> str:
   return path
 
 
+def _with_interval(shape: dict, key: str) -> str:
+  """'50.1 [45.9, 54.5]' of a shape summary's key and its "KEY_ci95"."""
+  lo, hi = shape.get(key + "_ci95") or (None, None)
+  return f"{shape[key]:.1f}" + (f" [{lo:.1f}, {hi:.1f}]" if lo is not None else "")
+
+
 def markdown(r: dict, command: str) -> str:
   observes = {"Frequent": (False, False), "Nearest": (False, True), "Oracle": (True, False),
               "PPD (no trajectory)": (True, False), "PPD (no image)": (False, True)}
@@ -78,6 +84,13 @@ def markdown(r: dict, command: str) -> str:
            f"{r['objects']} test tools of the procedural tools dataset (none trained on), "
            f"{r['samples']} density samples for +Sample; 95 % bootstrap intervals in "
            f"brackets; trajectory MAE in {r['mae_units']}.", ""]
+  if r.get("rerun"):
+    lines += [f"The full model's rows (the baselines, PPD (full) and every +Fit, +Sample and "
+              f"true-box row) come from a later evaluation of the shipped model on the same "
+              f"test tools, on {r['rerun']['machine']}, with +Sample at τ = "
+              f"{r['rerun']['prior_weight']} (`experiments/tools_rerun.py`; "
+              f"`tools_rerun/results.md`):", "", "```", r["rerun"]["command"], "```", "",
+              "The ablations' rows come from the run above.", ""]
   lines += table2_md(rows, {k: observes.get(k, (True, True)) for k in rows})
   lines += ["", "| Method | MAE / Frequent's (ours) | paper |", "|---|--:|--:|"]
   for name, row in rows.items():
@@ -86,12 +99,20 @@ def markdown(r: dict, command: str) -> str:
                  + (f"{paper[4] / PAPER['Frequent'][4]:.2f}" if paper else "–") + " |")
   lines += ["", "Paper (top-1 / top-5 / top-10 / RMSE / MAE): "
             + "; ".join(f"{k} {'/'.join(str(v) for v in vals)}" for k, vals in PAPER.items()),
-            "", f"Shape F1 (IoU > 0.5): {with_ci(r['shape'], 'f1')}; box count exact on "
-            f"{with_ci(r['shape'], 'count_exact')} % of tools; paper {PAPER_F1}."
-            + (f" With the fit (+Fit's boxes): {with_ci(r['shape_fit'], 'f1')}."
+            "", f"Shape F1 (IoU > 0.5): {_with_interval(r['shape'], 'f1')}; box count exact "
+            f"on {_with_interval(r['shape'], 'count_exact')} % of tools; paper {PAPER_F1}."
+            + (f" With the fit (+Fit's boxes): {_with_interval(r['shape_fit'], 'f1')}."
                if r.get("shape_fit") else ""), "",
-            "![decomposed test tools](tools_decomposition.png)", "",
-            "Fine-tuning on the tools (validation every 50 steps; the joint stage starts where "
+            "![decomposed test tools](tools_decomposition.png)", ""]
+  if r.get("rerun"):
+    lines += ["## +Sample and τ on the test tools (a diagnostic, not a choice)", "",
+              "Each +Sample row's selection at every τ (the candidates are simulated once), "
+              "and the same candidates picked by an oracle (the sample with the least slot "
+              "error). τ is not chosen here: choosing it needs the tools' validation split.",
+              ""] + prior_sweep_md(r["rerun"]["prior_sweeps"]) + [""]
+    picks = {k.replace("PPD", "PPD (full)"): v for k, v in r["rerun"]["oracle_pick"].items()}
+    lines += oracle_pick_md({"table2": rows, "oracle_pick": picks}) + [""]
+  lines += ["Fine-tuning on the tools (validation every 50 steps; the joint stage starts where "
             "the density loss appears):", "",
             "![learning curves](tools_learning_curves.png)", "",
             "## Steps (wall time)", ""] + pipeline_steps.steps_md(r) + [""]

@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -204,3 +205,38 @@ def test_tool_shape_errors_find_the_attribute_that_misses():
   assert out["matched_with_true"]["sizes"] == 75.0
   assert out["by_thinnest_side"]["0-1 voxels"]["matched"] == 100.0  # the plates (0.6 voxel)
   assert out["by_thinnest_side"]["2-4 voxels"]["matched"] == 50.0  # the bars (2.6 voxels)
+
+
+def test_tools_rerun_replaces_the_full_models_rows_and_keeps_the_ablations(tmp_path):
+  """experiments/tools_rerun.py on the committed results: the full model's rows and the
+  τ sweep come from the new evaluation; the ablations' rows and the run's steps stay; an
+  evaluation over other objects is refused."""
+  results = os.path.join(ROOT, "experiments", "results")
+  shutil.copy(os.path.join(results, "tools.json"), tmp_path / "tools.json")
+  new = tmp_path / "eval"
+  shutil.copytree(os.path.join(results, "tools_rerun"), new)
+  with open(new / "results.json") as f:
+    ev = json.load(f)
+  ev["table2"]["PPD+Sample"]["top1"] = 99.0  # a marker that must reach tools.json
+  with open(new / "results.json", "w") as f:
+    json.dump(ev, f)
+  env = {**os.environ, "PYTHONPATH": os.path.join(ROOT, "experiments")}
+  run = lambda: subprocess.run(  # noqa: E731
+      [sys.executable, "experiments/tools_rerun.py", f"--eval={new}", f"--results={tmp_path}",
+       "--machine=test"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+  done = run()
+  assert done.returncode == 0, done.stderr[-2000:]
+  with open(tmp_path / "tools.json") as f:
+    r = json.load(f)
+  with open(os.path.join(results, "tools.json")) as f:
+    before = json.load(f)
+  assert r["rows"]["PPD (full)+Sample"]["top1"] == 99.0
+  assert r["rows"]["PPD (no image)"] == before["rows"]["PPD (no image)"]
+  assert r["steps"] == before["steps"] and r["rerun"]["machine"] == "test"
+  md = (tmp_path / "tools.md").read_text()
+  assert "| 99.0 [" in md and "τ on the test tools" in md
+  ev["objects"] = 12
+  with open(new / "results.json", "w") as f:
+    json.dump(ev, f)
+  refused = run()
+  assert refused.returncode != 0 and "test tools" in refused.stderr
