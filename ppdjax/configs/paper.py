@@ -26,6 +26,9 @@ def get_config():
   config.model.feature = 256
   config.model.hidden = 256
   config.model.dropout = 0.0
+  # 8 steps per scan iteration of the trajectory LSTMs: the same arithmetic, a training
+  # step 1.055x faster on an H100 (experiments/results/benchmarks.md, "Training step")
+  config.model.trajectory_unroll = 8
   config.train.batch_size = 256
   config.train.learning_rate = 1e-3
   config.train.warmup_steps = 300
