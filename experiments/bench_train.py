@@ -117,7 +117,7 @@ def compare_variants(ds, bs: int) -> None:
   """Model-step samples/s of the preset and of each --variants override set, in turn in
   this process on one fixed batch (a joint-phase step, the stream's loss beside it when
   the preset has one), with the ratio to the preset."""
-  from ppdjax.training.loader import BATCH_KEYS, Loader
+  from ppdjax.training.loader import Loader
   from ppdjax.training.state import Trainer
   variants = [("preset", {})]
   for item in filter(None, FLAGS.variants.split(";")):
