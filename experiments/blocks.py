@@ -9,8 +9,9 @@ Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder
 generator on the stream of fresh towers, `train.stream_steps`), then the full model and
 the no-trajectory and no-image ablations starting from it, and the no-voxels ablation
 from scratch; evaluate the full model on --max_objects test objects spread over the split
-(+Sample, the +Fit and +Fit(depth) rows, +Fit(depth)+Sample+Refine, with --joint
-+Fit(depth)+Sample+Joint, with --true_shapes the true-box column, and the baselines),
+(the whole split by default; +Sample, the +Fit and +Fit(depth) rows,
++Fit(depth)+Sample+Refine, with --joint +Fit(depth)+Sample+Joint, with --true_shapes the
+true-box column, and the baselines),
 its τ sweep on --val_objects validation objects (validate:full), and the ablations on the
 whole split (plain); then `report`: experiments/results/blocks.{json,md} and PNGs, the full model
 exported to assets/blocks_model and a decomposed example tower. Every step resumes:
@@ -50,16 +51,16 @@ flags.DEFINE_string("results", "experiments/results", "Where blocks.json/md and 
 flags.DEFINE_string("assets", "assets", "Where the exported model and example tower go.")
 flags.DEFINE_string("step", "all", "'all' (every step left), 'next', or a step name.")
 flags.DEFINE_bool("list", False, "Print the steps and their state, then exit.")
-flags.DEFINE_integer("max_objects", 512, "Evaluate the full model on N test objects (0: all; "
-                     "the ablations always on all).")
+flags.DEFINE_integer("max_objects", 0, "Evaluate the full model on N test objects (0: the "
+                     "whole split, Tables 2 and 5's; the ablations always on all).")
 flags.DEFINE_enum("subset", "spread", ["first", "spread"],
                   "The first N test objects, or N spread over the split (many towers).")
 flags.DEFINE_integer("val_objects", 256, "Validation objects for the τ sweep of the full "
                      "model (0: no validation step).")
-flags.DEFINE_bool("joint", True, "The full model's evaluation also runs +Joint (faces and "
+flags.DEFINE_bool("joint", False, "The full model's evaluation also runs +Joint (faces and "
                   "densities together; 4 s per batch of 64 on an H100, minutes to compile "
                   "on a CPU).")
-flags.DEFINE_bool("true_shapes", True, "The full model's evaluation also runs the oracle "
+flags.DEFINE_bool("true_shapes", False, "The full model's evaluation also runs the oracle "
                   "column: the same rows on the true boxes.")
 flags.DEFINE_integer("step_seconds", 540, "A training or evaluation call stops after this "
                      "long (an evaluation after the batch that passes it).")

@@ -3,7 +3,7 @@
   python experiments/prior_study.py --workdir=assets/blocks_model --data=DATA --split=val \
       --out=experiments/results/prior_study_val
 
-Per batch the evaluation's own calls (`evaluation.Evaluator`, no baselines) sample once on
+Per batch the evaluation's own calls (`evaluator.Evaluator`, no baselines) sample once on
 the boxes fitted to voxels and depth and on the true boxes (the oracle column). For every
 τ in --taus, each group's best sample (distance − τ·log prior, `sampling.
 selection_objective`) is refined by Levenberg–Marquardt under every MAP weight in
@@ -30,7 +30,7 @@ from tqdm.auto import tqdm
 
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage
-from ppdjax.infer import baselines, batches, evaluation, rows, sampling, tables
+from ppdjax.infer import baselines, batches, evaluator, rows, sampling, tables
 from ppdjax.infer.refine import refine_batch
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
@@ -74,7 +74,7 @@ def main(argv):
   if any(w < 0 for w in weights) or any(t < 0 for t in taus):
     raise ValueError(f"weights must be >= 0, got taus {taus}, map_weights {weights}")
   map_weights = [w for w in weights if w > 0]
-  ev = evaluation.Evaluator(model, config, samples=_SAMPLES.value, refine=False,
+  ev = evaluator.Evaluator(model, config, samples=_SAMPLES.value, refine=False,
                             baselines_on=False, depth=True, camera=data.camera,
                             true_shapes=True)
   common = dict(steps=12, pushes=default_pushes(), settings=DEFAULT_SETTINGS)

@@ -4,7 +4,7 @@ candidates sit along an object's candidate axis, and how each group's boxes are 
 Groups: "ppd" (the network's boxes), "fit" (fitted to the voxels, `fit.fit_boxes`),
 "fit_depth" (then to the depth image, `depth_fit`), "..._est" (the most precise fit,
 scored with the density estimator too) and "true" (the oracle column: the true boxes).
-`evaluation.Evaluator` decodes them once per batch (`decode_groups`) and simulates every
+`evaluator.Evaluator` decodes them once per batch (`decode_groups`) and simulates every
 group's candidates in one batched call.
 """
 

@@ -1,6 +1,6 @@
 """The rows of one model's evaluation: how each ranks density slots, and its per-object records.
 
-`evaluation.Evaluator` simulates every candidate of every group of boxes (`groups`) once
+`evaluator.Evaluator` simulates every candidate of every group of boxes (`groups`) once
 per batch; `batch_records` turns one batch's candidates into the records of Table 2's rows (PPD,
 +Sample, +Sample+Refine, the +Fit, +Fit(depth) and true-box rows, the baselines), Table
 4's prefixes, the τ sweep and the refinement statistics, which `tables.summarize` reduces

@@ -1,0 +1,202 @@
+"""One batch of an evaluation on the accelerator: decode, fit, sample, simulate, refine.
+
+`Evaluator` compiles the per-batch calls once for a model, batch size and sample count;
+`Evaluator.batch` returns the per-object arrays that `rows.batch_records` turns into the
+rows of Tables 2, 4 and 5 (`evaluation.evaluate` runs it over a split).
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
+                                slot_to_density_jax)
+from ppdjax.infer import baselines, sampling
+from ppdjax.infer.groups import candidate_layout, decode_groups, fit_groups
+from ppdjax.infer.joint import joint_batch
+from ppdjax.infer.refine import refine_batch
+from ppdjax.infer.tables import BASELINES, SELECTION_HORIZONS
+from ppdjax.primitives import bottom_to_top
+from ppdjax.sim.pushes import default_pushes
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
+from ppdjax.training import sharding
+
+
+def simultaneous_candidates() -> int:
+  """Candidates simulated at once (objects × candidates; × 4 pushes in rollouts): 16,384
+  on an accelerator (65,536 rollouts run at ~10× the rate of 2,048, benchmarks.md), 2,048
+  on a CPU."""
+  return 2048 if jax.default_backend() == "cpu" else 16384
+
+
+def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj, keys, *,
+              samples, with_baselines, chunk, pushes, settings):
+  """Per object: (distance (C, H) over each of SELECTION_HORIZONS, MAE (C,)) of every
+  candidate (`candidate_layout`), the network's
+  candidate slots on its boxes, and a tuple of them on each of `fitted` (a tuple of the
+  fit groups' boxes, in layout order, scored by `fit_logits`, a tuple alike). `keys`
+  (B, 4): each object's own, so that a batch split over devices draws the same."""
+  k = pred.density.shape[-1]
+
+  def one(args):
+    p, fs, lg, flg, t, bs, traj, kk = args
+    slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
+    cands = [sampling.with_slots(p, slots)]
+    fit_slots = []
+    for f, fl in zip(fs, flg):  # one key for every fit group: rows with the same scores
+      # differ by the boxes alone
+      fit_slots.append(sampling.candidate_slots(fl, f.valid, samples, kk[3])[0])
+      cands.append(sampling.with_slots(f, fit_slots[-1]))
+    if with_baselines:
+      uniform, _ = sampling.candidate_slots(jnp.zeros_like(lg), t.valid, samples, kk[1],
+                                            include_mode=False)
+      shape_slots = jax.random.randint(kk[2], (samples, k), 0, NUM_DENSITY_SLOTS)
+      cands += [sampling.with_slots(t, uniform),
+                pool.replace(density=slot_to_density_jax(shape_slots)),
+                sampling.with_slots(t, bs)]
+    cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
+    dist, mae = sampling.score_candidates(cands, traj, pushes, settings,
+                                          horizons=SELECTION_HORIZONS)
+    return dist, mae, slots, tuple(fit_slots)
+
+  return jax.lax.map(one, (pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys),
+                     batch_size=chunk)
+
+
+# +Refine and +Joint start from the sample closest in trajectory, whatever τ the +Sample
+# rows use: on the validation split of unseen towers that start refined best (top-1 62.6 %
+# against 59.9 % from τ = 0.05; experiments/results/prior_study_val.md).
+REFINE_FROM_TAU = 0.0
+
+
+_log_priors = jax.jit(jax.vmap(sampling.log_prior))  # (B, S) of each object's candidates
+
+
+def shape_pool(key, samples: int, num_slots: int):
+  """Table 4's "Sample Phys.+Shape" pool for one batch: `samples` random tower shapes
+  (`baselines.random_shapes`) seeded from the batch's key."""
+  return baselines.random_shapes(int(jax.random.randint(key, (), 0, 2**31 - 1)), samples,
+                                 num_slots=num_slots)
+
+
+class Evaluator:
+  """Compiles the per-batch calls once for a model, batch size and sample count."""
+
+  def __init__(self, model, config, *, samples: int, refine: bool, refine_steps: int = 12,
+               baselines_on: bool = True, fit: bool = False,
+               depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
+               estimator=None, estimator_weight: float = 1.0, joint: bool = False,
+               true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS):
+    if samples < 1:
+      raise ValueError(f"samples must be >= 1, got {samples}")
+    if depth and camera is None:
+      raise ValueError("the +Fit(depth) rows need the depth images' camera "
+                       "(storage.Dataset.camera)")
+    self.config, self.samples, self.refine, self.joint = config, samples, refine, joint
+    self.fits = fit_groups(fit, depth, estimator is not None)
+    if joint and not self.fits:
+      raise ValueError("+Joint moves fitted boxes' faces: it needs fit or depth")
+    self.baselines_on = baselines_on
+    self.seconds = collections.Counter()  # per stage of `batch` (`_timed`)
+    pushes = default_pushes() if pushes is None else pushes
+    # every group sampled and scored; "true" (the oracle boxes) after the fits
+    self.groups = self.fits + (("true",) if true_shapes else ())
+    self.layout = candidate_layout(samples, self.groups, baselines_on)
+    per_object = max(s.stop for s in self.layout.values())
+    chunk = max(1, simultaneous_candidates() // per_object)
+    self.graphdef, self.state = nnx.split(model)
+    est_graphdef, self.est_state = (nnx.split(estimator) if estimator is not None
+                                    else (None, None))
+    # each call runs per object: on several local devices, each takes its share of the
+    # batch (`sharding.jit_over_local_devices`; the weights and the baselines' shape pool whole)
+    per_device = sharding.jit_over_local_devices
+    self._decode = per_device(functools.partial(
+        decode_groups, self.graphdef, groups=self.fits, camera=camera,
+        est_graphdef=est_graphdef, est_weight=estimator_weight, true_shapes=true_shapes),
+        replicated=(0, 3))
+    self._simulate = per_device(functools.partial(
+        _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
+        settings=settings), replicated=(6,))
+    # without a fit, the network's boxes are refined as the paper's least squares; with a
+    # fit, the fitted boxes, as a MAP step when refine_prior > 0 (the presets: 0)
+    self._refine = per_device(functools.partial(
+        refine_batch, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
+        pushes=pushes, settings=settings))
+    # +Joint vectorised over 64 objects at once on an accelerator (a batch of 64 in 4.1 s
+    # on an H100, 20.6 s 8 at once: benchmarks.md), 8 on a CPU
+    self._joint = per_device(functools.partial(
+        joint_batch, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
+        camera=camera if depth else None, pushes=pushes, settings=settings,
+        at_once=8 if jax.default_backend() == "cpu" else 64))
+
+  def _timed(self, stage: str, fn, *args):
+    """fn(*args), waited for, its seconds added to self.seconds[stage] (where a batch's
+    time goes: the first batch's include compilation)."""
+    t = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    self.seconds[stage] += time.perf_counter() - t
+    return out
+
+  def batch(self, batch: dict, base_scores: np.ndarray | None, key, pool=None) -> dict:
+    """Per-object arrays for one batch (see `evaluate` for what they become). `pool`:
+    Table 4's random tower shapes (`shape_pool`; drawn here from `key` when None)."""
+    obs = {k: jnp.asarray(batch[k])
+           for k in OBS_KEYS + (("depth",) if "fit_depth" in self.fits else ())}
+    true = bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
+    decoded = self._timed("decode", self._decode, self.state, obs, true, self.est_state)
+    pred, logits = decoded["pred"], decoded["logits"]
+    fitted = tuple(decoded["fitted"][g] for g in self.groups)
+    fit_logits = tuple(decoded["group_logits"][g] for g in self.groups)
+    b, k = true.density.shape
+    base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
+                  else np.zeros((b, len(BASELINES), k), np.int32))
+    if pool is None:  # (unused without the baselines: one shape then)
+      pool = shape_pool(key, self.samples if self.baselines_on else 1, k)
+    dist, mae, slots, fit_slots = self._timed(
+        "sample", self._simulate, pred, fitted, logits, fit_logits, true,
+        jnp.asarray(base_slots), jax.tree.map(jnp.asarray, pool), obs["trajectories"],
+        jax.random.split(key, (b, 4)))
+    out = jax.device_get({**decoded, "hdist": dist, "mae": mae, "slots": slots})
+    out["dist"] = out["hdist"][..., SELECTION_HORIZONS.index(0)]  # the whole trajectory
+    out["logp"] = np.asarray(_log_priors(logits, slots, pred.valid))
+    out["fit_slots"] = {g: np.asarray(s) for g, s in zip(self.groups, fit_slots)}
+    out["fit_logp"] = {g: np.asarray(_log_priors(fl, s, f.valid))
+                       for g, s, f, fl in zip(self.groups, fit_slots, fitted, fit_logits)}
+    if self.refine or self.joint:  # from the closest sample, on the most precise boxes
+      group = self.fits[-1] if self.fits else "ppd"
+      prims, prior, d0, m0 = self._best_sample(out, decoded, group, REFINE_FROM_TAU)
+      if self.refine:
+        out["refine"] = jax.device_get(self._timed("refine", self._refine, prims, prior,
+                                                   obs["trajectories"], d0, m0))
+        out["refine"]["sample_dist"] = d0  # the start's distance
+      if self.joint:
+        depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((len(d0),))
+        out["joint"] = jax.device_get(self._timed("joint", self._joint, prims, prior,
+                                                  obs["trajectories"], depth, true))
+    if self.refine and "true" in self.groups:  # the oracle column refined alike
+      prims, prior, d0, m0 = self._best_sample(out, decoded, "true", REFINE_FROM_TAU)
+      out["refine_true"] = jax.device_get(self._timed("refine", self._refine, prims, prior,
+                                                      obs["trajectories"], d0, m0))
+    return out
+
+  def _best_sample(self, out: dict, decoded: dict, group: str, tau: float):
+    """A group's best candidate (by the +Sample objective at `tau`) as boxes with its
+    densities, the group's logits (the MAP prior), and its distance and MAE."""
+    fitted = group != "ppd"
+    boxes = decoded["fitted"][group] if fitted else decoded["pred"]
+    cand_slots = out["fit_slots"][group] if fitted else out["slots"]
+    d, m = out["dist"][:, self.layout[group]], out["mae"][:, self.layout[group]]
+    logp = out["fit_logp"][group] if fitted else out["logp"]
+    best = np.argmin(sampling.selection_objective(d, logp, tau), -1)
+    start = np.take_along_axis(cand_slots, best[:, None, None], 1)[:, 0]
+    prims = boxes.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
+    rows = np.arange(len(best))
+    prior = decoded["group_logits"][group] if fitted else decoded["logits"]
+    return prims, prior, d[rows, best], m[rows, best]
