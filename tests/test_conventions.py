@@ -10,7 +10,7 @@ import numpy as np
 from ppdjax import conventions, metrics, primitives
 from ppdjax.conventions import density_to_slot, density_to_slot_jax, slot_to_density
 from ppdjax.dataset import storage, stream, towers, voxels
-from ppdjax.infer import baselines, decompose, evaluation, fit, groups, joint, refine, sampling
+from ppdjax.infer import baselines, decompose, evaluator, fit, groups, joint, refine, sampling
 from ppdjax.nn import losses
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -55,11 +55,11 @@ def test_each_convention_is_defined_in_one_file():
 
 def test_consumers_use_the_one_definition():
   assert losses.bottom_to_top is primitives.bottom_to_top
-  assert evaluation.bottom_to_top is primitives.bottom_to_top
+  assert evaluator.bottom_to_top is primitives.bottom_to_top
   assert baselines.bottom_to_top_order is primitives.bottom_to_top_order
   assert baselines.rotation_vector is metrics.rotation_vector
   assert decompose.refine_if_closer is refine.refine_if_closer
-  assert evaluation.refine_batch is refine.refine_batch  # which calls refine_if_closer
+  assert evaluator.refine_batch is refine.refine_batch  # which calls refine_if_closer
   assert groups.fit_boxes is fit.fit_boxes and decompose.fit_boxes is fit.fit_boxes
   assert decompose.density_prior is refine.density_prior
   assert joint.density_prior is refine.density_prior
