@@ -265,6 +265,11 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   o = results["oracle_pick"]["PPD+Sample"]
   assert o["rmse"] <= rows["PPD+Sample"]["rmse"] + 1e-9 and o["top1"] <= o["coverage"] + 1e-9
   assert "+Sample's ceiling" in text
+  # where the time went: the first batch (compilation), then each jitted stage per batch
+  stages = results["seconds_by_stage"]
+  assert stages["batches_after_first"] >= 0 and stages["first_batch"] > 0
+  assert set(stages["after_first"]) >= {"decode", "sample", "host"}
+  assert "first batch (compilation)" in text
 
 
 @pytest.mark.slow  # the fits compile inside the evaluation: about a minute more on 2 cores

@@ -341,9 +341,10 @@ def seconds_by_part(results: dict) -> str:
            "device": "jitted calls with their compilation", "records": "records"}
   stages = results.get("seconds_by_stage", {})
   per = stages.get("batches_after_first", 0)
-  steady = ("; first batch (compilation) " + f"{stages['first_batch']:.0f} s, then per batch "
-            + ", ".join(f"{k} {v / per:.2f} s" for k, v in stages["after_first"].items())
-            if per else "")
+  steady = (f"; first batch (compilation) {stages['first_batch']:.0f} s" if stages else "")
+  steady += (", then per batch " + ", ".join(f"{k} {v / per:.2f} s"
+                                             for k, v in stages["after_first"].items())
+             if per else "")
   return (" (of the batches computed: " + ", ".join(f"{names.get(k, k)} {v:.0f} s"
                                                     for k, v in parts.items()) + steady + ")"
           if parts else "")
