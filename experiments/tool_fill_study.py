@@ -34,7 +34,7 @@ from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage
 from ppdjax.infer import baselines, rows, sampling
 from ppdjax.infer.groups import decode_groups
-from ppdjax.infer.tables import intervals, np_metrics
+from ppdjax.infer.tables import PRIOR_WEIGHTS, intervals, np_metrics
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.simulate import simulate
 from ppdjax.training import checkpoints
@@ -86,6 +86,7 @@ def main():
   parser.add_argument("--workdir", default="assets/tools_model")
   parser.add_argument("--samples", type=int, default=512)
   parser.add_argument("--fills", default=f"1.0,{CALIBRATED_FILL:.4f}")
+  parser.add_argument("--boxes", default="ppd,true", help="ppd (the network's), true")
   parser.add_argument("--objects", type=int, default=0, help="0: every tool")
   parser.add_argument("--seed", type=int, default=0)
   parser.add_argument("--out", required=True)
@@ -101,7 +102,10 @@ def main():
   valid = slot >= 0
   keys = jax.random.split(jax.random.key(args.seed), n)
   rec = {}  # (boxes, fill) -> {"dist": (n, S), "mae": (n, S), "slots": (n, S, K)}
-  for boxes in ("ppd", "true"):
+  chosen = args.boxes.split(",")
+  if not set(chosen) <= {"ppd", "true"}:
+    parser.error(f"--boxes: ppd and/or true, got {chosen}")
+  for boxes in chosen:
     prims = dec[boxes]
     cand = [np.asarray(sampling.candidate_slots(jnp.asarray(dec["logits"][i]),
                                                 jnp.asarray(prims.valid[i]), args.samples,
@@ -110,7 +114,10 @@ def main():
       d, m = zip(*[score(jax.tree.map(lambda x: x[i], prims), cand[i], fill,
                          batch["trajectories"][i], ds.pushes)
                    for i in tqdm(range(n), desc=f"{boxes} boxes, fill {fill:.3f}")])
-      rec[boxes, fill] = {"dist": np.stack(d), "mae": np.stack(m), "slots": np.stack(cand)}
+      rec[boxes, fill] = {"dist": np.stack(d), "mae": np.stack(m), "slots": np.stack(cand),
+                          "logp": np.stack([np.asarray(sampling.log_prior(
+                              jnp.asarray(dec["logits"][i]), jnp.asarray(cand[i]),
+                              jnp.asarray(prims.valid[i]))) for i in range(n)])}
   table = {}
   for (boxes, fill), r in rec.items():
     pvalid = np.asarray(dec[boxes].valid)
@@ -118,7 +125,13 @@ def main():
     counts = rows.row_counts(scores, slot, valid)
     mae = r["mae"][np.arange(n), np.argmin(r["dist"], -1)]
     row = {**np_metrics(counts, np.arange(n)), "mae": float(mae.mean()),
-           "ci95": intervals(counts, mae)}
+           "ci95": intervals(counts, mae), "tau_sweep": {}}
+    for tau in PRIOR_WEIGHTS:  # +Sample's τ on these tools: where to choose it
+      obj = sampling.selection_objective(r["dist"], r["logp"], tau)
+      c = rows.row_counts(rows.sample_scores(dec["logits"], r["slots"], obj, pvalid), slot,
+                          valid)
+      row["tau_sweep"][str(tau)] = {**np_metrics(c, np.arange(n)), "mae": float(
+          r["mae"][np.arange(n), np.argmin(obj, -1)].mean())}
     table.setdefault(boxes, {})[f"{fill:.4f}"] = row
   plain = {"ppd": rows.row_counts(dec["logits"], slot, valid)}  # the network alone
   table["network alone"] = {k: np_metrics(v, np.arange(n)) for k, v in plain.items()}
@@ -134,10 +147,18 @@ def main():
            "| boxes | fill | top-1 | top-5 | top-10 | RMSE (slots) | MAE (mm) |",
            "|---|--:|--:|--:|--:|--:|--:|"]
   ci = lambda r, k: f"{r[k]:.1f} [{r['ci95'][k][0]:.1f}, {r['ci95'][k][1]:.1f}]"
-  for boxes in ("ppd", "true"):
+  for boxes in chosen:
     for fill, r in table[boxes].items():
       lines.append(f"| {'network' if boxes == 'ppd' else 'true'} | {fill} | {ci(r, 'top1')} | "
                    f"{r['top5']:.1f} | {r['top10']:.1f} | {ci(r, 'rmse')} | {ci(r, 'mae')} |")
+  lines += ["", "+Sample's τ (distance − τ · log prior) on these tools: top-1 / RMSE / MAE",
+            "", "| boxes | fill | " + " | ".join(f"τ = {t}" for t in PRIOR_WEIGHTS) + " |",
+            "|---|--:|" + "--:|" * len(PRIOR_WEIGHTS)]
+  for boxes in chosen:
+    for fill, r in table[boxes].items():
+      lines.append(f"| {'network' if boxes == 'ppd' else 'true'} | {fill} | " + " | ".join(
+          "{top1:.1f} / {rmse:.1f} / {mae:.1f}".format(**r["tau_sweep"][str(t)])
+          for t in PRIOR_WEIGHTS) + " |")
   p = table["network alone"]["ppd"]
   lines += ["", f"The network alone (arg-max, no sampling): top-1 {p['top1']:.1f}, top-5 "
             f"{p['top5']:.1f}, top-10 {p['top10']:.1f}, RMSE {p['rmse']:.1f}.", ""]

@@ -13,11 +13,13 @@ from PIL import Image
 import pipeline_steps
 
 from ppdjax import make_decompose_fn, plots
+from ppdjax.configs import tools as tools_preset
 from ppdjax.dataset import storage
 from ppdjax.infer.tables import oracle_pick_md, prior_sweep_md, table2_md
 from ppdjax.training import checkpoints
 
 FIGURE_TOOLS = 4
+PRESET_TAU = tools_preset.get_config().eval.prior_weight  # +Sample's τ for tools
 # Table 3 of the paper: top-1 / top-5 / top-10 (%), RMSE (slots), trajectory MAE
 PAPER = {"Frequent": (2.5, 10.2, 13.6, 25.9, 348.2), "Nearest": (2.9, 8.3, 12.4, 25.8, 329.7),
          "Oracle": (7.4, 35.2, 72.0, 19.1, 185.8),
@@ -108,8 +110,16 @@ def markdown(r: dict, command: str) -> str:
     lines += ["## +Sample and τ on the test tools (a diagnostic, not a choice)", "",
               "Each +Sample row's selection at every τ (the candidates are simulated once), "
               "and the same candidates picked by an oracle (the sample with the least slot "
-              "error). τ is not chosen here: choosing it needs the tools' validation split.",
-              ""] + prior_sweep_md(r["rerun"]["prior_sweeps"]) + [""]
+              "error). τ is not chosen here, on the test tools: the tools preset's τ = "
+              f"{PRESET_TAU} was chosen on 200 tools of another seed, none trained on, by "
+              "density RMSE (`tool_fill_study/tau_choice/`)."]
+    at = r["rerun"]["prior_sweeps"]["PPD+Sample"].get(str(PRESET_TAU))
+    if at:
+      lines += [f"At τ = {PRESET_TAU} the test tools read PPD (full)+Sample top-1 "
+                f"{at['top1']:.1f}, top-5 {at['top5']:.1f}, top-10 {at['top10']:.1f}, RMSE "
+                f"{at['rmse']:.1f}, MAE {at['mae']:.1f} mm (the table above: τ = 0, the "
+                "paper's rule)."]
+    lines += [""] + prior_sweep_md(r["rerun"]["prior_sweeps"]) + [""]
     picks = {k.replace("PPD", "PPD (full)"): v for k, v in r["rerun"]["oracle_pick"].items()}
     lines += oracle_pick_md({"table2": rows, "oracle_pick": picks}) + [""]
   lines += ["Fine-tuning on the tools (validation every 50 steps; the joint stage starts where "

@@ -99,6 +99,7 @@ def run(mesh: str, materials, densities, model: str, out: str, samples: int = 51
   # simulated here under the tools' pushes; a tracked trajectory under the model's own
   fit = bool(trajectory) if fit is None else fit
   decompose = make_decompose_fn(trained, num_samples=samples, fit=fit,
+                                prior_weight=float(config.eval.get("prior_weight", 0.0)),
                                 pushes=None if trajectory else tool_scene.tool_pushes(),
                                 settings=settings_for(engine) if engine else None)
   print(f"decomposing with {model} ({samples} density candidates; the first call compiles)")
