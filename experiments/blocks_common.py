@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 
 import jax
-from absl import flags, logging
+from absl import app, flags, logging
 from ml_collections import config_flags
 
 jax.config.update("jax_compilation_cache_dir",
@@ -102,3 +103,24 @@ def write(out_dir: str, name: str, payload: dict, markdown: str) -> None:
   with open(os.path.join(out_dir, f"{name}.md"), "w") as f:
     f.write(markdown)
   print(f"wrote {out_dir}/{name}.json and {name}.md", flush=True)
+
+
+EVALUATION_FILES = ("results.json", "results.md", "confusion.png")
+
+
+def read_evaluation(folder: str) -> dict:
+  """The results.json of an evaluation's output folder (`python -m ppdjax.evaluate
+  --out=FOLDER`); a usage error naming the folder if it has none."""
+  src = os.path.join(folder, "results.json")
+  if not os.path.exists(src):
+    raise app.UsageError(f"{src} does not exist: --eval names an evaluation's output folder")
+  with open(src) as f:
+    return json.load(f)
+
+
+def copy_evaluation(folder: str, out: str) -> None:
+  """An evaluation's results.json, results.md and confusion.png, copied into `out`."""
+  os.makedirs(out, exist_ok=True)
+  for name in EVALUATION_FILES:
+    if os.path.exists(os.path.join(folder, name)):
+      shutil.copyfile(os.path.join(folder, name), os.path.join(out, name))

@@ -14,10 +14,10 @@ RESULTS/blocks_whole_split/.
 
 import json
 import os
-import shutil
 
 from absl import app, flags
 
+import blocks_common as common
 import blocks_report
 
 _EVAL = flags.DEFINE_string("eval", None, "The whole-split evaluation's output folder.",
@@ -31,22 +31,15 @@ _MACHINE = flags.DEFINE_string("machine", None, "The machine it ran on, for the 
 
 def main(argv):
   del argv
-  src = os.path.join(_EVAL.value, "results.json")
-  if not os.path.exists(src):
-    raise app.UsageError(f"{src} does not exist: --eval names an evaluation's output folder")
-  with open(src) as f:
-    full = json.load(f)
+  full = common.read_evaluation(_EVAL.value)
   blocks_path = os.path.join(_RESULTS.value, "blocks.json")
   with open(blocks_path) as f:
     r = json.load(f)
   if full["split"] != "test" or full["objects"] < 1000:
-    raise app.UsageError(f"{src} evaluated {full['objects']} objects of {full['split']!r}: "
+    raise app.UsageError(f"{_EVAL.value} evaluated {full['objects']} objects of {full['split']!r}: "
                          "not the whole test split")
   out = os.path.join(_RESULTS.value, "blocks_whole_split")
-  os.makedirs(out, exist_ok=True)
-  for name in ("results.json", "results.md", "confusion.png"):
-    if os.path.exists(os.path.join(_EVAL.value, name)):
-      shutil.copyfile(os.path.join(_EVAL.value, name), os.path.join(out, name))
+  common.copy_evaluation(_EVAL.value, out)
   with open(os.path.join(out, "README.md"), "w") as f:
     f.write(f"# The full model on the whole test split ({full['objects']} objects)\n\n"
             f"Machine: {_MACHINE.value}. Commands:\n\n```\n"

@@ -16,10 +16,10 @@ RESULTS/tools_rerun/.
 
 import json
 import os
-import shutil
 
 from absl import app, flags
 
+import blocks_common as common
 import tools_report
 
 _EVAL = flags.DEFINE_string("eval", None, "The evaluation's output folder.", required=True)
@@ -32,16 +32,13 @@ FULL_ROWS = {"Frequent": "Frequent", "Nearest": "Nearest", "Oracle": "Oracle",
 
 def main(argv):
   del argv
-  src = os.path.join(_EVAL.value, "results.json")
-  if not os.path.exists(src):
-    raise app.UsageError(f"{src} does not exist: --eval names an evaluation's output folder")
-  with open(src) as f:
-    full = json.load(f)
+  full = common.read_evaluation(_EVAL.value)
   path = os.path.join(_RESULTS.value, "tools.json")
   with open(path) as f:
     r = json.load(f)
   if full["split"] != "test" or full["objects"] != r["objects"]:
-    raise app.UsageError(f"{src} evaluated {full['objects']} objects of {full['split']!r}; "
+    raise app.UsageError(f"{_EVAL.value} evaluated {full['objects']} objects of "
+                         f"{full['split']!r}; "
                          f"tools.json's rows are over the {r['objects']} test tools")
   for name, row in full["table2"].items():  # the +Fit and true-box rows keep their names
     r["rows"][FULL_ROWS.get(name, name.replace("PPD", "PPD (full)"))] = row
@@ -50,10 +47,7 @@ def main(argv):
                 "prior_weight": full["prior_weight"], "prior_sweeps": full["prior_sweeps"],
                 "oracle_pick": full["oracle_pick"], "seconds": full["seconds"]}
   out = os.path.join(_RESULTS.value, "tools_rerun")
-  os.makedirs(out, exist_ok=True)
-  for name in ("results.json", "results.md", "confusion.png"):
-    if os.path.exists(os.path.join(_EVAL.value, name)):
-      shutil.copyfile(os.path.join(_EVAL.value, name), os.path.join(out, name))
+  common.copy_evaluation(_EVAL.value, out)
   with open(path, "w") as f:
     json.dump(r, f, indent=1)
   with open(os.path.join(_RESULTS.value, "tools.md"), "w") as f:
