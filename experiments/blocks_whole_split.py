@@ -50,11 +50,8 @@ def main(argv):
   command = ((_DATA_COMMAND.value + "\n") if _DATA_COMMAND.value else "") + full["command"]
   r["whole_split"] = blocks_report.whole_split(r, full, command)
   r["whole_split"]["machine"] = _MACHINE.value
-  with open(blocks_path, "w") as f:
-    json.dump(r, f, indent=1)
-  with open(os.path.join(_RESULTS.value, "blocks.md"), "w") as f:
-    f.write(blocks_report.markdown(r, r["command"]))
-  print(f"wrote {blocks_path}, blocks.md and {out}")
+  common.write(_RESULTS.value, "blocks", r, blocks_report.markdown(r, r["command"]))
+  print(f"and {out}")
 
 
 if __name__ == "__main__":

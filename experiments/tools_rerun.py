@@ -48,11 +48,8 @@ def main(argv):
                 "oracle_pick": full["oracle_pick"], "seconds": full["seconds"]}
   out = os.path.join(_RESULTS.value, "tools_rerun")
   common.copy_evaluation(_EVAL.value, out)
-  with open(path, "w") as f:
-    json.dump(r, f, indent=1)
-  with open(os.path.join(_RESULTS.value, "tools.md"), "w") as f:
-    f.write(tools_report.markdown(r, r["command"]))
-  print(f"wrote {path}, tools.md and {out}")
+  common.write(_RESULTS.value, "tools", r, tools_report.markdown(r, r["command"]))
+  print(f"and {out}")
 
 
 if __name__ == "__main__":
