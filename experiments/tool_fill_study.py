@@ -9,6 +9,8 @@ it is scored by stay the labels'. Both the network's boxes and the true boxes, o
 tool of a dataset the tools model never saw, each candidate simulated with MuJoCo C (the
 engine the tools' own trajectories came from), the network's 512 samples per tool:
 
+    python -m ppdjax.generate --config=ppdjax/configs/tools.py --config.seed=7 \
+        --config.data.num_tools=200 --out=out/tools_s7
     python experiments/tool_fill_study.py --data=out/tools_s7 \
         --out=experiments/results/tool_fill_study
 
@@ -141,7 +143,9 @@ def main():
     json.dump({"command": command, "tools": n, "samples": args.samples, "fills": fills,
                "engine": "mujoco (C)", "table": table}, f, indent=1)
   lines = ["# +Sample on tools with the boxes' fill", "", f"`{command}`", "",
-           f"{n} tools of `{args.data}` (a seed the tools model never saw), {args.samples} "
+           f"{n} tools of `{args.data}` (a seed the tools model never saw; made by `python "
+           "-m ppdjax.generate --config=ppdjax/configs/tools.py --config.seed=7 "
+           f"--config.data.num_tools=200 --out={args.data}`), {args.samples} "
            "network samples each, simulated with MuJoCo C at fill × their densities; "
            "+Sample picks the closest trajectory (τ = 0). 95 % intervals in brackets.", "",
            "| boxes | fill | top-1 | top-5 | top-10 | RMSE (slots) | MAE (mm) |",
