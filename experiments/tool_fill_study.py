@@ -138,14 +138,16 @@ def main():
   plain = {"ppd": rows.row_counts(dec["logits"], slot, valid)}  # the network alone
   table["network alone"] = {k: np_metrics(v, np.arange(n)) for k, v in plain.items()}
   os.makedirs(args.out, exist_ok=True)
+  with open(os.path.join(args.data, "manifest.json")) as f:
+    made = json.load(f)  # the dataset's seed and size, for the command that made it
   command = "python experiments/tool_fill_study.py " + " ".join(sys.argv[1:])
   with open(os.path.join(args.out, "results.json"), "w") as f:
     json.dump({"command": command, "tools": n, "samples": args.samples, "fills": fills,
                "engine": "mujoco (C)", "table": table}, f, indent=1)
   lines = ["# +Sample on tools with the boxes' fill", "", f"`{command}`", "",
            f"{n} tools of `{args.data}` (a seed the tools model never saw; made by `python "
-           "-m ppdjax.generate --config=ppdjax/configs/tools.py --config.seed=7 "
-           f"--config.data.num_tools=200 --out={args.data}`), {args.samples} "
+           f"-m ppdjax.generate --config=ppdjax/configs/tools.py --config.seed={made['seed']} "
+           f"--config.data.num_tools={made['tools']} --out={args.data}`), {args.samples} "
            "network samples each, simulated with MuJoCo C at fill × their densities; "
            "+Sample picks the closest trajectory (τ = 0). 95 % intervals in brackets.", "",
            "| boxes | fill | top-1 | top-5 | top-10 | RMSE (slots) | MAE (mm) |",
