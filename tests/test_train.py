@@ -352,6 +352,7 @@ def test_a_truncated_checkpoint_is_named_and_training_resumes_from_an_intact_one
   load(workdir, "latest")
 
 
+@pytest.mark.slow  # two more compilations (~20 s on 2 cores): `make test-all`
 def test_a_geometry_stream_run_reads_no_dataset_and_validates_on_a_held_out_stream(tmp_path):
   """The pipeline's geometry stage starts before the dataset exists: a run of stream steps
   alone opens no split and reports the held-out stream's geometry metrics."""
