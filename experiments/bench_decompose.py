@@ -12,7 +12,9 @@ draws `samples` density assignments per object; then
   * C (peer): the same decode and draws (jitted), then all candidates simulated with
     `mujoco.batch` on every CPU core, scored with the same distance and selected.
 Latency: median of --repeats warm calls for one object; throughput: objects / s of a
-batch. Prints a markdown table.
+batch. `--screens 32:64,64:64` also times the GPU default engine with screened selection
+(every candidate over the first 32 steps, the 64 closest over all 256; `make_decompose_fn(
+screen_steps=, screen_keep=)`). Prints a markdown table.
 """
 
 from __future__ import annotations
@@ -93,6 +95,8 @@ def main():
   parser.add_argument("--engines", default=",".join(ENGINES),
                       help=f"comma-separated, of {list(ENGINES)}")
   parser.add_argument("--skip_batch", action="store_true", help="one object only")
+  parser.add_argument("--screens", default="",
+                      help="comma-separated STEPS:KEEP screens to time on the box-plane step")
   parser.add_argument("--out", default="")
   args = parser.parse_args()
   config = paper.get_config()
@@ -111,11 +115,15 @@ def main():
     print(f"{engine:28s} {what:22s} {seconds * 1e3:9.1f} ms  {n / seconds:8.2f} objects/s",
           flush=True)
 
-  for engine, settings in ENGINES.items():
-    if engine not in args.engines.split(","):
-      continue
+  runs = [(engine, settings, {}) for engine, settings in ENGINES.items()
+          if engine in args.engines.split(",")]
+  for screen in filter(None, args.screens.split(",")):
+    steps, keep = (int(x) for x in screen.split(":"))
+    runs.append((f"box-plane step, screen {steps} steps -> {keep}", ENGINES["box-plane step"],
+                 {"screen_steps": steps, "screen_keep": keep}))
+  for engine, settings, screen in runs:
     decompose = ppdjax.make_decompose_fn((model, config), num_samples=args.samples,
-                                         settings=settings)
+                                         settings=settings, **screen)
     block = lambda out: jax.block_until_ready(out.primitives.density)
     t0 = time.perf_counter()
     block(decompose(one, key))
@@ -125,6 +133,8 @@ def main():
     if not args.skip_batch:
       _, s = timed(lambda: block(decompose(obs, key)), max(1, args.repeats // 2))
       add(f"{engine} (jitted decompose)", f"batch of {args.batch}", args.batch, s)
+    if screen:
+      continue  # the rest is the engine's, timed above
     physics_only = jax.jit(lambda c, s=settings: rollout_mjx.simulate(
         c, ppdjax.default_pushes(), settings=s))
     cands = jax.tree.map(lambda x: jnp.broadcast_to(x[0], (args.samples,) + x.shape[1:]),

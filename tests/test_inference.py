@@ -106,6 +106,37 @@ def test_sampling_finds_the_truth_when_the_prior_contains_it(tower):
   assert 7 <= len(distinct) == len({tuple(r) for r in distinct}) <= 9  # of the 9 in support
 
 
+def test_the_screen_refuses_bad_settings_and_knows_when_it_is_off():
+  assert sampling.check_screen(32, 64, 512, 256)
+  assert not sampling.check_screen(0, 64, 512, 256)  # off
+  assert not sampling.check_screen(256, 64, 512, 256)  # the prefix is the whole trajectory
+  assert not sampling.check_screen(32, 512, 512, 256)  # everyone survives
+  for steps, keep in ((-1, 8), (8, 0)):
+    with pytest.raises(ValueError, match="screen_steps must be >= 0"):
+      sampling.check_screen(steps, keep, 16, 256)
+
+
+@pytest.mark.slow  # compiles the screen's short rollouts and the survivors' whole ones
+def test_screened_selection_keeps_the_survivors_scores_and_the_winner(tower):
+  """The screen simulates the survivors exactly as exhaustive selection does; with enough
+  survivors it finds the same densities (the truth here)."""
+  prims, observed = tower
+  true = np.asarray(jnp.rint(prims.density / 100.0) - 1).astype(int)
+  logits = jnp.full((5, 100), -1e9)
+  for k in range(2):
+    t = true[k]
+    logits = logits.at[k, t - 3].set(0.0).at[k, t].set(0.5).at[k, t + 3].set(1.0)
+  select = lambda **kw: jax.jit(lambda p, lg, o, key: sampling.select_densities(
+      p, lg, o, PUSHES, num_samples=16, key=key, **kw))(prims, logits, observed,
+                                                          jax.random.key(0))
+  full, screened = select(), select(screen_steps=8, screen_keep=4)
+  scores, kept = np.asarray(screened.scores), np.isfinite(np.asarray(screened.scores))
+  assert kept.sum() == 4
+  np.testing.assert_allclose(scores[kept], np.asarray(full.scores)[kept], rtol=1e-5)
+  np.testing.assert_allclose(screened.density[:2], prims.density[:2])
+  assert float(screened.score) == pytest.approx(float(full.score), abs=1e-7)
+
+
 def test_the_refinement_horizon_doubles_then_covers_the_trajectory():
   h = refine.horizon_schedule(12, 8, 256)
   assert h.tolist() == [8, 8, 16, 32, 64, 128] + [256] * 7  # 12 iterations: 13 passes
@@ -374,6 +405,30 @@ def test_the_selection_horizon_picks_by_the_distance_over_its_steps():
   np.testing.assert_array_equal(swept[("prefix", "PPD", 8)], full[("prefix", "PPD", 8)])
   with pytest.raises(ValueError, match="selection_horizon"):
     rows.batch_records(out, slot, slot >= 0, base, selection_horizon=33, **kw)
+
+
+def test_the_screen_replay_keeps_the_winner_only_when_it_survives_the_prefix():
+  """`rows.screen_records`: the pick is the best by the row's objective among the `keep`
+  closest over the first `steps` steps; 'same' says whether that is the exhaustive pick."""
+  from ppdjax.infer import rows
+  out, slot, base, layout = _fake_batch_output(b=8, s=64)
+  h16, h0 = tables.SELECTION_HORIZONS.index(16), tables.SELECTION_HORIZONS.index(0)
+  ppd = out["hdist"][:, layout["ppd"]]  # a view: edits reach out["hdist"]
+  ppd[:4, 5, h16] = -1.0   # objects 0-3: candidate 5 wins over all steps and survives
+  ppd[:, 5, h0] = -1.0
+  ppd[4:, 5, h16] = 9.0    # objects 4-7: it is the farthest over the first 16 steps
+  out["dist"] = out["hdist"][..., h0]
+  rec = rows.batch_records(out, slot, slot >= 0, base, samples=64, prior_weight=0.0,
+                           prefixes=(1,), with_baselines=True, refine=False, layout=layout)
+  same = rec[("screen", "PPD+Sample", 16, 32, "same")]
+  np.testing.assert_array_equal(same, [True] * 4 + [False] * 4)
+  np.testing.assert_array_equal(rec[("screen", "PPD+Sample", 16, 32, "mae")][:4],
+                                out["mae"][:4, layout["ppd"]][:, 5])
+  assert ("screen", "PPD+Fit+Sample", 32, 32, "top1") in rec
+  assert ("screen", "PPD+Sample", 64, 64, "same") not in rec  # keeps every candidate
+  results = tables.summarize({}, rec)
+  assert results["screens"]["PPD+Sample"]["16:32"]["same_pick"] == pytest.approx(50.0)
+  assert any(line.startswith("| PPD+Sample | 16 → 32 | 50.0") for line in tables.screen_md(results))
 
 
 def test_the_records_count_hits_as_the_metrics_do():

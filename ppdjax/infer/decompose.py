@@ -13,7 +13,7 @@ from ppdjax.dataset.camera import check_camera
 from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import density_prior, refine_if_closer
-from ppdjax.infer.sampling import select_densities
+from ppdjax.infer import sampling
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
@@ -33,7 +33,8 @@ class Decomposition:
       used: the network's, or with an estimator its log-probabilities and the network's
       combined (`ppdjax.nn.estimator.combine_logits`).
     score: (B,) trajectory distance (metres) of the returned densities.
-    scores: (B, S) every sampled candidate's distance (candidate 0: the arg-max).
+    scores: (B, S) every sampled candidate's distance (candidate 0: the arg-max; inf for
+      one screened out, `make_decompose_fn(screen_steps=)`).
     trajectories: (B, P, T, 7) the returned object simulated under the pushes.
   """
 
@@ -90,7 +91,8 @@ def is_paper_pushes(pushes: Pushes) -> bool:
 def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       camera: dict | None = None, refine: bool = False,
                       refine_steps: int = 12, prior_weight: float = 0.0,
-                      mass_match: bool = False, refine_prior: float = 0.0, estimator=None,
+                      mass_match: bool = False, screen_steps: int = 0, screen_keep: int = 64,
+                      refine_prior: float = 0.0, estimator=None,
                       estimator_weight: float = 1.0, pushes: Pushes | None = None,
                       settings: Settings | None = None):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
@@ -112,6 +114,12 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     prior_weight: τ of `select_densities` (0: the closest trajectory wins).
     mass_match: `select_densities`' second pass: candidates scaled to the closest one's
       total mass and simulated again (twice the rollouts; continuous densities).
+    screen_steps: > 0 simulates every candidate over its first `screen_steps` steps only
+      and the `screen_keep` closest over that prefix whole; the answer is the best of those
+      (`select_densities`; 0: every candidate whole, the paper's). Candidates screened
+      out have score inf. docs/inference.md says what it costs and how often it keeps
+      the exhaustive answer.
+    screen_keep: survivors of the screen per object.
     refine_prior: > 0 makes refinement a MAP step under the network's density scores
       (`refine.refine_densities`'s prior_weight; 1e-5: a one-σ move costs about 3 mm of
       trajectory residual); 0 is plain least squares.
@@ -136,6 +144,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   model, config = trained
   if num_samples < 1:
     raise ValueError(f"num_samples must be >= 1, got {num_samples}")
+  sampling.check_screen(screen_steps, screen_keep, num_samples, 0)  # its errors, now
   if camera is not None and not fit:
     raise ValueError("camera is for the depth fit: it needs fit=True")
   if camera is not None:
@@ -170,9 +179,10 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
       logits = combine_logits(logits, nnx.merge(est_graphdef, est_state)(prims, traj),
                               estimator_weight)
     keys = jax.random.split(key, traj.shape[0])
-    sel = jax.vmap(lambda p, l, o, kk: select_densities(
+    sel = jax.vmap(lambda p, l, o, kk: sampling.select_densities(
         p, l, o, pushes, num_samples=num_samples, key=kk, prior_weight=prior_weight,
-        mass_match=mass_match, settings=settings))(prims, logits, traj, keys)
+        mass_match=mass_match, screen_steps=screen_steps, screen_keep=screen_keep,
+        settings=settings))(prims, logits, traj, keys)
     prims = prims.replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
     if refine:  # from the closest candidate whatever τ chose, as the evaluation's +Refine

@@ -13,7 +13,8 @@ import numpy as np
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, SLOT_DENSITY
 from ppdjax.infer import sampling
-from ppdjax.infer.tables import BASELINES, FIT_ROWS, PRIOR_WEIGHTS, SELECTION_HORIZONS
+from ppdjax.infer.tables import (BASELINES, FIT_ROWS, PRIOR_WEIGHTS, SCREENS,
+                                 SELECTION_HORIZONS)
 
 
 SAMPLED_ABOVE = 1e9  # slots no sample has rank below every sampled one (objectives >= 0)
@@ -76,6 +77,29 @@ def oracle_pick(row, logits, slots, slot, valid, pvalid) -> dict:
   return out
 
 
+def screen_records(row, hdist, objective, mae, logits, slots, slot, valid, pvalid) -> dict:
+  """Screened selection (`sampling.select_densities(screen_steps=)`) replayed on a +Sample
+  row's exhaustively simulated candidates, for each (steps, keep) of SCREENS: the `keep`
+  candidates closest over the first `steps` steps (hdist (B, S, H)), the best of them by
+  `objective` (B, S). Keyed ("screen", row, steps, keep, name): "same" whether that is the
+  exhaustive pick, "mae" its trajectory MAE and `row_counts` of its slots."""
+  b, s = objective.shape
+  rows = np.arange(b)
+  exhaustive = np.argmin(objective, -1)
+  out = {}
+  for steps, keep in SCREENS:
+    if keep >= s:
+      continue
+    prefix = hdist[..., SELECTION_HORIZONS.index(steps)]
+    survivors = np.argsort(prefix, -1, kind="stable")[:, :keep]
+    pick = survivors[rows, np.argmin(np.take_along_axis(objective, survivors, -1), -1)]
+    counts = row_counts(sample_scores(logits, slots[rows, pick][:, None], np.zeros((b, 1)),
+                                      pvalid), slot, valid)
+    counts.update(mae=mae[rows, pick], same=pick == exhaustive)
+    out.update({("screen", row, steps, keep, k): v for k, v in counts.items()})
+  return out
+
+
 def _sweep(row, logits, slots, objective, mae, pvalid, slot, valid, selection_index,
            horizons: bool) -> dict:
   """A +Sample row's records for every τ in PRIOR_WEIGHTS (free: the candidates are
@@ -129,6 +153,8 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   rec.update(_sweep("PPD+Sample", logits, slots, objective, omae, pvalid, slot, valid, hi,
                      horizon_sweep))
   rec.update(oracle_pick("PPD+Sample", logits, slots, slot, valid, pvalid))
+  rec.update(screen_records("PPD+Sample", hdist, objective(prior_weight), omae, logits, slots,
+                            slot, valid, pvalid))
   for p in prefixes:
     rec[("prefix", "PPD", p)] = omae[rows, np.argmin(dist[:, :p], -1)]
   if with_baselines:
@@ -160,6 +186,8 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
                       fvalid, slot, valid, hi, horizon_sweep))
     rec.update(oracle_pick(name + "+Sample", glogits, out["fit_slots"][group], slot, valid,
                            fvalid))
+    rec.update(screen_records(name + "+Sample", fhd, f_obj, fm, glogits,
+                              out["fit_slots"][group], slot, valid, fvalid))
     if group != "true":  # +Refine and +Joint start from the most precise fit
       sample_row, pvalid = name + "+Sample", fvalid
     for p in prefixes:

@@ -27,6 +27,9 @@ PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
 PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
 # +Sample's distance over the first h steps, swept beside τ (0: all steps, the paper's)
 SELECTION_HORIZONS = (16, 32, 64, 128, 0)
+# screened selection replayed on the exhaustive candidates (`rows.screen_records`): every
+# candidate over the first `steps` steps (one of SELECTION_HORIZONS), the `keep` closest whole
+SCREENS = ((16, 32), (16, 64), (32, 32), (32, 64), (32, 128), (64, 64), (64, 128))
 
 # --- the paper's published numbers (block towers), the one copy every report reads -------
 
@@ -171,6 +174,16 @@ def summarize(switches: dict, rec: dict) -> dict:
     results["oracle_pick"][row] = {
         **metrics.summarize(counts), "ci95": intervals(counts, None),
         "coverage": 100.0 * float(cover.sum()) / max(float(valid.sum()), 1.0)}
+  results["screens"] = {}  # +Sample row -> "steps:keep" -> metrics and agreement
+  for row, steps, keep in sorted({k[1:4] for k in rec if k[0] == "screen"},
+                                 key=lambda k: (PPD_ROWS.index(k[0]), k[1], k[2])):
+    counts = group("screen", row, steps, keep)
+    mae, same = counts.pop("mae"), counts.pop("same")
+    results["screens"].setdefault(row, {})[f"{steps}:{keep}"] = {
+        **metrics.summarize(counts), "mae": float(np.mean(mae)),
+        "same_pick": 100.0 * float(np.mean(same)),
+        "same_pick_ci95": metrics.bootstrap_interval(
+            lambda i, same=same: 100.0 * float(np.mean(same[i])), len(same))}
   for k, v in rec.items():
     if k[0] == "prefix":
       results["table4"].setdefault(k[1], {})[str(k[2])] = float(np.mean(v))
@@ -279,6 +292,23 @@ def oracle_pick_md(results: dict) -> list[str]:
   return lines
 
 
+def screen_md(results: dict) -> list[str]:
+  """Markdown lines: per +Sample row and screen, how often it keeps the exhaustive pick
+  and the pick's top-1 / RMSE / MAE beside the exhaustive row's."""
+  lines = ["| row | screen: steps → survivors | same pick (%) | top-1 | RMSE | MAE (mm) |",
+           "|---|---|--:|--:|--:|--:|"]
+  for row, screens in results["screens"].items():
+    r = results["table2"][row]
+    lines.append(f"| {row} | none (all 512 whole) | 100 | {r['top1']:.1f} | "
+                 f"{r['rmse']:.2f} | {r['mae']:.1f} |")
+    for name, o in screens.items():
+      steps, keep = name.split(":")
+      lo, hi = o["same_pick_ci95"]
+      lines.append(f"| {row} | {steps} → {keep} | {o['same_pick']:.1f} [{lo:.1f}, {hi:.1f}] | "
+                   f"{o['top1']:.1f} | {o['rmse']:.2f} | {o['mae']:.1f} |")
+  return lines
+
+
 def results_md(results: dict, command: str = "") -> str:
   """A results.md laid out like the paper's tables, with the paper's numbers beside."""
   m = results["model"]
@@ -323,6 +353,13 @@ def results_md(results: dict, command: str = "") -> str:
     lines += ["## +Sample's ceiling: the best of the same samples picked by their densities",
               ""]
     lines += oracle_pick_md(results)
+    lines += [""]
+  if results.get("screens"):
+    lines += ["## Screened selection, replayed on the same candidates", "",
+              "Each screen keeps the candidates closest over the first steps and picks the "
+              "best of them by the row's objective (`make_decompose_fn(screen_steps=, "
+              "screen_keep=)`); same pick: the exhaustive winner is among the survivors.", ""]
+    lines += screen_md(results)
     lines += [""]
   if "refine_stats" in results:
     r = results["refine_stats"]
