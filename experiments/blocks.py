@@ -41,7 +41,7 @@ import blocks_common as common  # noqa: E402
 import blocks_report  # noqa: E402
 import pipeline_steps  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
-from ppdjax.infer import evaluation, partial, tables  # noqa: E402
+from ppdjax.infer import evaluation, markdown, partial  # noqa: E402
 from ppdjax.training import loop  # noqa: E402
 from ppdjax.training.state import total_steps  # noqa: E402
 
@@ -194,7 +194,7 @@ class Pipeline:
         batch_size=e.batch_size, max_objects=FLAGS.val_objects, subset="spread",
         with_baselines=False, prior_weight=s["prior_weight"], fit=s["fit"], depth=s["depth"])
     results["max_objects"] = FLAGS.val_objects
-    tables.write_results(
+    markdown.write_results(
         results, os.path.dirname(self.val_path()),
         f"python -m ppdjax.evaluate --workdir=full --data=data --split=val "
         f"--samples={s['samples']} --norefine --nobaselines --prior_weight={s['prior_weight']}"
@@ -222,7 +222,7 @@ class Pipeline:
       print(f"[{variant}] {paused}", flush=True)
       return
     results["max_objects"] = n
-    tables.write_results(
+    markdown.write_results(
         results, os.path.dirname(self.eval_path(variant)),
         f"python -m ppdjax.evaluate --workdir={variant} --data=data --samples={s['samples']}"
         + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"

@@ -20,7 +20,7 @@ jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
 import pipeline_steps  # noqa: E402
-from ppdjax.infer import evaluation, tables  # noqa: E402
+from ppdjax.infer import evaluation, markdown  # noqa: E402
 from ppdjax.training import loop  # noqa: E402
 
 # variant -> (model switch turned off, the paper's Table 2 row)
@@ -87,7 +87,7 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
   settings = evaluation.eval_settings(config, samples=samples, refine=refine)
   results = evaluation.evaluate(workdir, data_dir, max_objects=max_objects, **settings)
   results["max_objects"] = max_objects
-  tables.write_results(results, out, f"python -m ppdjax.evaluate --workdir={workdir} "
+  markdown.write_results(results, out, f"python -m ppdjax.evaluate --workdir={workdir} "
                          f"--data={data_dir} --samples={samples}"
                          + (" --refine" if refine else "")
                          + f" --prior_weight={config.eval.prior_weight}"

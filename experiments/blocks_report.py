@@ -17,7 +17,7 @@ import numpy as np
 import pipeline_steps
 
 from ppdjax.dataset import storage
-from ppdjax.infer import example, tables
+from ppdjax.infer import example, markdown, tables
 from ppdjax.plots import plot_confusion, plot_variant_curves
 from ppdjax.training import checkpoints
 
@@ -167,7 +167,7 @@ def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
   return out
 
 
-def markdown(r: dict, command: str) -> str:
+def report_md(r: dict, command: str) -> str:
   devices = sorted({s["device"] for s in r["steps"].values()})
   lines = ["# Block towers at paper scale: Tables 2, 4 and 5", "", "```", command, "```", "",
            f"Machine: {', '.join(devices)}. Test split, "
@@ -194,22 +194,22 @@ def markdown(r: dict, command: str) -> str:
   lines += ["", "Objects evaluated in parentheses; 95 % bootstrap intervals over objects in "
             "brackets.", "",
             f"Shape F1 of the full model: **{r['f1']:.1f}** (paper {tables.PAPER_SHAPE_F1})"
-            + tables.shape_line(r) + "; ablations: "
+            + markdown.shape_line(r) + "; ablations: "
             + ", ".join(f"{k} {v:.1f}" for k, v in r["f1_ablations"].items()) + ".", "",
             "## Table 4: best of N samples, trajectory MAE (mm)", ""]
-  lines += tables.table4_md(r["table4"])
+  lines += markdown.table4_md(r["table4"])
   if r.get("face_error_mm"):
     lines += ["", "## Face error (mm) against the true boxes, k-th box from the bottom", ""]
-    lines += tables.face_md(r["face_error_mm"])
-  lines += ["", "Paper (1×/8×/64×/512×): " + tables.paper_line(tables.PAPER_TABLE4) + ".", "",
+    lines += markdown.face_md(r["face_error_mm"])
+  lines += ["", "Paper (1×/8×/64×/512×): " + markdown.paper_line(tables.PAPER_TABLE4) + ".", "",
             "## Table 5: density RMSE (slots) by number of blocks", ""]
-  lines += tables.table5_md(r["table5"])
-  lines += ["", "Paper: " + tables.paper_line(tables.PAPER_TABLE5) + ".", ""]
+  lines += markdown.table5_md(r["table5"])
+  lines += ["", "Paper: " + markdown.paper_line(tables.PAPER_TABLE5) + ".", ""]
   if r.get("validation") and r["validation"].get("prior_sweeps"):
     lines += [f"## +Sample's τ on the validation split ({r['validation']['objects']} objects)",
               "", "Where τ is to be chosen (the test split's sweep is in the full model's "
               "`eval/results.md`):", ""]
-    lines += tables.prior_sweep_md(r["validation"]["prior_sweeps"])
+    lines += markdown.prior_sweep_md(r["validation"]["prior_sweeps"])
     lines += ["", f"This run's +Sample rows use τ = {r['prior_weight']}.", ""]
   if r.get("refine_stats"):
     s = r["refine_stats"]
@@ -230,7 +230,7 @@ def table2_lines(table2: dict, objects: int) -> list[str]:
   for name, row in table2.items():
     paper = tables.PAPER_TABLE2.get(name)
     lines.append(f"| {name} ({row.get('objects', objects)}) | "
-                 + " | ".join(tables.with_ci(row, k) for k in KEYS) + " | "
+                 + " | ".join(markdown.with_ci(row, k) for k in KEYS) + " | "
                  + (" / ".join(str(x) for x in paper) if paper else "–") + " |")
   return lines
 
@@ -245,14 +245,14 @@ def whole_split_md(ws: dict) -> list[str]:
            f"{ws.get('machine', 'the machine in blocks_whole_split/README.md')}. Objects in "
            "parentheses, 95 % intervals in brackets.", ""]
   lines += table2_lines(ws["table2"], ws["objects"])
-  lines += ["", f"Shape F1 **{ws['f1']:.1f}**" + tables.shape_line(ws) + ".", "",
+  lines += ["", f"Shape F1 **{ws['f1']:.1f}**" + markdown.shape_line(ws) + ".", "",
             "Table 5 on the whole split (density RMSE in slots; Texture and Physics: the "
             "ablations, whole split):", ""]
-  lines += tables.table5_md(ws["table5"])
+  lines += markdown.table5_md(ws["table5"])
   if ws.get("oracle_pick"):
     lines += ["", "+Sample's ceiling on its own candidates (`docs/experiments.md`, \"Why "
               "+Sample stays at the network's level\"):", ""]
-    lines += tables.oracle_pick_md({"oracle_pick": ws["oracle_pick"],
+    lines += markdown.oracle_pick_md({"oracle_pick": ws["oracle_pick"],
                                     "table2": {k.replace("PPD (full)", "PPD"): v
                                                for k, v in ws["table2"].items()}})
   return lines
@@ -304,6 +304,6 @@ def write_all(pipe, results_dir: str, assets_dir: str, command: str,
   with open(path("blocks.json"), "w") as f:
     json.dump(r, f, indent=1)
   with open(path("blocks.md"), "w") as f:
-    f.write(markdown(r, command))
+    f.write(report_md(r, command))
   print(f"wrote {path('blocks.md')}, blocks.json and PNGs; model in {model_dir}", flush=True)
   return r

@@ -50,7 +50,7 @@ def main(argv):
   command = ((_DATA_COMMAND.value + "\n") if _DATA_COMMAND.value else "") + full["command"]
   r["whole_split"] = blocks_report.whole_split(r, full, command)
   r["whole_split"]["machine"] = _MACHINE.value
-  common.write(_RESULTS.value, "blocks", r, blocks_report.markdown(r, r["command"]))
+  common.write(_RESULTS.value, "blocks", r, blocks_report.report_md(r, r["command"]))
   print(f"and {out}")
 
 

@@ -16,7 +16,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from ppdjax.infer import tables  # noqa: E402
+from ppdjax.infer import markdown, tables  # noqa: E402
 
 COLS = ("top1", "top5", "top10", "rmse", "mae")
 
@@ -35,7 +35,7 @@ def _table(entries) -> list[str]:
   lines = ["| boxes and densities | Top 1 | Top 5 | Top 10 | RMSE | MAE (mm) |",
            "|---|--:|--:|--:|--:|--:|"]
   for label, r in entries:
-    lines.append(f"| {label} | " + " | ".join(tables.with_ci(r, k) for k in COLS) + " |")
+    lines.append(f"| {label} | " + " | ".join(markdown.with_ci(r, k) for k in COLS) + " |")
   return lines
 
 
@@ -119,12 +119,12 @@ def write(p: dict, weights, out: str, command: str) -> dict:
       "were tried on the test split after it, so their rows are indicative. What the rows "
       "show: docs/experiments.md.", "",
       "### Density RMSE by number of blocks (Table 5)", "",
-      *tables.table5_md(t5), "",
+      *markdown.table5_md(t5), "",
       f"### τ on the validation split ({val['objects']} objects, weight {weights[0]}, no "
       "refinement)", "",
-      *tables.prior_sweep_md(val["prior_sweeps"]), "",
+      *markdown.prior_sweep_md(val["prior_sweeps"]), "",
       "### Face error of the boxes the estimator reads (mm, test split)", "",
-      *tables.face_md(ref["face_error_mm"]), "",
+      *markdown.face_md(ref["face_error_mm"]), "",
       "## Step times", "",
       "| step | seconds |", "|---|--:|",
       *[f"| {s['step']} | {s['seconds']:.0f}" + (f" ({s['note']})" if "note" in s else "") + " |"

@@ -30,7 +30,7 @@ jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
 from ppdjax.dataset import generation  # noqa: E402
-from ppdjax.infer import evaluation, tables  # noqa: E402
+from ppdjax.infer import evaluation, markdown  # noqa: E402
 from ppdjax.training import estimator as est  # noqa: E402
 
 STEPS = ("data", "train", "validate", "test", "report")
@@ -78,7 +78,7 @@ def run_eval(config, p, name, split, *, refine, prior_weight, weight):
       prior_weight=prior_weight, fit=False, depth=True, refine_prior=e.refine_prior,
       estimator="" if weight is None else p["est"],
       estimator_weight=1.0 if weight is None else weight)
-  tables.write_results(results, out, "python " + " ".join(sys.argv))
+  markdown.write_results(results, out, "python " + " ".join(sys.argv))
   return results
 
 

@@ -15,7 +15,7 @@ import sys
 from absl import app, flags
 
 import blocks_common as common
-from ppdjax.infer import tables
+from ppdjax.infer import markdown, tables
 
 common.define_flags()
 flags.DEFINE_list("variants", list(common.VARIANTS), "Model variants to include.")
@@ -64,7 +64,7 @@ def main(argv):
         + (f" Shape F1 of the full model: {f1:.1f} (paper {tables.PAPER_SHAPE_F1})."
            if f1 is not None else ""),
         ""]
-  md += tables.table2_md(rows, observes)
+  md += markdown.table2_md(rows, observes)
   md += ["", "Paper:", "", "| Method | Top 1 | Top 5 | Top 10 | RMSE | MAE |",
          "|---|--:|--:|--:|--:|--:|"]
   md += [f"| {k} | " + " | ".join(str(x) for x in v) + " |" for k, v in PAPER.items()]

@@ -16,7 +16,7 @@ import sys
 from absl import app, flags
 
 import blocks_common as common
-from ppdjax.infer import tables
+from ppdjax.infer import markdown, tables
 
 common.define_flags()
 FLAGS = flags.FLAGS
@@ -30,7 +30,7 @@ def main(argv):
   command = "python experiments/table4.py " + " ".join(sys.argv[1:])
   md = [f"# Table 4 ({config.name} preset): best of N physics samples", "", "```", command,
         "```", "", f"{res['objects']} test objects; trajectory MAE in mm.", ""]
-  md += tables.table4_md(res["table4"])
+  md += markdown.table4_md(res["table4"])
   md += ["", "Paper (1×/8×/64×/512×):", "", "| | 1× | 8× | 64× | 512× |", "|---|--:|--:|--:|--:|"]
   md += [f"| {k} | " + " | ".join(str(x) for x in v) + " |"
          for k, v in tables.PAPER_TABLE4.items()]

@@ -14,7 +14,7 @@ import sys
 from absl import app, flags
 
 import blocks_common as common
-from ppdjax.infer import tables
+from ppdjax.infer import markdown, tables
 
 common.define_flags()
 FLAGS = flags.FLAGS
@@ -39,7 +39,7 @@ def main(argv):
   command = "python experiments/table5.py " + " ".join(sys.argv[1:])
   md = [f"# Table 5 ({config.name} preset): density RMSE (slots) by number of blocks", "",
         "```", command, "```", ""]
-  md += tables.table5_md(table)
+  md += markdown.table5_md(table)
   md += ["", "Paper:", "", "| | 2 blocks | 3 blocks | 4 blocks | 5 blocks | Overall |",
          "|---|--:|--:|--:|--:|--:|"]
   md += [f"| {k} | " + " | ".join(str(x) for x in v) + " |" for k, v in PAPER.items()]

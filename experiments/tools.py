@@ -34,7 +34,7 @@ jax.config.update("jax_compilation_cache_dir",
 import blocks_common as common  # noqa: E402
 import pipeline_steps  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
-from ppdjax.infer import evaluation, partial, tables  # noqa: E402
+from ppdjax.infer import evaluation, markdown, partial  # noqa: E402
 from ppdjax.training import loop  # noqa: E402
 from ppdjax.training.state import total_steps  # noqa: E402
 
@@ -141,7 +141,7 @@ class Pipeline:
                f"--samples={results['samples']} --norefine"
                + ("" if full else " --nobaselines") + (" --fit" if results["fit"] else "")
                + (" --true_shapes" if results["true_shapes"] else ""))
-    tables.write_results(results, self.eval_dir(variant), command)
+    markdown.write_results(results, self.eval_dir(variant), command)
 
   def report(self) -> None:
     import tools_report  # pylint: disable=import-outside-toplevel

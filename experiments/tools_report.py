@@ -15,7 +15,7 @@ import pipeline_steps
 from ppdjax import make_decompose_fn, plots
 from ppdjax.configs import tools as tools_preset
 from ppdjax.dataset import storage
-from ppdjax.infer.tables import oracle_pick_md, prior_sweep_md, table2_md
+from ppdjax.infer.markdown import oracle_pick_md, prior_sweep_md, table2_md
 from ppdjax.training import checkpoints
 
 FIGURE_TOOLS = 4

@@ -69,7 +69,7 @@ def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
   from ppdjax.dataset.storage import DatasetError
-  from ppdjax.infer import evaluation, partial, tables
+  from ppdjax.infer import evaluation, markdown, partial, tables
   if _SELECTION_HORIZON.value not in (None,) + tables.SELECTION_HORIZONS:
     sys.exit(f"error: --selection_horizon must be one of {tables.SELECTION_HORIZONS} "
              f"(0: all steps), got {_SELECTION_HORIZON.value}")
@@ -99,7 +99,7 @@ def main(argv):
     sys.exit(3)
   results["workdir"] = _WORKDIR.value
   command = "python -m ppdjax.evaluate " + " ".join(sys.argv[1:])
-  paths = tables.write_results(results, out, command)
+  paths = markdown.write_results(results, out, command)
   shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)  # written: not needed
   rows = results["table2"]
   best = next(rows[r] for r in ("PPD+Fit(depth)+Est+Sample+Refine", "PPD+Fit+Est+Sample+Refine",

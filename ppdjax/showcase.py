@@ -18,7 +18,7 @@ import numpy as np
 
 from ppdjax.conventions import OBS_KEYS, TIMESTEP
 from ppdjax.dataset import generation, storage, towers
-from ppdjax.infer import evaluation, example, tables
+from ppdjax.infer import evaluation, example, markdown
 from ppdjax.infer.decompose import make_decompose_fn
 from ppdjax.plots import plot_decomposition, plot_trajectories
 from ppdjax.sim.mass import mass_properties
@@ -135,7 +135,7 @@ def evaluate_and_decompose(config, blocks: str, workdir: str, out: str) -> dict:
   print(f"  evaluating on the test split with {cfg.samples} density samples per object "
         f"(compiles once) -> {out}/eval", flush=True)
   results = evaluation.evaluate(trained, blocks, **evaluation.eval_settings(config))
-  tables.write_results(results, os.path.join(out, "eval"),
+  markdown.write_results(results, os.path.join(out, "eval"),
                        f"python -m ppdjax.evaluate --workdir={workdir} --data={blocks}")
   row = results["table2"]["PPD+Sample"]
   print(f"  test: shape F1 {results['f1']:.1f}, +Sample top-1 {row['top1']:.1f}%, RMSE "

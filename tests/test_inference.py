@@ -15,7 +15,7 @@ from ppdjax import metrics
 from ppdjax.configs import tiny
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage, towers
-from ppdjax.infer import batches, evaluation, partial, refine, sampling, tables
+from ppdjax.infer import batches, evaluation, markdown, partial, refine, sampling, tables
 from ppdjax.primitives import quat_mul
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
 from ppdjax.training import checkpoints
@@ -428,7 +428,7 @@ def test_the_screen_replay_keeps_the_winner_only_when_it_survives_the_prefix():
   assert ("screen", "PPD+Sample", 64, 64, "same") not in rec  # keeps every candidate
   results = tables.summarize({}, rec)
   assert results["screens"]["PPD+Sample"]["16:32"]["same_pick"] == pytest.approx(50.0)
-  assert any(line.startswith("| PPD+Sample | 16 → 32 | 50.0") for line in tables.screen_md(results))
+  assert any(line.startswith("| PPD+Sample | 16 → 32 | 50.0") for line in markdown.screen_md(results))
 
 
 def test_the_records_count_hits_as_the_metrics_do():
