@@ -12,7 +12,9 @@ draws `samples` density assignments per object; then
   * C (peer): the same decode and draws (jitted), then all candidates simulated with
     `mujoco.batch` on every CPU core, scored with the same distance and selected.
 Latency: median of --repeats warm calls for one object; throughput: objects / s of a
-batch. `--screens 32:64,64:64` also times the GPU default engine with screened selection
+batch. `--depth` gives the observations depth images, which `decompose` then fits the
+boxes to (and screens by default; the engine rows here are exhaustive, `screen_steps=0`).
+`--screens 32:64,64:64` also times the GPU default engine with screened selection
 (every candidate over the first 32 steps, the 64 closest over all 256; `make_decompose_fn(
 screen_steps=, screen_keep=)`). Prints a markdown table.
 """
@@ -34,6 +36,8 @@ import ppdjax
 from ppdjax import metrics
 from ppdjax.configs import paper
 from ppdjax.conventions import NUM_DENSITY_SLOTS
+from ppdjax.dataset.camera import camera_dict
+from ppdjax.dataset.depth import render_depths
 from ppdjax.infer import sampling
 from ppdjax.nn.model import PPD
 from ppdjax.sim import rollout_mjx
@@ -45,12 +49,18 @@ ENGINES = {"MJX": rollout_mjx.MjxSettings(), "box-plane step": BoxPlaneSettings(
            "box-plane step (XLA)": BoxPlaneSettings(kernel="reference")}
 
 
-def observations(seed: int, count: int, image_size: int) -> dict:
+def observations(seed: int, count: int, image_size: int, depth: bool = False) -> dict:
+  """Random towers' voxels, trajectories and (with `depth`) depth images from the
+  datasets' camera; the image is noise (the network's weights are random too)."""
   prims = ppdjax.sample_towers(seed, count)
   rng = np.random.default_rng(seed)
-  return {"voxels": ppdjax.voxelize(prims),
-          "image": rng.integers(0, 255, (count, image_size, image_size, 3), np.uint8),
-          "trajectories": np.asarray(ppdjax.simulate(prims))}
+  obs = {"voxels": ppdjax.voxelize(prims),
+         "image": rng.integers(0, 255, (count, image_size, image_size, 3), np.uint8),
+         "trajectories": np.asarray(ppdjax.simulate(prims))}
+  if depth:
+    obs["depth"] = np.asarray(render_depths(jax.tree.map(jnp.asarray, prims),
+                                            camera_dict(image_size, image_size)))
+  return obs
 
 
 def timed(fn, repeats: int) -> tuple[object, float]:
@@ -95,18 +105,25 @@ def main():
   parser.add_argument("--engines", default=",".join(ENGINES),
                       help=f"comma-separated, of {list(ENGINES)}")
   parser.add_argument("--skip_batch", action="store_true", help="one object only")
+  parser.add_argument("--skip_one", action="store_true", help="the batch only")
+  parser.add_argument("--skip_rollouts", action="store_true",
+                      help="not the rollouts alone (one more compilation per engine)")
+  parser.add_argument("--depth", action="store_true",
+                      help="observations with depth images: decompose fits the boxes to them")
   parser.add_argument("--screens", default="",
                       help="comma-separated STEPS:KEEP screens to time on the box-plane step")
   parser.add_argument("--out", default="")
   args = parser.parse_args()
   config = paper.get_config()
   model = PPD(config.model, rngs=nnx.Rngs(0))
-  obs = observations(0, args.batch, config.data.image_size)
+  size = config.data.image_size
+  obs = observations(0, args.batch, size, args.depth)
+  camera = camera_dict(size, size) if args.depth else None
   one = jax.tree.map(lambda x: x[:1], obs)
   key = jax.random.key(0)
   meta = {"device": jax.devices()[0].device_kind, "cpu_count": os.cpu_count(),
           "jax": jax.__version__, "python": platform.python_version(),
-          "samples": args.samples, "batch": args.batch}
+          "samples": args.samples, "batch": args.batch, "depth_fit": args.depth}
   rows = []
 
   def add(engine, what, n, seconds):
@@ -115,7 +132,7 @@ def main():
     print(f"{engine:28s} {what:22s} {seconds * 1e3:9.1f} ms  {n / seconds:8.2f} objects/s",
           flush=True)
 
-  runs = [(engine, settings, {}) for engine, settings in ENGINES.items()
+  runs = [(engine, settings, {"screen_steps": 0}) for engine, settings in ENGINES.items()
           if engine in args.engines.split(",")]
   for screen in filter(None, args.screens.split(",")):
     steps, keep = (int(x) for x in screen.split(":"))
@@ -123,17 +140,18 @@ def main():
                  {"screen_steps": steps, "screen_keep": keep}))
   for engine, settings, screen in runs:
     decompose = ppdjax.make_decompose_fn((model, config), num_samples=args.samples,
-                                         settings=settings, **screen)
+                                         settings=settings, camera=camera, **screen)
     block = lambda out: jax.block_until_ready(out.primitives.density)
-    t0 = time.perf_counter()
-    block(decompose(one, key))
-    meta[f"compile_one_s {engine}"] = time.perf_counter() - t0
-    _, s = timed(lambda: block(decompose(one, key)), args.repeats)
-    add(f"{engine} (jitted decompose)", "1 object", 1, s)
+    if not args.skip_one:
+      t0 = time.perf_counter()
+      block(decompose(one, key))
+      meta[f"compile_one_s {engine}"] = time.perf_counter() - t0
+      _, s = timed(lambda: block(decompose(one, key)), args.repeats)
+      add(f"{engine} (jitted decompose)", "1 object", 1, s)
     if not args.skip_batch:
       _, s = timed(lambda: block(decompose(obs, key)), max(1, args.repeats // 2))
       add(f"{engine} (jitted decompose)", f"batch of {args.batch}", args.batch, s)
-    if screen:
+    if screen["screen_steps"] or args.skip_rollouts:
       continue  # the rest is the engine's, timed above
     physics_only = jax.jit(lambda c, s=settings: rollout_mjx.simulate(
         c, ppdjax.default_pushes(), settings=s))
@@ -143,13 +161,15 @@ def main():
     add(f"{engine} rollouts alone", f"{args.samples} candidates", 1, s)
     if args.refine:
       refined = ppdjax.make_decompose_fn((model, config), num_samples=args.samples,
-                                         refine=True, settings=settings)
+                                         refine=True, settings=settings, camera=camera,
+                                         screen_steps=0)
       _, s = timed(lambda: block(refined(one, key)), args.repeats)
       add(f"{engine} decompose + refine", "1 object", 1, s)
   if not args.skip_c:
     peer = c_peer(model, args.samples)
-    _, s = timed(lambda: peer(one, key), max(1, args.repeats // 2))
-    add(f"MuJoCo C, {os.cpu_count()} threads", "1 object", 1, s)
+    if not args.skip_one:
+      _, s = timed(lambda: peer(one, key), max(1, args.repeats // 2))
+      add(f"MuJoCo C, {os.cpu_count()} threads", "1 object", 1, s)
     if not args.skip_batch:
       _, s = timed(lambda: peer(obs, key), 1)
       add(f"MuJoCo C, {os.cpu_count()} threads", f"batch of {args.batch}", args.batch, s)
