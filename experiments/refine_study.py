@@ -1,14 +1,18 @@
 """How often refinement improves on the best sample, and by how much (true shapes).
 
   python experiments/refine_study.py --objects 24 --samples 64 --out experiments/results/refine_study
+  python experiments/refine_study.py --compare=jacobians --backend=box_plane \
+      --out experiments/results/refine_jacobians
 
 For random towers (2-5 blocks, the dataset's materials and densities) observed under the
 paper's pushes: draw `samples` uniform density assignments on the true shape ("Sample
 Phys."), keep the one closest in trajectory, then refine it by Levenberg–Marquardt
-through MJX, with two horizon schedules from the same start: the library's
-(`refine.horizon_schedule`, doubling from 8 steps) and the single switch it replaced (the
-first 64 steps for the first half of the passes, then all). Isolates the physics steps
-from the network. Writes OUT.json and OUT.md.
+through the JAX engine, in variants from the same start. `--compare=schedules`: two
+horizon schedules, the library's (`refine.horizon_schedule`, doubling from 8 steps) and
+the single switch it replaced (the first 64 steps for the first half of the passes, then
+all). `--compare=jacobians`: the library's schedule with the Jacobian by forward mode and
+by forward differences (`refine.difference_jacobian`) at two steps. Isolates the physics
+steps from the network. Writes OUT.json and OUT.md.
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
 from ppdjax.infer import refine, sampling
 from ppdjax.sim.pushes import default_pushes
+from ppdjax.sim import rollout_mjx
+from ppdjax.sim.rollout_mjx import settings_for
 
 
 def main():
@@ -34,28 +40,40 @@ def main():
   parser.add_argument("--samples", type=int, default=64)
   parser.add_argument("--steps", type=int, default=12)
   parser.add_argument("--seed", type=int, default=5)
+  parser.add_argument("--compare", default="schedules", choices=("schedules", "jacobians"))
+  parser.add_argument("--backend", default="mjx", choices=("mjx", "box_plane"),
+                      help="the JAX engine that observes and refines")
   parser.add_argument("--out", default="experiments/results/refine_study")
   args = parser.parse_args()
   pushes = default_pushes()
+  settings = settings_for(args.backend)
   t = 256  # the dataset's trajectory length (ppdjax.simulate's default)
   passes = np.arange(args.steps + 1)
   schedules = {"doubling": refine.horizon_schedule(args.steps, 8, t),
                "switch": np.where(passes < args.steps // 2, 64, t)}
+  if args.compare == "schedules":  # name: (horizons, jacobian, difference step)
+    variants = {name: (h, "forward", None) for name, h in schedules.items()}
+  else:
+    variants = {"forward mode": (schedules["doubling"], "forward", None),
+                "differences 1e-3": (schedules["doubling"], "differences", 1e-3),
+                "differences 1e-2": (schedules["doubling"], "differences", 1e-2)}
   true = jax.tree.map(jnp.asarray, ppdjax.sample_towers(args.seed, args.objects))
 
   @jax.jit
   def run(true, key):
-    obs = ppdjax.simulate(true, pushes)
+    obs = rollout_mjx.simulate(true, pushes, settings=settings)
     keys = jax.random.split(key, args.objects)
     sel = jax.vmap(lambda p, o, k: sampling.select_densities(
         p, jnp.zeros((p.num_slots, NUM_DENSITY_SLOTS)), o, pushes, num_samples=args.samples,
-        key=k, include_mode=False))(true, obs, keys)
+        key=k, include_mode=False, settings=settings))(true, obs, keys)
     start = true.replace(density=sel.density)
     out = {}
-    for name, horizons in schedules.items():
-      refined, _ = jax.vmap(lambda p, o, h=horizons: refine.refine_densities(
-          p, o, pushes, steps=args.steps, horizons=h))(start, obs)
-      sim = ppdjax.simulate(refined, pushes)
+    for name, (horizons, jacobian, step) in variants.items():
+      extra = {} if step is None else {"difference_step": step}
+      refined, _ = jax.vmap(lambda p, o, h=horizons, j=jacobian, e=extra: refine.refine_densities(
+          p, o, pushes, steps=args.steps, horizons=h, jacobian=j, settings=settings, **e))(
+              start, obs)
+      sim = rollout_mjx.simulate(refined, pushes, settings=settings)
       out[name] = (refined.density, metrics.trajectory_distance(sim, obs),
                    metrics.trajectory_mae(sim, obs))
     return obs, sel.density, sel.score, sel.mae.min(-1), out
@@ -86,7 +104,10 @@ def main():
       "objects": args.objects, "boxes": int(n), "samples": args.samples,
       "lm_steps": args.steps, "seconds_incl_compile": round(seconds, 1),
       "device": jax.devices()[0].device_kind,
+      "compare": args.compare, "backend": args.backend,
       "schedules": {k: v.tolist() for k, v in schedules.items()},
+      "variants": {k: {"jacobian": j, "difference_step": st}
+                   for k, (_, j, st) in variants.items()},
       "columns": {k: column(*v) for k, v in columns.items()},
       "per_object": [{"blocks": int(v.sum()), "mean_displacement_m": float(m)}
                      for v, m in zip(valid, moved)],
@@ -95,10 +116,12 @@ def main():
     json.dump(result, f, indent=1)
   md = ["# Refinement after sampling, on true shapes", "", "```",
         f"python experiments/refine_study.py --objects {args.objects} --samples {args.samples}"
-        f" --steps {args.steps} --seed {args.seed}", "```", "",
-        f"{args.objects} random towers (2-5 blocks, {n} boxes), best of {args.samples} "
-        f"uniform density samples, then {args.steps} LM steps from it with each horizon "
-        f"schedule; {result['device']}, {seconds:.0f} s with compilation.", "",
+        f" --steps {args.steps} --seed {args.seed} --compare={args.compare}"
+        f" --backend={args.backend}", "```", "",
+        f"{args.objects} random towers (2-5 blocks, {n} boxes) observed by the "
+        f"{args.backend} engine, best of {args.samples} uniform density samples, then "
+        f"{args.steps} LM steps from it in each variant ({args.compare}); "
+        f"{result['device']}, {seconds:.0f} s with compilation.", "",
         "Horizons (trajectory steps fitted per pass): doubling (the library's) "
         f"{schedules['doubling'].tolist()}; switch (before) {schedules['switch'].tolist()}.",
         "", "| | " + " | ".join(columns) + " |", "|---|" + "--:|" * len(columns)]
@@ -114,6 +137,15 @@ def main():
     md.append(f"| {name} | " + " | ".join(
         "–" if col == "best sample" and key in ("lowered_distance", "median_distance_ratio")
         else fmt.format(c[key]) for col, c in result["columns"].items()) + " |")
+  first = next(iter(refined))
+  same = {name: float(np.mean((np.rint(slot(v[0])) == np.rint(slot(refined[first][0])))[valid]))
+          for name, v in refined.items() if name != first}
+  result["same_slot_as_first"] = same
+  if same:
+    md += ["", f"Boxes whose refined slot equals {first}'s: " + ", ".join(
+        f"{name} {100 * v:.1f} %" for name, v in same.items()) + "."]
+    with open(args.out + ".json", "w") as f:
+      json.dump(result, f, indent=1)
   with open(args.out + ".md", "w") as f:
     f.write("\n".join(md) + "\n")
   print("\n".join(md))

@@ -52,6 +52,10 @@ _JOINT = flags.DEFINE_bool("joint", None, "With --fit or --depth, also +Joint: f
 _TRUE_SHAPES = flags.DEFINE_bool("true_shapes", None, "Also the oracle rows on the true boxes "
                                  "(PPD+True boxes, +Sample, +Sample+Refine): what perfect "
                                  "boxes would give (default: eval.true_shapes).")
+_REFINE_JACOBIAN = flags.DEFINE_enum(
+    "refine_jacobian", None, ["auto", "forward", "differences"], "How +Refine takes its "
+    "Jacobian: forward mode, forward differences (K + 1 rollouts in one call), or auto: "
+    "differences where the rollouts run as the GPU kernel (default: eval.refine_jacobian).")
 _MAX_OBJECTS = flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")
 _SUBSET = flags.DEFINE_enum("subset", "first", ["first", "spread"],
                             "With --max_objects: the first N objects, or N spread over the split.")
@@ -84,7 +88,8 @@ def main(argv):
                                         estimator=_ESTIMATOR.value,
                                         estimator_weight=_ESTIMATOR_WEIGHT.value,
                                         joint=_JOINT.value, true_shapes=_TRUE_SHAPES.value,
-                                        selection_horizon=_SELECTION_HORIZON.value)
+                                        selection_horizon=_SELECTION_HORIZON.value,
+                                        refine_jacobian=_REFINE_JACOBIAN.value)
     out = _OUT.value or os.path.join(_WORKDIR.value, "eval")
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,

@@ -44,6 +44,7 @@ from ppdjax.dataset import storage
 from ppdjax.infer import baselines, partial, rows
 from ppdjax.infer.batches import evaluation_objects, read_ahead
 from ppdjax.infer.evaluator import REFINE_FROM_TAU, Evaluator, shape_pool
+from ppdjax.infer.refine import jacobian_method
 from ppdjax.infer.tables import PREFIXES, SELECTION_HORIZONS, model_switches, summarize
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.training import checkpoints
@@ -63,14 +64,15 @@ def _weights_hash(model) -> str:
 
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
                  "depth", "refine_prior", "estimator", "estimator_weight", "joint",
-                 "true_shapes", "selection_horizon")
+                 "true_shapes", "selection_horizon", "refine_jacobian")
 
 
 def eval_settings(config, **overrides) -> dict:
   """`evaluate`'s settings from a preset's `eval` section; overrides that are not None win."""
   defaults = {"fit": False, "depth": False, "refine_prior": 0.0, "estimator": "",
               "estimator_weight": 1.0, "joint": False,
-              "true_shapes": False, "selection_horizon": 0}  # older presets lack them
+              "true_shapes": False, "selection_horizon": 0,
+              "refine_jacobian": "auto"}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -85,7 +87,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              prior_weight: float = 0.0, subset: str = "first", fit: bool = False,
              depth: bool = False, refine_prior: float = 0.0, estimator: str = "",
              estimator_weight: float = 1.0, joint: bool = False, true_shapes: bool = False,
-             selection_horizon: int = 0, horizon_sweep: bool = False, progress: bool = True,
+             selection_horizon: int = 0, horizon_sweep: bool = False,
+             refine_jacobian: str = "auto", progress: bool = True,
              partial_dir: str = "", max_seconds: float = 0.0, prefetch: bool = True) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
@@ -105,6 +108,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   (then refined against the dataset's depth images, through its camera). `estimator` (a
   folder `ppdjax.train_estimator` wrote) adds the +Est rows on the most precise fitted
   boxes, its log-probabilities weighted by `estimator_weight` beside the network's.
+  `refine_jacobian` is how +Refine takes its Jacobian (`refine.jacobian_method`: "auto"
+  is forward differences where the rollouts run as the GPU kernel, else forward mode).
   `true_shapes` adds the oracle rows "PPD+True boxes" (+Sample, +Sample+Refine): the
   network's k-th density scores on the k-th true box, sampled and refined alike.
   `partial_dir` saves each batch's records as it is made and reuses those a previous call
@@ -131,7 +136,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "refine_prior": refine_prior if (fit or depth) and refine else 0.0,
               "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
               "joint": joint, "true_shapes": true_shapes, "selection_horizon": selection_horizon,
-              "horizon_sweep": horizon_sweep}
+              "horizon_sweep": horizon_sweep,
+              "refine_jacobian": jacobian_method(refine_jacobian, settings_for(test.engine))}
   if selection_horizon not in SELECTION_HORIZONS:
     raise ValueError(f"selection_horizon must be one of {SELECTION_HORIZONS} (0: all steps), "
                      f"got {selection_horizon}")
@@ -181,7 +187,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                        refine_prior=refine_prior,
                        estimator=estimator_module.load(estimator)[0] if estimator else None,
                        estimator_weight=estimator_weight, joint=joint, true_shapes=true_shapes,
-                       pushes=test.pushes, settings=settings_for(test.engine))
+                       pushes=test.pushes, settings=settings_for(test.engine),
+                       refine_jacobian=refine_jacobian)
         t = clock()
       base = (baselines.baseline_scores(train, batch, seed * 1_000_003 + start)
               if with_baselines else None)

@@ -93,7 +93,8 @@ class Evaluator:
                baselines_on: bool = True, fit: bool = False,
                depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
                estimator=None, estimator_weight: float = 1.0, joint: bool = False,
-               true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS):
+               true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS,
+               refine_jacobian: str = "auto"):
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:
@@ -128,7 +129,7 @@ class Evaluator:
     # fit, the fitted boxes, as a MAP step when refine_prior > 0 (the presets: 0)
     self._refine = per_device(functools.partial(
         refine_batch, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
-        pushes=pushes, settings=settings))
+        pushes=pushes, settings=settings, jacobian=refine_jacobian))
     # +Joint vectorised over 64 objects at once on an accelerator (a batch of 64 in 4.1 s
     # on an H100, 20.6 s 8 at once: benchmarks.md), 8 on a CPU
     self._joint = per_device(functools.partial(

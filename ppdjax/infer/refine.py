@@ -1,4 +1,4 @@
-"""+Refine: densities fitted by Levenberg–Marquardt with Jacobians through MJX (forward mode).
+"""+Refine: densities fitted by Levenberg–Marquardt with Jacobians through the simulator.
 
 `refine_densities` treats a sample's densities (the closest one's, in the evaluation and
 `decompose`) as continuous and fits them to the observed trajectories; `refine_if_closer`
@@ -19,6 +19,33 @@ from ppdjax.conventions import (MAX_DENSITY, MIN_DENSITY, NUM_DENSITY_SLOTS,
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
+
+JACOBIANS = ("auto", "forward", "differences")
+DIFFERENCE_STEP = 1e-3  # forward differences' step in log density (0.1 % of a density)
+
+
+def jacobian_method(jacobian: str, settings: Settings) -> str:
+  """"forward" or "differences": what `jacobian` means for an engine's settings. "auto" is
+  "differences" where rollouts run as the box-plane GPU kernel (which has no derivatives
+  of its own: K + 1 rollouts through it beat one forward-mode rollout with K tangents
+  through the XLA step; docs/inference.md), else "forward"."""
+  if jacobian not in JACOBIANS:
+    raise ValueError(f"jacobian must be one of {JACOBIANS}, got {jacobian!r}")
+  if jacobian != "auto":
+    return jacobian
+  resolved = getattr(settings, "resolved_kernel", None)
+  return "differences" if resolved is not None and resolved() == "pallas" else "forward"
+
+
+def difference_jacobian(residual, u: jax.Array, step: float = DIFFERENCE_STEP):
+  """`jax.jacfwd(residual, has_aux=True)(u)`'s contract by forward differences: the K + 1
+  points u, u + step·e_k simulated in one batched call (`jax.vmap`: one kernel launch).
+  residual(u) -> (r (...), aux); returns (dr/du (..., K), aux at u)."""
+  k = u.shape[-1]
+  points = u[None] + jnp.concatenate([jnp.zeros((1, k)), step * jnp.eye(k)])
+  r, aux = jax.vmap(residual)(points)
+  jac = (r[1:] - r[:1]) / step  # (K, ...)
+  return jnp.moveaxis(jac, 0, -1), jax.tree.map(lambda a: a[0], aux)
 
 
 def horizon_schedule(steps: int, warmup_steps: int, t: int) -> np.ndarray:
@@ -55,14 +82,16 @@ def density_prior(logits_Kx100: jax.Array) -> tuple[jax.Array, jax.Array]:
 def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | None = None, *,
                      steps: int = 12, warmup_steps: int = 8, damping: float = 1e-3,
                      prior: tuple | None = None, prior_weight: float = 0.0,
-                     horizons=None,
+                     horizons=None, jacobian: str = "auto",
+                     difference_step: float = DIFFERENCE_STEP,
                      settings: Settings = DEFAULT_SETTINGS) -> tuple[Primitives, dict]:
   """Fits the densities of valid boxes to the observed trajectories (Levenberg–Marquardt).
 
   Parameters are log densities, bounded to [100, 10,000] kg/m^3 (the slot range). The
   residual is `metrics.pose_residual` over all pushes; its Jacobian comes from
-  `jax.jacfwd` through the MJX rollout (K tangents in one forward pass; forward mode
-  suits a handful of densities, docs/physics.md). The iterations fit a horizon that
+  `jax.jacfwd` through the rollout (K tangents in one forward pass; forward mode suits a
+  handful of densities, docs/physics.md) or from forward differences (K + 1 rollouts in
+  one batched call; `jacobian_method`). The iterations fit a horizon that
   grows (`horizon_schedule`: doubling from `warmup_steps` over the first half, then the
   whole trajectory, whose late part after boxes land on edges is informative but
   rugged). A step is kept only if it lowers the cost at the horizon it was proposed for.
@@ -82,6 +111,9 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
       entry (1e-5: about 3 mm). 0 is a plain least-squares fit.
     horizons: (steps + 1,) the trajectory steps each pass fits, instead of
       `horizon_schedule(steps, warmup_steps, T)` (e.g. another continuation to compare).
+    jacobian: "forward" (`jax.jacfwd`), "differences" (`difference_jacobian`) or "auto"
+      (`jacobian_method`: differences where the rollouts run as the GPU kernel).
+    difference_step: the forward differences' step in log density.
     settings: the engine's settings (MjxSettings or BoxPlaneSettings).
 
   Returns:
@@ -91,6 +123,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     with a higher whole-trajectory cost, the start is returned.
   """
   pushes = default_pushes() if pushes is None else pushes
+  method = jacobian_method(jacobian, settings)
   t = observed.shape[-2]
   lo, hi = jnp.log(MIN_DENSITY), jnp.log(MAX_DENSITY)
   valid = prims.valid
@@ -124,14 +157,17 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     a = h + jnp.diag(lam * diag + 1e-9 + (~valid))
     return jnp.where(valid, jnp.clip(u - jnp.linalg.solve(a, g), lo, hi), u)
 
-  # Each pass evaluates the last proposal and its Jacobian in ONE forward-mode rollout
+  # Each pass evaluates the last proposal and its Jacobian in ONE batched call
   # (the Jacobian at an accepted point is the next one's), keeps it if it lowered the cost
   # at the horizon it was proposed for, and proposes the next step. Pass 0 evaluates the
   # start; passes 1..steps the proposals of passes 0..steps-1.
   def iterate(carry, horizons):
     proposed_with, horizon = horizons
     trial, u, r, jac, sim, lam, accepted, r0, sim0 = carry
-    jac_t, (r_t, sim_t) = jax.jacfwd(residual, has_aux=True)(trial)
+    if method == "forward":
+      jac_t, (r_t, sim_t) = jax.jacfwd(residual, has_aux=True)(trial)
+    else:
+      jac_t, (r_t, sim_t) = difference_jacobian(residual, trial, difference_step)
     first = jnp.isinf(lam)  # pass 0: nothing to compare with
     c_t = cost(r_t, proposed_with, trial)
     take = first | (jnp.isfinite(c_t) & (c_t < cost(r, proposed_with, u)))
@@ -188,6 +224,7 @@ class Refinement:
 def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array,
                      pushes: Pushes | None = None, *, steps: int = 12,
                      prior: tuple | None = None, prior_weight: float = 0.0,
+                     jacobian: str = "auto",
                      settings: Settings = DEFAULT_SETTINGS) -> Refinement:
   """Refines one object's densities; keeps them only if the trajectory distance drops.
 
@@ -201,11 +238,12 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
     prims: one object with the starting densities (the closest sample's).
     observed: (P, T, 7).
     distance: the start's trajectory distance (metres), as +Sample computed it.
-    pushes, steps, prior, prior_weight, settings: as `refine_densities`.
+    pushes, steps, prior, prior_weight, jacobian, settings: as `refine_densities`.
   """
   pushes = default_pushes() if pushes is None else pushes
   refined, info = refine_densities(prims, observed, pushes, steps=steps, prior=prior,
-                                   prior_weight=prior_weight, settings=settings)
+                                   prior_weight=prior_weight, jacobian=jacobian,
+                                   settings=settings)
   sim = info["trajectories"]
   new = metrics.trajectory_distance(sim, observed)
   closer = new < distance
@@ -217,7 +255,7 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
 
 
 def refine_batch(prims, logits, obs_traj, sample_dist, sample_mae, *, steps, prior_weight,
-                 pushes, settings):
+                 pushes, settings, jacobian="auto"):
   """`refine_if_closer` over a batch (B, K), as the evaluation runs it: refined densities
   where kept, a MAP step under each object's slot logits when prior_weight > 0; returns
   the densities, costs, distance and trajectory MAE (mm; the sample's where not kept).
@@ -229,7 +267,7 @@ def refine_batch(prims, logits, obs_traj, sample_dist, sample_mae, *, steps, pri
   def one(p, lg, traj, d0, m0, w):
     prior = density_prior(lg) if use_prior else None
     r = refine_if_closer(p, traj, d0, pushes, steps=steps, prior=prior, prior_weight=w,
-                         settings=settings)
+                         jacobian=jacobian, settings=settings)
     mae = jnp.where(r.closer, metrics.trajectory_mae(r.trajectories, traj), m0)
     return {"density": r.primitives.density, "cost_start": r.cost_start, "cost": r.cost,
             "dist": r.distance, "mae": mae}
