@@ -126,8 +126,10 @@ def main():
   print(f"| run | warm s / batch | first call s | × {rows[0]['run']} | boxes within 5 % | "
         "top-1 (%) | RMSE (slots) | MAE (mm) |\n|---|--:|--:|--:|--:|--:|--:|--:|")
   for r in rows:
-    acc = (f"{100 * r['within_5_percent']:.1f} | {r['top1_percent']:.1f} | "
-           f"{r['rmse_slots']:.2f} | {r['mae_mm']:.2f}" if "rmse_slots" in r else "– | – | – | –")
+    acc = "– | – | – | –"
+    if "rmse_slots" in r:
+      acc = (f"{100 * r['within_5_percent']:.1f} | {r['top1_percent']:.1f} | "
+             f"{r['rmse_slots']:.2f} | {r['mae_mm']:.2f}")
     print(f"| {r['run']} | {r['seconds']:.2f} | {r['first_call_s']:.1f} | "
           f"{r['seconds'] / peer:.2f} | {acc} |")
   if args.out:

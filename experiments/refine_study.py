@@ -1,7 +1,7 @@
 """How often refinement improves on the best sample, and by how much (true shapes).
 
   python experiments/refine_study.py --objects 24 --samples 64 --out experiments/results/refine_study
-  python experiments/refine_study.py --compare=jacobians --backend=box_plane \
+  python experiments/refine_study.py --compare=jacobians --objects 8 --samples 32 \
       --out experiments/results/refine_jacobians
 
 For random towers (2-5 blocks, the dataset's materials and densities) observed under the
