@@ -35,7 +35,7 @@ from ppdjax.dataset import storage
 from ppdjax.dataset.camera import camera_dict
 from ppdjax.dataset.depth import render_depths
 from ppdjax.infer.joint import joint_batch
-from ppdjax.infer.refine import jacobian_method, refine_batch
+from ppdjax.infer.refine import refine_batch
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim import rollout_mjx
@@ -64,8 +64,8 @@ def main():
   parser.add_argument("--split", default="test")
   parser.add_argument("--batch", type=int, default=64)
   parser.add_argument("--at_once", default="8,64", help="+Joint group sizes to time ('': none)")
-  parser.add_argument("--jacobians", default="auto",
-                      help="comma-separated +Refine Jacobians (forward, differences, auto)")
+  parser.add_argument("--jacobians", default="forward",
+                      help="comma-separated +Refine Jacobians (forward, differences, central)")
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--backend", default="mjx", choices=("mjx", "box_plane"),
                       help="the engine (the dataset's own is the faithful choice)")
@@ -96,9 +96,8 @@ def main():
   common = dict(steps=12, prior_weight=0.0, pushes=default_pushes(), settings=settings)
   runs = {}
   for jacobian in filter(None, args.jacobians.split(",")):
-    method = jacobian_method(jacobian, settings)
     refine = jax.jit(functools.partial(refine_batch, jacobian=jacobian, **common))
-    runs[f"+Refine (densities; {method})"] = functools.partial(
+    runs[f"+Refine (densities; {jacobian})"] = functools.partial(
         refine, start, logits, traj, d0, m0)
   for n in [int(x) for x in filter(None, args.at_once.split(","))]:
     fn = jax.jit(functools.partial(joint_batch, camera=camera, at_once=n, **common))

@@ -1,7 +1,7 @@
 """How often refinement improves on the best sample, and by how much (true shapes).
 
   python experiments/refine_study.py --objects 24 --samples 64 --out experiments/results/refine_study
-  python experiments/refine_study.py --compare=jacobians --objects 8 --samples 32 \
+  python experiments/refine_study.py --compare=jacobians --objects 12 --samples 32 \
       --out experiments/results/refine_jacobians
 
 For random towers (2-5 blocks, the dataset's materials and densities) observed under the
@@ -11,7 +11,8 @@ through the JAX engine, in variants from the same start. `--compare=schedules`: 
 horizon schedules, the library's (`refine.horizon_schedule`, doubling from 8 steps) and
 the single switch it replaced (the first 64 steps for the first half of the passes, then
 all). `--compare=jacobians`: the library's schedule with the Jacobian by forward mode and
-by forward differences (`refine.difference_jacobian`) at two steps. Isolates the physics
+by forward differences (`refine.difference_jacobian`) at four steps and by central
+differences at two. Isolates the physics
 steps from the network. Writes OUT.json and OUT.md.
 """
 
@@ -54,9 +55,11 @@ def main():
   if args.compare == "schedules":  # name: (horizons, jacobian, difference step)
     variants = {name: (h, "forward", None) for name, h in schedules.items()}
   else:
-    variants = {"forward mode": (schedules["doubling"], "forward", None),
-                "differences 1e-3": (schedules["doubling"], "differences", 1e-3),
-                "differences 1e-2": (schedules["doubling"], "differences", 1e-2)}
+    variants = {"forward mode": (schedules["doubling"], "forward", None)}
+    variants.update({f"differences {h:g}": (schedules["doubling"], "differences", h)
+                     for h in (1e-2, 1e-3, 3e-4, 1e-4)})
+    variants.update({f"central {h:g}": (schedules["doubling"], "central", h)
+                     for h in (1e-3, 3e-3)})
   true = jax.tree.map(jnp.asarray, ppdjax.sample_towers(args.seed, args.objects))
 
   @jax.jit
@@ -80,13 +83,14 @@ def main():
 
   t0 = time.perf_counter()
   obs, d_sample, dist0, mae0, refined = jax.device_get(run(true, jax.random.key(args.seed)))
+  refined = {name: refined[name] for name in variants}  # the variants' order, not sorted
   seconds = time.perf_counter() - t0
   valid = np.asarray(true.valid)
   slot = lambda d: d / 100.0 - 1.0
   n = valid.sum()
   true_slot = slot(np.asarray(true.density))
   err = lambda d: np.where(valid, np.rint(slot(d)) - true_slot, 0)
-  rel = lambda d: np.abs(d / np.asarray(true.density) - 1.0)[valid]
+  rel = lambda d: np.abs(d / np.where(valid, np.asarray(true.density), 1.0) - 1.0)[valid]
   moved = np.linalg.norm(obs[..., :3] - obs[:, :, :1, :3], axis=-1).mean((1, 2))
   columns = {"best sample": (d_sample, dist0, mae0)}
   columns.update({f"+ refinement ({name})": v for name, v in refined.items()})

@@ -161,16 +161,17 @@ def test_difference_jacobian_keeps_jacfwd_contract():
   assert got.shape == want.shape == (3, 2, 3)
   np.testing.assert_allclose(got, want, atol=5e-3)
   np.testing.assert_array_equal(aux["u"], aux_want["u"])  # the aux at u, not at a step
+  central, aux = refine.difference_jacobian(residual, u, 1e-2, central=True)
+  np.testing.assert_allclose(central, want, atol=1e-3)  # second order: a 10x step is fine
+  np.testing.assert_array_equal(aux["u"], aux_want["u"])
 
 
-def test_refine_jacobian_resolves_by_engine():
-  from ppdjax.sim.box_plane import BoxPlaneSettings
-  assert refine.jacobian_method("auto", MjxSettings()) == "forward"
-  assert refine.jacobian_method("auto", BoxPlaneSettings(kernel="reference")) == "forward"
-  assert refine.jacobian_method("auto", BoxPlaneSettings(kernel="pallas")) == "differences"
-  assert refine.jacobian_method("forward", BoxPlaneSettings(kernel="pallas")) == "forward"
+def test_refine_jacobian_names_the_choices():
+  assert refine.check_jacobian("differences") == "differences"
   with pytest.raises(ValueError, match="jacobian must be one of"):
-    refine.jacobian_method("reverse", MjxSettings())
+    refine.check_jacobian("reverse")
+  with pytest.raises(ValueError, match="jacobian must be one of"):
+    ppdjax.make_decompose_fn((None, tiny.get_config()), refine_jacobian="auto")
 
 
 @pytest.mark.slow  # four compilations through MJX: about two minutes on 2 cores

@@ -103,7 +103,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.eval.fit = False  # also the +Fit rows: boxes fitted to the voxels (infer.fit)
   config.eval.depth = False  # also the +Fit(depth) rows: then refined against the depth image
   config.eval.refine_prior = 0.0  # > 0: with a fit, +Refine is a MAP step (refine.refine_densities)
-  config.eval.refine_jacobian = "auto"  # forward | differences | auto (refine.jacobian_method)
+  config.eval.refine_jacobian = "forward"  # forward | differences | central (refine.py)
   config.eval.estimator = ""  # a trained density estimator's folder: adds the +Est rows
   config.eval.estimator_weight = 1.0  # its log-probabilities' weight beside the network's
   config.eval.joint = False  # also +Joint: faces and densities fitted together (infer.joint)

@@ -12,7 +12,7 @@ from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION,
 from ppdjax.dataset.camera import check_camera
 from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.fit import fit_boxes
-from ppdjax.infer.refine import density_prior, jacobian_method, refine_if_closer
+from ppdjax.infer.refine import check_jacobian, density_prior, refine_if_closer
 from ppdjax.infer import sampling
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import Primitives
@@ -97,7 +97,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       refine_steps: int = 12, prior_weight: float = 0.0,
                       mass_match: bool = False, screen_steps: int | None = None,
                       screen_keep: int = 64,
-                      refine_prior: float = 0.0, refine_jacobian: str = "auto",
+                      refine_prior: float = 0.0, refine_jacobian: str = "forward",
                       estimator=None,
                       estimator_weight: float = 1.0, pushes: Pushes | None = None,
                       settings: Settings | None = None):
@@ -131,9 +131,9 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     refine_prior: > 0 makes refinement a MAP step under the network's density scores
       (`refine.refine_densities`'s prior_weight; 1e-5: a one-σ move costs about 3 mm of
       trajectory residual); 0 is plain least squares.
-    refine_jacobian: "forward" (forward mode, K tangents), "differences" (K + 1 rollouts
-      in one call) or "auto": differences where the rollouts run as the box-plane GPU
-      kernel (3x faster there at the same accuracy, docs/inference.md), else forward.
+    refine_jacobian: "forward" (forward mode, K tangents), "differences" or "central"
+      (K + 1 or 2K + 1 rollouts in one call: where the rollouts run as the box-plane GPU
+      kernel, 3x faster and slightly less accurate; docs/inference.md).
     estimator: a density estimator (its folder, or the model `training.estimator.load`
       returns) that reads the fitted boxes and the trajectories; its log-probabilities,
       times `estimator_weight`, join the network's for sampling and the MAP prior. Needs
@@ -175,7 +175,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     estimator = estimator_module.load(estimator)[0]
   if settings is None:
     settings = settings_for(config.data.get("backend", "mjx"))
-  jacobian_method(refine_jacobian, settings)  # its error, now
+  check_jacobian(refine_jacobian)  # its error, now
   graphdef, state = nnx.split(model)
   est_graphdef, est_state = nnx.split(estimator) if estimator is not None else (None, None)
 

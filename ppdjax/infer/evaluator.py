@@ -94,7 +94,7 @@ class Evaluator:
                depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
                estimator=None, estimator_weight: float = 1.0, joint: bool = False,
                true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS,
-               refine_jacobian: str = "auto"):
+               refine_jacobian: str = "forward"):
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:

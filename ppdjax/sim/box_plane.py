@@ -69,7 +69,8 @@ class BoxPlaneSettings:
       trajectories to 0.001 mm at p90, 1.67x faster at 2,048 rollouts and as fast at
       131,072 on an H100, with a longer first compile (about 100 s against 45 s;
       docs/physics.md); "auto" (the default) is "pallas" on a GPU, else "reference".
-      Derivatives always run this module's step.
+      Derivatives always run this module's step (+Refine can take differences through
+      the kernel instead: `infer.refine.check_jacobian`).
   """
 
   iterations: int = 3
