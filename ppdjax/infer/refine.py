@@ -93,7 +93,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   Parameters are log densities, bounded to [100, 10,000] kg/m^3 (the slot range). The
   residual is `metrics.pose_residual` over all pushes; its Jacobian comes from
   `jax.jacfwd` through the rollout (K tangents in one forward pass; forward mode suits a
-  handful of densities, docs/physics.md) or from forward differences (K + 1 rollouts in
+  handful of densities, docs/physics.md) or from finite differences (K + 1 rollouts in
   one batched call; `check_jacobian`). The iterations fit a horizon that
   grows (`horizon_schedule`: doubling from `warmup_steps` over the first half, then the
   whole trajectory, whose late part after boxes land on edges is informative but
