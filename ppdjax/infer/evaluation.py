@@ -137,7 +137,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
               "joint": joint, "true_shapes": true_shapes, "selection_horizon": selection_horizon,
               "horizon_sweep": horizon_sweep,
-              "refine_jacobian": check_jacobian(refine_jacobian)}
+              "refine_jacobian": refine_jacobian if refine else "forward"}
+  check_jacobian(refine_jacobian)
   if selection_horizon not in SELECTION_HORIZONS:
     raise ValueError(f"selection_horizon must be one of {SELECTION_HORIZONS} (0: all steps), "
                      f"got {selection_horizon}")

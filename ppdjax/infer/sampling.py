@@ -151,9 +151,7 @@ def screen_survivors(candidates: Primitives, observed_PTx7: jax.Array, pushes: P
   """(keep,) indices of the candidates (S, K) closest to the observation over its first
   `steps` steps (`metrics.trajectory_distance` over the prefix), closest first: the
   screen of screened selection. Simulates S × P rollouts of `steps` steps."""
-  short = observed_PTx7[..., :steps, :]
-  dist = jax.vmap(lambda p: metrics.trajectory_distance(
-      simulate(p, pushes, steps=steps, settings=settings), short))(candidates)
+  dist, _ = score_candidates(candidates, observed_PTx7[..., :steps, :], pushes, settings)
   return jax.lax.top_k(-dist, keep)[1]
 
 
