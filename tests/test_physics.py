@@ -10,7 +10,7 @@ import ppdjax
 from ppdjax import primitives
 from ppdjax.conventions import TIMESTEP
 from ppdjax.dataset import towers
-from ppdjax.sim import rollout_mjx, scene
+from ppdjax.sim import box_plane_kernel, rollout_mjx, scene
 from ppdjax.sim.box_plane import BoxPlaneSettings
 from ppdjax.sim.pushes import default_pushes, push_points
 from conftest import index
@@ -307,8 +307,24 @@ def test_box_plane_kernel_is_the_reference_step(prims, box_plane_traj):
   assert out.shape == (4, 4, 48, 7) and out.dtype == np.float32
   gap = _gap_mm(out, box_plane_traj[:4, :, :48])
   assert gap.max() < 0.001, gap.max()
+  # another launch shape (4 programs of 4 rollouts) runs the same physics
+  small = BoxPlaneSettings(kernel="pallas", kernel_block=4, kernel_warps=1)
+  out_small = np.asarray(ppdjax.simulate(four, steps=8, backend="box_plane", settings=small))
+  assert _gap_mm(out_small, out[:, :, :8]).max() < 0.001
   with pytest.raises(ValueError, match="kernel must be one of"):
     BoxPlaneSettings(kernel="triton")
+  with pytest.raises(ValueError, match="kernel_block must be 0 or a power of two"):
+    BoxPlaneSettings(kernel_block=24)
+
+
+def test_box_plane_kernel_launch_follows_the_batch():
+  """Small launches (one object's candidates) take small programs, large ones (an
+  evaluation's 65,536 rollouts) large ones; settings override either number."""
+  default = BoxPlaneSettings()
+  assert box_plane_kernel.launch_shape(default, 2048) == box_plane_kernel.SMALL_LAUNCH
+  assert box_plane_kernel.launch_shape(default, 65536) == box_plane_kernel.LARGE_LAUNCH
+  assert box_plane_kernel.launch_shape(BoxPlaneSettings(kernel_block=64), 65536) == (
+      64, box_plane_kernel.LARGE_LAUNCH[1])
 
 
 @pytest.mark.slow

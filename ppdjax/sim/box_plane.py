@@ -71,6 +71,9 @@ class BoxPlaneSettings:
       docs/physics.md); "auto" (the default) is "pallas" on a GPU, else "reference".
       Derivatives always run this module's step (+Refine can take differences through
       the kernel instead: `infer.refine.check_jacobian`).
+    kernel_block, kernel_warps: the kernel's launch: rollouts and GPU warps per program
+      (0: by the number of rollouts, `box_plane_kernel.launch_shape`, measured on an
+      H100); the physics is the same at any.
   """
 
   iterations: int = 3
@@ -80,10 +83,16 @@ class BoxPlaneSettings:
   push_steps_extra: int = 0
   max_contacts: int = 8
   kernel: str = "auto"
+  kernel_block: int = 0
+  kernel_warps: int = 0
 
   def __post_init__(self):
     if self.kernel not in KERNELS:
       raise ValueError(f"BoxPlaneSettings.kernel must be one of {KERNELS}, got {self.kernel!r}")
+    for name in ("kernel_block", "kernel_warps"):
+      n = getattr(self, name)
+      if n < 0 or n & (n - 1):
+        raise ValueError(f"BoxPlaneSettings.{name} must be 0 or a power of two, got {n}")
 
   def resolved_kernel(self) -> str:
     """"reference" or "pallas": what "auto" means on the default backend."""

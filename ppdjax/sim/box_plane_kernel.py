@@ -2,20 +2,19 @@
 
 `ppdjax.sim.box_plane` is the reference: array expressions that XLA runs as about 70
 kernels per step, each writing its intermediates to memory. Here the same physics is one
-GPU kernel per call (`BoxPlaneSettings(kernel="pallas")`): a program takes `BLOCK`
-rollouts, keeps their state, contacts and constraint rows on chip and loops over all
-steps, so a step costs no launches and no memory traffic beyond the poses it writes.
+GPU kernel per call (`BoxPlaneSettings(kernel="pallas")`): a program takes a block of
+rollouts (`launch_shape`), keeps their state, contacts and constraint rows on chip and
+loops over all steps, so a step costs no launches and no memory traffic beyond the poses
+it writes.
 
 The step itself is `box_plane_lanes.step` (`box_plane.step`'s physics, one lane per
-rollout, contacts as tensors), small enough to compile in about 80 s; tests/test_physics.py
-holds the kernel to the reference step's trajectories. Every rollout under any number of
-`vmap`s is one launch (`jax.custom_batching.custom_vmap`). Forward only: derivatives
-(`jax.jvp`, `jax.grad`) run the reference step (`jax.custom_jvp`).
-
-Measured on one H100 before the packing (docs/physics.md): 0.001 mm from the reference at
-p90 after 256 steps; 48 ms for 2,048 rollouts (reference 52-60 ms) but 1.6 s for 131,072
-(reference 0.95 s), with every candidate's rows in the solve (4x the reference's row
-work, in registers that spill). The packing removes that excess; it is not timed yet.
+rollout, contacts as tensors), small enough to compile in about 80-100 s;
+tests/test_physics.py holds the kernel to the reference step's trajectories. Every
+rollout under any number of `vmap`s is one launch (`jax.custom_batching.custom_vmap`).
+Forward only: derivatives (`jax.jvp`, `jax.grad`) run the reference step
+(`jax.custom_jvp`). Measured on one H100 (docs/physics.md, benchmarks.md): 0.001 mm from
+the reference at p90 after 256 steps; 2,048 rollouts of 256 steps in 29 ms, 131,072 in
+0.56 s (the XLA reference: 48 ms and 0.94 s).
 """
 
 from __future__ import annotations
@@ -32,8 +31,22 @@ from ppdjax.sim import box_plane
 from ppdjax.sim.box_plane import CORNER_SIGNS, Body, BoxPlaneSettings
 from ppdjax.sim.box_plane_lanes import CANDIDATES, step
 
-BLOCK = 32  # rollouts per program
-NUM_WARPS = 4  # GPU warps per program (the candidate tensors are CANDIDATES x BLOCK)
+# The launch: rollouts and GPU warps per program, by the number of rollouts. Measured on
+# one H100 (experiments/kernel_sweep.py, benchmarks.md): at 2,048 rollouts 32 x 2 was the
+# fastest of eight shapes (1.09x the 32 x 4 used before; larger blocks leave SMs idle), at
+# 131,072 128 x 8 (1.69x; 32 x 2 1.48x): a program's steps are a long chain of dependent
+# small operations, and more rollouts per program share that chain once many programs
+# already fill the chip.
+SMALL_LAUNCH = (32, 2)
+LARGE_LAUNCH = (128, 8)
+LARGE_FROM = 16384  # rollouts: 128 programs of 128, about one per streaming multiprocessor
+
+
+def launch_shape(settings: BoxPlaneSettings, rollouts: int) -> tuple[int, int]:
+  """(rollouts per program, warps per program) of a launch of `rollouts`: the settings'
+  `kernel_block` and `kernel_warps` where set, else SMALL_LAUNCH's or LARGE_LAUNCH's."""
+  block, warps = LARGE_LAUNCH if rollouts >= LARGE_FROM else SMALL_LAUNCH
+  return settings.kernel_block or block, settings.kernel_warps or warps
 
 
 # --- packing and the kernel ---------------------------------------------------------------
@@ -74,8 +87,8 @@ def _pack(body: Body, qpos0, wrench) -> jax.Array:
 
 
 def _unpack(rows, layout):
-  """A block's fields: scalars as (BLOCK,) arrays in nested tuples, candidate fields as
-  (CANDIDATES, BLOCK) tensors (`rows` a ref or an array)."""
+  """A block's fields: scalars as (block,) arrays in nested tuples, candidate fields as
+  (CANDIDATES, block) tensors (`rows` a ref or an array)."""
   def nest(start, shape):
     if shape == (CANDIDATES,):
       return rows[pl.ds(start, CANDIDATES), :]
@@ -113,7 +126,8 @@ def _fused(body: Body, qpos0, wrench, *, steps, duration, settings, interpret):
   lead = qpos0.shape[:-1]
   packed = _pack(body, qpos0, wrench)
   n = packed.shape[1]
-  n_pad = -(-n // BLOCK) * BLOCK
+  block, warps = launch_shape(settings, n)
+  n_pad = -(-n // block) * block
   layout = _layout(body.valid.shape[-1])
   rows = 1 << (packed.shape[0] - 1).bit_length()  # power-of-two blocks
   filler = np.zeros(packed.shape[0], np.float32)  # padding rollouts: a unit body, no boxes
@@ -128,17 +142,18 @@ def _fused(body: Body, qpos0, wrench, *, steps, duration, settings, interpret):
   out_rows = 1 << (steps * 8 - 1).bit_length()  # power-of-two blocks
   out = pl.pallas_call(
       kernel, out_shape=jax.ShapeDtypeStruct((out_rows, n_pad), jnp.float32),
-      grid=(n_pad // BLOCK,), in_specs=[pl.BlockSpec((rows, BLOCK), lambda i: (0, i))],
-      out_specs=pl.BlockSpec((out_rows, BLOCK), lambda i: (0, i)),
-      compiler_params=_compiler_params(), interpret=interpret, name="box_plane_rollout",
+      grid=(n_pad // block,), in_specs=[pl.BlockSpec((rows, block), lambda i: (0, i))],
+      out_specs=pl.BlockSpec((out_rows, block), lambda i: (0, i)),
+      compiler_params=_compiler_params(warps), interpret=interpret,
+      name="box_plane_rollout",
   )(packed)
   poses = out[:steps * 8].reshape(steps, 8, n_pad)[:, :7, :n]
   return poses.transpose(2, 0, 1).reshape(lead + (steps, 7))
 
 
-def _compiler_params():
+def _compiler_params(warps: int):
   from jax.experimental.pallas import triton as pl_triton  # GPU only
-  return pl_triton.CompilerParams(num_warps=NUM_WARPS, num_stages=1)
+  return pl_triton.CompilerParams(num_warps=warps, num_stages=1)
 
 
 @functools.lru_cache(maxsize=16)
