@@ -4,7 +4,7 @@ predicted box and what replacing one attribute of it by the truth's would give.
   python -m ppdjax.generate --config=ppdjax/configs/tools.py --config.seed=7 \
       --config.data.num_tools=200 --config.data.render_workers=2 --out=DIR
   python experiments/tool_shape_errors.py --model=assets/tools_model --data=DIR \
-      --out=experiments/results/tools_order_study/shape_errors/NAME.json
+      --out=experiments/results/tools_order_study/shape_errors/NAME.json [--depth_bounds=1,2]
 
 Every sample of --data is used (a fresh seed: none was trained on). Per true box: the
 predicted box of highest IoU (`primitives.box_iou`), matched if IoU > 0.5; the fraction
@@ -12,6 +12,11 @@ matched by how thin the true box is (its thinnest side in voxels); then the same
 paired box's centre, rotation, sizes or thinnest side replaced by the truth's (which error
 matters); centre, side and long-axis errors. Shape F1 (`metrics.shape_counts`, one-to-one
 matching) with a 95 % bootstrap interval over objects.
+
+`--depth_bounds=B1,B2` adds the same breakdown for the network's boxes refined against the
+depth image (`depth_fit.refine_batch`, every face free within B voxels of the network's),
+and `--fit_depth` for the evaluation's +Fit(depth) boxes (fitted to the voxels, then to
+the depth within half a voxel).
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ import numpy as np
 from ppdjax import metrics
 from ppdjax.conventions import OBS_KEYS, VOXEL_RESOLUTION
 from ppdjax.dataset.storage import open_dataset
+from ppdjax.infer import depth_fit
+from ppdjax.infer.fit import fit_boxes
 from ppdjax.primitives import Primitives, box_iou, quat_to_mat
 from ppdjax.training import checkpoints
 
@@ -99,19 +106,44 @@ def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--model", default="assets/tools_model")
   parser.add_argument("--data", required=True)
+  parser.add_argument("--depth_bounds", default="",
+                      help="comma-separated voxels: the network's boxes refined to the depth")
+  parser.add_argument("--fit_depth", action="store_true",
+                      help="also the voxel fit refined to the depth (the +Fit(depth) boxes)")
+  parser.add_argument("--max_objects", type=int, default=0, help="the first N (0: all)")
   parser.add_argument("--out", default="")
   args = parser.parse_args()
   model, _ = checkpoints.load(args.model)
   data = open_dataset(args.data)
-  decode = lambda obs: model.decode(obs)[0]
-  preds, trues = [], []
-  for start in range(0, len(data), CHUNK):
-    batch = data.take(np.arange(start, min(start + CHUNK, len(data))))
-    preds.append(decode({k: jnp.asarray(batch[k]) for k in OBS_KEYS}))
+  bounds = [float(b) for b in args.depth_bounds.split(",") if b]
+  count = min(len(data), args.max_objects or len(data))
+  decode = jax.jit(lambda obs: model.decode(obs)[0])
+  variants = {"network": []} | {f"network+depth({b:g} voxels)": [] for b in bounds}
+  if args.fit_depth:
+    variants["fit+depth"] = []
+  trues = []
+  for start in range(0, count, CHUNK):
+    batch = data.take(np.arange(start, min(start + CHUNK, count)))
+    pred = decode({k: jnp.asarray(batch[k]) for k in OBS_KEYS})
+    variants["network"].append(pred)
+    for b in bounds:
+      variants[f"network+depth({b:g} voxels)"].append(depth_fit.refine_batch(
+          pred, batch["depth"], data.camera, bound=b / VOXEL_RESOLUTION))
+    if args.fit_depth:
+      variants["fit+depth"].append(depth_fit.refine_batch(
+          fit_boxes(jnp.asarray(batch["voxels"]), init=pred), batch["depth"], data.camera))
     trues.append(jax.tree.map(jnp.asarray, batch["primitives"]))
+    print(f"{start + len(trues[-1].valid)} / {count} objects", flush=True)
   cat = lambda ps: jax.tree.map(lambda *x: jnp.concatenate(x), *ps)
-  out = {"model": args.model, "data": args.data, **analyse(cat(preds), cat(trues))}
-  print(json.dumps(out, indent=1))
+  true = cat(trues)
+  results = {name: analyse(cat(ps), true) for name, ps in variants.items()}
+  out = {"model": args.model, "data": args.data, **results.pop("network")}
+  if results:
+    out["variants"] = results
+  for name, r in [("network", out)] + list(results.items()):
+    print(f"{name}: F1 {r['f1']:.1f} [{r['f1_ci95'][0]:.1f}, {r['f1_ci95'][1]:.1f}], "
+          f"matched {r['matched']:.1f} %, by thinnest side "
+          f"{ {k: v['matched'] for k, v in r['by_thinnest_side'].items()} }")
   if args.out:
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     with open(args.out, "w") as f:

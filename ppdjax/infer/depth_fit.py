@@ -65,19 +65,20 @@ def _ties(prims: Primitives):
 
 
 def refine_batch(prims: Primitives, depth_BxHxW, camera: dict, *, iterations: int = 15,
-                 sweep: bool = True) -> Primitives:
+                 sweep: bool = True, bound: float = VOXEL / 2) -> Primitives:
   """`refine_with_depth` over a batch (B, K) of objects seen by one camera (jitted once per
-  image size and iteration count; CHUNK objects at a time bound the Jacobians' memory)."""
+  image size, iteration count and bound; CHUNK objects at a time bound the Jacobians'
+  memory)."""
   cam = check_camera(camera)
   return _refine_batch(prims, jnp.asarray(depth_BxHxW, jnp.float32),
                        jnp.asarray(cam["intrinsics"], jnp.float32),
                        jnp.asarray(cam["camera_from_world"], jnp.float32),
-                       iterations=iterations, sweep=sweep)
+                       iterations=iterations, sweep=sweep, bound=float(bound))
 
 
-@functools.partial(jax.jit, static_argnames=("iterations", "sweep"))
-def _refine_batch(prims, depth_BxHxW, intrinsics, camera_from_world, iterations, sweep):
-  one = lambda p, d: refine_with_depth(p, d, intrinsics, camera_from_world,
+@functools.partial(jax.jit, static_argnames=("iterations", "sweep", "bound"))
+def _refine_batch(prims, depth_BxHxW, intrinsics, camera_from_world, iterations, sweep, bound):
+  one = lambda p, d: refine_with_depth(p, d, intrinsics, camera_from_world, bound=bound,
                                        iterations=iterations, sweep=sweep)
   with jax.default_matmul_precision("highest"):  # GPUs' TF32 default: mm at 2.6 m
     return jax.lax.map(lambda a: one(*a), (prims, depth_BxHxW), batch_size=CHUNK)
