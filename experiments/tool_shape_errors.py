@@ -118,7 +118,8 @@ def main():
   bounds = [float(b) for b in args.depth_bounds.split(",") if b]
   count = min(len(data), args.max_objects or len(data))
   decode = jax.jit(lambda obs: model.decode(obs)[0])
-  variants = {"network": []} | {f"network+depth({b:g} voxels)": [] for b in bounds}
+  named = {f"network+depth({b:g} voxels)": b for b in bounds}
+  variants = {"network": []} | {name: [] for name in named}
   if args.fit_depth:
     variants["fit+depth"] = []
   trues = []
@@ -126,8 +127,8 @@ def main():
     batch = data.take(np.arange(start, min(start + CHUNK, count)))
     pred = decode({k: jnp.asarray(batch[k]) for k in OBS_KEYS})
     variants["network"].append(pred)
-    for b in bounds:
-      variants[f"network+depth({b:g} voxels)"].append(depth_fit.refine_batch(
+    for name, b in named.items():
+      variants[name].append(depth_fit.refine_batch(
           pred, batch["depth"], data.camera, bound=b / VOXEL_RESOLUTION))
     if args.fit_depth:
       variants["fit+depth"].append(depth_fit.refine_batch(

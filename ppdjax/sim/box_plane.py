@@ -66,8 +66,9 @@ class BoxPlaneSettings:
       8 costs no agreement with C on the benchmark towers and halves the rows.
     kernel: "reference" runs this module's step (XLA); "pallas" runs whole rollouts as
       one Pallas kernel (`ppdjax.sim.box_plane_kernel`; interpreted off a GPU), the same
-      trajectories to 0.001 mm at p90, 1.67x faster at 2,048 rollouts and as fast at
-      131,072 on an H100, with a longer first compile (about 100 s against 45 s;
+      trajectories to 0.001 mm at p90, 1.67x faster than the XLA step at 2,048
+      rollouts on an H100 and, with its launch shape by batch size, 1.69x faster than
+      before at 131,072 (benchmarks.md), with a longer first compile (about 100 s against 45 s;
       docs/physics.md); "auto" (the default) is "pallas" on a GPU, else "reference".
       Derivatives always run this module's step (+Refine can take differences through
       the kernel instead: `infer.refine.check_jacobian`).
