@@ -73,3 +73,16 @@ def test_geometry_batch_is_a_training_batch():
   np.testing.assert_array_equal(ppdjax.voxelize(prims), np.asarray(b["voxels"]))
   counts = metrics.shape_counts(prims, prims)
   assert np.all(np.asarray(counts["matched"]) == prims.valid.sum(-1))
+
+
+def test_table4_shape_pool_is_the_stream_and_a_function_of_its_key():
+  from ppdjax.infer.evaluator import shape_pool
+  key = jax.random.key(11)
+  a, b = shape_pool(key, 64, 5), shape_pool(key, 64, 5)
+  np.testing.assert_array_equal(np.asarray(a.half_size), np.asarray(b.half_size))
+  np.testing.assert_array_equal(np.asarray(a.pos),
+                                np.asarray(stream.sample_towers_jax(key, 64, 5).pos))
+  other = shape_pool(jax.random.key(12), 64, 5)
+  assert not np.allclose(np.asarray(other.half_size), np.asarray(a.half_size))
+  blocks = np.asarray(a.valid).sum(-1)
+  assert blocks.min() >= 2 and blocks.max() <= 5

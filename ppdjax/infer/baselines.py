@@ -14,17 +14,20 @@ A ranking is returned as scores (B, K, 100) (higher is better), so `metrics.dens
 scores baselines and the network alike; the arg-max is the baseline's guess.
 
 Table 4's sampling baselines ("Sample Phys.", "Sample Phys.+Shape") draw densities
-uniformly (and shapes from the tower generator); `evaluate` scores them with the same
+uniformly (and shapes from the tower distribution, `random_shapes`); `evaluate` scores them with the same
 physics as the network's samples.
 """
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import numpy as np
 from tqdm.auto import tqdm
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, NUM_SLOTS, density_to_slot
-from ppdjax.dataset import storage, towers
+from ppdjax.dataset import storage, stream
 from ppdjax.dataset.materials import ALL_MATERIAL_NAMES, material_slots
 from ppdjax.metrics import ROTATION_LENGTH, rotation_vector
 from ppdjax.primitives import Primitives, bottom_to_top_order
@@ -140,6 +143,10 @@ def baseline_scores(train: TrainingSet, batch: dict, oracle_seed: int) -> np.nda
                   1)
 
 
-def random_shapes(seed: int, count: int, num_slots: int = NUM_SLOTS) -> Primitives:
-  """`count` tower shapes from the dataset's generator (2..K blocks; densities unset)."""
-  return towers.sample_towers(seed, count, num_slots=num_slots)
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def random_shapes(key: jax.Array, count: int, num_slots: int = NUM_SLOTS) -> Primitives:
+  """`count` tower shapes of the dataset's distribution (2..K blocks; placeholder
+  densities), drawn on the accelerator by `stream.sample_towers_jax`: the NumPy generator
+  took about 5 s for the 512 shapes of an evaluation batch, longer than the batch's
+  device work."""
+  return stream.sample_towers_jax(key, count, num_slots)

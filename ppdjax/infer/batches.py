@@ -23,7 +23,7 @@ def evaluation_objects(total: int, max_objects: int = 0, subset: str = "first") 
 def read_ahead(read, starts, prefetch: bool):
   """(start, read(start)) for each start; with `prefetch`, the next batch is read in a
   background thread while the caller computes the current one (reading 64 objects' images
-  and depth takes about 2 s, a fifth of a batch on an H100). The time spent waiting for a
+  and depth from disk takes about 1 s on an H100 machine). The time spent waiting for a
   read is added to `read.waited`."""
   starts = list(starts)
   read.waited = 0.0

@@ -30,6 +30,7 @@ they are made (`partial`) are reused by a later call: long evaluations resume.
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import hashlib
 import os
 import time
@@ -51,7 +52,9 @@ from ppdjax.training import checkpoints
 from ppdjax.training import estimator as estimator_module
 
 
-RECORDS_VERSION = 3  # of `rows.batch_records`' layout: saved batches of another are not reused
+# of `rows.batch_records`' layout and what they hold: saved batches of another are not
+# reused (4: Table 4's shape pool drawn by `stream.sample_towers_jax`)
+RECORDS_VERSION = 4
 
 
 def _weights_hash(model) -> str:
@@ -89,7 +92,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              estimator_weight: float = 1.0, joint: bool = False, true_shapes: bool = False,
              selection_horizon: int = 0, horizon_sweep: bool = False,
              refine_jacobian: str = "forward", progress: bool = True,
-             partial_dir: str = "", max_seconds: float = 0.0, prefetch: bool = True) -> dict:
+             partial_dir: str = "", max_seconds: float = 0.0, prefetch: bool = True,
+             devices=None) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
@@ -101,7 +105,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   Choose τ and the horizon on the validation split. `results["oracle_pick"][row]`: the
   row's ceiling on its own candidates (`rows.oracle_pick`). `results["seconds_by_part"]`:
   where this call's time went (waiting for batches to be read, the baselines' scores, the
-  jitted calls with their compilation, the records). With
+  jitted calls with their compilation, the records, which a background thread makes while
+  the next batch computes, and the time waited for them). With
   `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
   split ("spread": many towers, since a tower's 8 configurations are stored together).
   `fit` adds the +Fit rows (boxes fitted to the voxels), `depth` the +Fit(depth) rows
@@ -115,7 +120,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   `partial_dir` saves each batch's records as it is made and reuses those a previous call
   with the same settings saved (`partial.PartialRecords`); with `max_seconds` > 0 the call
   stops after the batch that passes it and raises `partial.EvaluationPaused`. `prefetch`
-  reads the next batch in a background thread while the current one computes.
+  reads the next batch in a background thread while the current one computes. `devices`:
+  the local devices each batch splits over (None: all; the batch is padded to a multiple).
 
   Raises:
     CheckpointError for a workdir without a checkpoint, DatasetError for a dataset
@@ -128,8 +134,9 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   objects = evaluation_objects(len(test), max_objects, subset)
   n = len(objects)
   batch_size = max(1, min(batch_size, n))
-  devices = jax.local_device_count()  # a batch splits over them: pad it to a multiple
-  batch_size = -(-batch_size // devices) * devices
+  # a batch splits over the devices: pad it to a multiple
+  num_devices = len(devices) if devices is not None else jax.local_device_count()
+  batch_size = -(-batch_size // num_devices) * num_devices
   settings = {"samples": samples, "refine": refine, "refine_steps": refine_steps,
               "batch_size": batch_size, "baselines": with_baselines, "seed": seed,
               "prior_weight": prior_weight, "fit": fit, "depth": depth,
@@ -174,55 +181,82 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                        batch["primitives"].density.shape[-1]) if with_baselines else None)
     return len(idx), None, (batch, pool), baselines.true_slots(batch["primitives"])
 
-  for start, (keep, rec, read_batch, slot) in read_ahead(read, range(0, n, batch_size),
-                                                         prefetch):
-    batch, pool = read_batch if read_batch is not None else (None, None)
+  def make_records(start, keep, out, slot, base):
+    """A computed batch's records, saved; made in a background thread while the next
+    batch runs on the device."""
     t = clock()
-    if rec is None:
-      if ev is None:
-        train = baselines.TrainingSet(storage.open_dataset(data_dir, "train"),
-                                      progress=progress) if with_baselines else None
-        ev = Evaluator(model, config, samples=samples, refine=refine,
-                       refine_steps=refine_steps, baselines_on=with_baselines, fit=fit,
-                       depth=depth, camera=test.camera if depth else None,
-                       refine_prior=refine_prior,
-                       estimator=estimator_module.load(estimator)[0] if estimator else None,
-                       estimator_weight=estimator_weight, joint=joint, true_shapes=true_shapes,
-                       pushes=test.pushes, settings=settings_for(test.engine),
-                       refine_jacobian=refine_jacobian)
-        t = clock()
-      base = (baselines.baseline_scores(train, batch, seed * 1_000_003 + start)
-              if with_baselines else None)
-      t, parts["baselines"] = clock(), parts["baselines"] + clock() - t
-      out = ev.batch(batch, base, jax.random.fold_in(key, start), pool)
-      out = jax.tree.map(lambda x: x[:keep], out)
-      t, parts["device"] = clock(), parts["device"] + clock() - t
-      if not computed:  # the stages' seconds after the first batch (its compilation)
-        first = dict(ev.seconds, device=parts["device"])
-      rec = rows.batch_records(out, slot[:keep], slot[:keep] >= 0,
-                               None if base is None else base[:keep], samples=samples,
-                               prior_weight=prior_weight, prefixes=prefixes,
-                               with_baselines=with_baselines, refine=refine, layout=ev.layout,
-                               selection_horizon=selection_horizon,
-                               horizon_sweep=horizon_sweep)
-      parts["records"] += clock() - t
-      if saved:
-        saved.save(start, rec)
-      computed += 1
+    rec = rows.batch_records(out, slot[:keep], slot[:keep] >= 0,
+                             None if base is None else base[:keep], samples=samples,
+                             prior_weight=prior_weight, prefixes=prefixes,
+                             with_baselines=with_baselines, refine=refine, layout=ev.layout,
+                             selection_horizon=selection_horizon, horizon_sweep=horizon_sweep)
+    if saved:
+      saved.save(start, rec)
+    return rec, clock() - t
+
+  def add(rec, keep):
     for k, v in rec.items():
       records[k].append(np.asarray(v))
     bar.update(keep)
-    if (max_seconds and computed and start + keep < n
-        and time.perf_counter() - t_start > max_seconds):
-      bar.close()
-      raise partial.EvaluationPaused(start + keep, n, partial_dir)
+
+  pending = []  # (objects, future) of the batch whose records are being made
+
+  def collect():
+    """Adds the pending batch's records (batches stay in order)."""
+    for keep, future in pending:
+      t = clock()
+      rec, seconds = future.result()
+      parts["records_waited"] += clock() - t
+      parts["records"] += seconds
+      add(rec, keep)
+    pending.clear()
+
+  with concurrent.futures.ThreadPoolExecutor(1) as behind:
+    for start, (keep, rec, read_batch, slot) in read_ahead(read, range(0, n, batch_size),
+                                                           prefetch):
+      batch, pool = read_batch if read_batch is not None else (None, None)
+      t = clock()
+      if rec is None:
+        if ev is None:
+          train = baselines.TrainingSet(storage.open_dataset(data_dir, "train"),
+                                        progress=progress) if with_baselines else None
+          ev = Evaluator(model, config, samples=samples, refine=refine,
+                         refine_steps=refine_steps, baselines_on=with_baselines, fit=fit,
+                         depth=depth, camera=test.camera if depth else None,
+                         refine_prior=refine_prior,
+                         estimator=estimator_module.load(estimator)[0] if estimator else None,
+                         estimator_weight=estimator_weight, joint=joint,
+                         true_shapes=true_shapes, pushes=test.pushes,
+                         settings=settings_for(test.engine), refine_jacobian=refine_jacobian,
+                         devices=devices)
+          t = clock()
+        base = (baselines.baseline_scores(train, batch, seed * 1_000_003 + start)
+                if with_baselines else None)
+        t, parts["baselines"] = clock(), parts["baselines"] + clock() - t
+        out = ev.batch(batch, base, jax.random.fold_in(key, start), pool)
+        out = jax.tree.map(lambda x: x[:keep], out)
+        parts["device"] += clock() - t
+        if not computed:  # the stages' seconds after the first batch (its compilation)
+          first = dict(ev.seconds, device=parts["device"], wall=clock() - t_start)
+        collect()  # the previous batch's, made while this one ran on the device
+        pending.append((keep, behind.submit(make_records, start, keep, out, slot, base)))
+        computed += 1
+      else:
+        collect()
+        add(rec, keep)
+      if (max_seconds and computed and start + keep < n
+          and time.perf_counter() - t_start > max_seconds):
+        collect()
+        bar.close()
+        raise partial.EvaluationPaused(start + keep, n, partial_dir)
+    collect()
   bar.close()
   results = summarize(model_switches(config), {k: np.concatenate(v) for k, v in records.items()})
   results.update({
       "workdir": trained if isinstance(trained, str) else None, "data": data_dir,
       "split": split, "objects": int(n), **settings,
       "refine_steps": refine_steps if refine else 0, "subset": subset,
-      "seconds": round(time.perf_counter() - t_start, 1),
+      "devices": num_devices, "seconds": round(time.perf_counter() - t_start, 1),
       "seconds_by_part": {"read": round(read.waited, 1),
                           **{k: round(v, 1) for k, v in parts.items()}}})
   if computed:
@@ -231,5 +265,6 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
     after["host"] = parts["device"] - first["device"] - sum(after.values())  # the rest
     results["seconds_by_stage"] = {
         "first_batch": round(first["device"], 1), "batches_after_first": computed - 1,
+        "first_batch_wall": round(first["wall"], 1),  # from the call's start
         "after_first": {k: round(v, 2) for k, v in after.items()}}
   return results

@@ -81,9 +81,8 @@ _log_priors = jax.jit(jax.vmap(sampling.log_prior))  # (B, S) of each object's c
 
 def shape_pool(key, samples: int, num_slots: int):
   """Table 4's "Sample Phys.+Shape" pool for one batch: `samples` random tower shapes
-  (`baselines.random_shapes`) seeded from the batch's key."""
-  return baselines.random_shapes(int(jax.random.randint(key, (), 0, 2**31 - 1)), samples,
-                                 num_slots=num_slots)
+  (`baselines.random_shapes`) drawn from the batch's key."""
+  return baselines.random_shapes(key, samples, num_slots)
 
 
 class Evaluator:
@@ -94,7 +93,8 @@ class Evaluator:
                depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
                estimator=None, estimator_weight: float = 1.0, joint: bool = False,
                true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS,
-               refine_jacobian: str = "forward"):
+               refine_jacobian: str = "forward", devices=None):
+    """`devices`: the local devices each batch splits over (None: all of them)."""
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:
@@ -117,7 +117,7 @@ class Evaluator:
                                     else (None, None))
     # each call runs per object: on several local devices, each takes its share of the
     # batch (`sharding.jit_over_local_devices`; the weights and the baselines' shape pool whole)
-    per_device = sharding.jit_over_local_devices
+    per_device = functools.partial(sharding.jit_over_local_devices, devices=devices)
     self._decode = per_device(functools.partial(
         decode_groups, self.graphdef, groups=self.fits, camera=camera,
         est_graphdef=est_graphdef, est_weight=estimator_weight, true_shapes=true_shapes),

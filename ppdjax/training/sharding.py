@@ -22,9 +22,9 @@ def maybe_initialize_distributed() -> None:
     jax.distributed.initialize()
 
 
-def make_mesh() -> Mesh:
-  """A 1-D mesh over every device of every process."""
-  return Mesh(np.array(jax.devices()), (DATA_AXIS,))
+def make_mesh(devices=None) -> Mesh:
+  """A 1-D mesh over `devices` (None: every device of every process)."""
+  return Mesh(np.array(jax.devices() if devices is None else list(devices)), (DATA_AXIS,))
 
 
 def replicated(mesh: Mesh) -> NamedSharding:
@@ -36,24 +36,28 @@ def batch_sharded(mesh: Mesh) -> NamedSharding:
   return NamedSharding(mesh, PartitionSpec(DATA_AXIS))
 
 
-def check_batch_size(batch_size: int) -> int:
-  """The per-process batch; raises ValueError unless the batch splits evenly."""
-  devices, processes = jax.device_count(), jax.process_count()
+def check_batch_size(batch_size: int, devices: int | None = None) -> int:
+  """The per-process batch; raises ValueError unless the batch splits evenly over
+  `devices` (None: every device)."""
+  devices, processes = devices or jax.device_count(), jax.process_count()
   if batch_size % devices:
     raise ValueError(f"train.batch_size={batch_size} must be a multiple of the "
                      f"{devices} devices it is split over")
   return batch_size // processes
 
 
-def jit_over_local_devices(fn, replicated: tuple[int, ...] = ()):
+def jit_over_local_devices(fn, replicated: tuple[int, ...] = (), devices=None):
   """`jax.jit(fn)`, each local device running `fn` on its share of a batch (`jax.shard_map`):
   every argument is split along its leading axis except those at the positions in
   `replicated`, which each device gets whole; every output keeps the batch axis. On one
-  device, plain `jax.jit(fn)`.
+  device, plain `jax.jit(fn)` placed on it. `devices`: the local devices to use (None: all).
 
   For per-object work (the evaluation): the batch must split evenly over the devices.
   """
-  devices = jax.local_devices()
+  if devices is not None and len(devices) == 1:  # that device, whichever it is
+    one, compiled_one = jax.sharding.SingleDeviceSharding(devices[0]), jax.jit(fn)
+    return lambda *args: compiled_one(*jax.device_put(args, one))
+  devices = jax.local_devices() if devices is None else list(devices)
   if len(devices) == 1:
     return jax.jit(fn)
   mesh = Mesh(np.array(devices), (DATA_AXIS,))

@@ -196,9 +196,10 @@ def _assign(d, values):
 class Trainer:
   """Holds the replicated train state, compiles the steps once and checkpoints them."""
 
-  def __init__(self, config, workdir: str):
+  def __init__(self, config, workdir: str, devices=None):
+    """`devices`: the devices the batch splits over (None: every device of every process)."""
     self.config, self.workdir = config, workdir
-    self.mesh = sharding.make_mesh()
+    self.mesh = sharding.make_mesh(devices)
     self.replicated = sharding.replicated(self.mesh)
     self.graphdef, state = nnx.split(build(config))
     self.state = jax.device_put(state, self.replicated)
@@ -255,7 +256,7 @@ class Trainer:
     `dataset` None (a geometry-stage run, which reads no dataset): `num_batches` batches
     of fresh towers from a held-out stream (voxels only; geometry and F1 are what count).
     """
-    devices, t = jax.device_count(), self.config.train
+    devices, t = self.mesh.size, self.config.train
     if dataset is None:
       if not num_batches:
         raise ValueError("validation on the stream needs train.eval_batches > 0")
