@@ -198,7 +198,9 @@ def seconds_by_part(results: dict) -> str:
   """' (reading a s, baselines b s, ...)' of the batches this call computed, where known."""
   parts = results.get("seconds_by_part")
   names = {"read": "reading", "baselines": "baselines' scores",
-           "device": "jitted calls with their compilation", "records": "records"}
+           "device": "jitted calls with their compilation",
+           "records": "records (made beside the next batch)",
+           "records_waited": "waiting for the records"}
   stages = results.get("seconds_by_stage", {})
   per = stages.get("batches_after_first", 0)
   steady = (f"; first batch (compilation) {stages['first_batch']:.0f} s" if stages else "")
