@@ -14,8 +14,8 @@ A ranking is returned as scores (B, K, 100) (higher is better), so `metrics.dens
 scores baselines and the network alike; the arg-max is the baseline's guess.
 
 Table 4's sampling baselines ("Sample Phys.", "Sample Phys.+Shape") draw densities
-uniformly (and shapes from the tower distribution, `random_shapes`); `evaluate` scores them with the same
-physics as the network's samples.
+uniformly (and shapes from the tower distribution, `random_shapes`); `evaluate` scores
+them with the same physics as the network's samples.
 """
 
 from __future__ import annotations
