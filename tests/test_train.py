@@ -188,7 +188,8 @@ from ppdjax.training.state import Trainer
 from tests.test_train import short_config
 d0, d1 = jax.devices()
 f = lambda a, b: a * b.sum()
-one = sharding.jit_over_local_devices(f, replicated=(1,), devices=[d1])(jnp.arange(4.0), jnp.ones(3))
+one = sharding.jit_over_local_devices(f, replicated=(1,), devices=[d1])(jnp.arange(4.0),
+                                                                       jnp.ones(3))
 assert one.devices() == {{d1}}, one.devices()
 both = sharding.jit_over_local_devices(f, replicated=(1,))(jnp.arange(4.0), jnp.ones(3))
 assert both.devices() == {{d0, d1}}, both.devices()
