@@ -140,13 +140,21 @@ def make(half_size, pos, quat=None, density=1000.0, num_slots: int = NUM_SLOTS) 
 # --- quaternion helpers (w, x, y, z) -----------------------------------------------------
 
 
+def _xp(*arrays):
+  """NumPy for NumPy inputs (no device round trip: host code such as the tower generator
+  calls these once per tower), jax.numpy otherwise."""
+  return np if all(isinstance(a, np.ndarray) for a in arrays) else jnp
+
+
 def quat_to_mat(q: jax.Array) -> jax.Array:
-  """(..., 4) unit quaternions -> (..., 3, 3) rotation matrices (columns = body axes)."""
-  w, x, y, z = jnp.moveaxis(q, -1, 0)
-  return jnp.stack([
-      jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-      jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-      jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+  """(..., 4) unit quaternions -> (..., 3, 3) rotation matrices (columns = body axes);
+  NumPy in, NumPy out."""
+  xp = _xp(q)
+  w, x, y, z = xp.moveaxis(q, -1, 0)
+  return xp.stack([
+      xp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+      xp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+      xp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
   ], -2)
 
 
@@ -184,10 +192,11 @@ _CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for s
 
 
 def corners(prims: Primitives) -> jax.Array:
-  """(..., K, 8, 3) box corners in the object frame."""
+  """(..., K, 8, 3) box corners in the object frame; NumPy in, NumPy out."""
+  xp = _xp(prims.half_size, prims.pos, prims.quat)
   local = _CORNER_SIGNS * prims.half_size[..., None, :]
   rot = quat_to_mat(prims.quat)
-  return jnp.einsum("...ij,...cj->...ci", rot, local) + prims.pos[..., None, :]
+  return xp.einsum("...ij,...cj->...ci", rot, local) + prims.pos[..., None, :]
 
 
 def lowest_point(prims: Primitives) -> jax.Array:
