@@ -111,9 +111,10 @@ def face_errors(pred: Primitives, true: Primitives) -> jax.Array:
 
 
 def f1_from_counts(matched, predicted, true) -> float:
-  """Micro F1 (percent) over all boxes: 2·matched / (predicted + true)."""
-  total = float(jnp.sum(predicted) + jnp.sum(true))
-  return 100.0 * 2.0 * float(jnp.sum(matched)) / max(total, 1.0)
+  """Micro F1 (percent) over all boxes: 2·matched / (predicted + true). On the host (NumPy:
+  the bootstrap calls it a thousand times)."""
+  total = float(np.sum(predicted) + np.sum(true))
+  return 100.0 * 2.0 * float(np.sum(matched)) / max(total, 1.0)
 
 
 def density_counts(slot_logits: jax.Array, true_slot: jax.Array, valid: jax.Array,
@@ -143,10 +144,12 @@ def density_counts(slot_logits: jax.Array, true_slot: jax.Array, valid: jax.Arra
 
 
 def summarize(counts: dict) -> dict:
-  """Dataset-level metrics from summed counts: top-k in percent, RMSE in slots, F1 in percent."""
-  n = max(float(jnp.sum(counts["count"])), 1.0)
-  out = {k: 100.0 * float(jnp.sum(v)) / n for k, v in counts.items() if k.startswith("top")}
-  out["rmse"] = float(jnp.sqrt(jnp.sum(counts["sq_err"]) / n))
+  """Dataset-level metrics from summed counts: top-k in percent, RMSE in slots, F1 in percent
+  (on the host, in NumPy)."""
+  counts = {k: np.asarray(v) for k, v in counts.items()}
+  n = max(float(np.sum(counts["count"])), 1.0)
+  out = {k: 100.0 * float(np.sum(v)) / n for k, v in counts.items() if k.startswith("top")}
+  out["rmse"] = float(np.sqrt(np.sum(counts["sq_err"], dtype=np.float64) / n))
   if "matched" in counts:
     out["f1"] = f1_from_counts(counts["matched"], counts["predicted"], counts["true"])
   return out

@@ -200,9 +200,11 @@ def corners(prims: Primitives) -> jax.Array:
 
 
 def lowest_point(prims: Primitives) -> jax.Array:
-  """(...,) lowest z over the corners of valid boxes, in the object frame."""
+  """(...,) lowest z over the corners of valid boxes, in the object frame; NumPy in, NumPy
+  out."""
+  xp = _xp(prims.half_size, prims.pos, prims.quat, prims.valid)
   z = corners(prims)[..., 2].min(axis=-1)
-  return jnp.where(prims.valid, z, jnp.inf).min(axis=-1)
+  return xp.where(prims.valid, z, xp.inf).min(axis=-1)
 
 
 def ray_box_hits(origin: jax.Array, direction: jax.Array, prims: Primitives) -> jax.Array:

@@ -15,7 +15,6 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -175,7 +174,7 @@ class ObjectRenderer(SlotRenderer):
     """
     m = self.model
     self.write_object(prims, material_ids, texture_seeds)
-    m.body_pos[1] = np.asarray(scene.rest_position(jax.tree.map(jnp.asarray, prims)))
+    m.body_pos[1] = scene.rest_position(jax.tree.map(np.asarray, prims))
     mujoco.mj_forward(m, self.data)
     self._renderer.update_scene(self.data, camera="view")
     rgb = self._renderer.render().copy()

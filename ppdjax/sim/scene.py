@@ -13,6 +13,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import mujoco
+import numpy as np
 
 from ppdjax.conventions import NUM_SLOTS, REST_DEPTH, TIMESTEP
 from ppdjax.primitives import Primitives, lowest_point, quat_to_mat
@@ -63,9 +64,11 @@ def template_model(num_slots: int = NUM_SLOTS) -> mujoco.MjModel:
 
 
 def rest_position(prims: Primitives) -> jax.Array:
-  """(..., 3) world position of the object-frame origin at rest on the ground."""
+  """(..., 3) world position of the object-frame origin at rest on the ground; NumPy in,
+  NumPy out (the renderer calls it once per sample)."""
   z = -lowest_point(prims) - REST_DEPTH
-  return jnp.stack([jnp.zeros_like(z), jnp.zeros_like(z), z], -1)
+  xp = np if isinstance(z, np.ndarray | np.generic) else jnp
+  return xp.stack([xp.zeros_like(z), xp.zeros_like(z), z], -1)
 
 
 def object_fields(prims: Primitives) -> dict[str, jax.Array]:
