@@ -13,6 +13,8 @@ a trajectory would not turn with them, so augmentation is for voxel-only trainin
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -103,6 +105,7 @@ def augment(key: jax.Array, voxels: jax.Array, prims: Primitives):
   return jax.vmap(transform)(voxels, prims, codes)
 
 
+@functools.partial(jax.jit, static_argnums=(1, 2))
 def geometry_batch(key: jax.Array, batch: int, augmented: bool = True) -> dict:
   """A training batch of fresh towers: {"voxels": (B, 32, 32, 32) uint8, "primitives"}."""
   k_towers, k_aug = jax.random.split(key)
