@@ -9,6 +9,8 @@ or one jitted call):
     the NumPy tower generator with JAX corners, the generator now (NumPy corners), and
     `baselines.random_shapes` (`stream.sample_towers_jax`, jitted), which the pool uses;
   * the renderer's rest position, once per rendered sample (`scene.rest_position`);
+  * an evaluation batch's true slots in the reading thread (`primitives.bottom_to_top_order`;
+    on a GPU its wait queued behind the batch being computed);
   * the shape F1's bootstrap interval, 1,000 resamples of 4,800 objects
     (`metrics.f1_from_counts`).
 On the 2 x H100 machine the generator with JAX corners took 3.2 s for 512 towers, more
@@ -69,6 +71,11 @@ def main():
                                 for p in objects], args.repeats)
   now = _median_s(lambda _: [scene.rest_position(p) for p in objects], args.repeats)
   _row("rest position of 256 rendered samples", before, now)
+
+  batch = towers.sample_towers(8, 64)
+  before = _median_s(lambda _: baselines.true_slots(on_device(batch)), args.repeats)
+  now = _median_s(lambda _: baselines.true_slots(batch), args.repeats)
+  _row("true slots of a batch of 64 (bottom-to-top order)", before, now)
 
   rng = np.random.default_rng(0)
   m, p, t = (rng.integers(0, 5, 4800) for _ in range(3))

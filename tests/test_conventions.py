@@ -34,7 +34,7 @@ DEFINITIONS = [
     ("slot -> density", r"\(\w+ \+ 1(\.0)?\) \* (SLOT_DENSITY|100)", "ppdjax/conventions.py"),
     ("Primitives fields", r"\"half_size\", \"pos\", \"quat\", \"density\"", None),
     ("bottom-to-top order", r"argsort\(.*pos\[\.\.\., 2\]|pos\)\[\.\.\., 2\]", None),
-    ("bottom-to-top key", r"jnp\.where\(prims\.valid, prims\.pos\[\.\.\., 2\]",
+    ("bottom-to-top key", r"(jnp|xp)\.where\(prims\.valid, prims\.pos\[\.\.\., 2\]",
      "ppdjax/primitives.py"),
     ("rotation vector", r"arctan2\(", "ppdjax/metrics.py"),
     ("+Sample objective", r"- (self\.)?prior_weight \* ", "ppdjax/infer/sampling.py"),
