@@ -27,7 +27,7 @@ import numpy as np
 from absl import app, flags
 
 import ppdjax
-from ppdjax import metrics, primitives
+from ppdjax import box_overlap, metrics, primitives
 from ppdjax.dataset import towers
 from ppdjax.infer import fit
 
@@ -51,7 +51,7 @@ def timed(fn, *args):
 def shape_scores(pred, true, vox, chunk=16) -> dict:
   """F1, exact counts, best IoU per true box, voxel disagreement of `pred` (N objects)."""
   counts = jax.jit(metrics.shape_counts)
-  iou_fn = jax.jit(lambda p, t: primitives.box_iou(t, p).max(-1))
+  iou_fn = jax.jit(lambda p, t: box_overlap.box_iou(t, p).max(-1))
   parts, ious = [], []
   for i in range(0, len(vox), chunk):
     p, t = (jax.tree.map(lambda x: jnp.asarray(x[i:i + chunk]), a) for a in (pred, true))

@@ -7,7 +7,7 @@ predicted box and what replacing one attribute of it by the truth's would give.
       --out=experiments/results/tools_order_study/shape_errors/NAME.json [--depth_bounds=1,2]
 
 Every sample of --data is used (a fresh seed: none was trained on). Per true box: the
-predicted box of highest IoU (`primitives.box_iou`), matched if IoU > 0.5; the fraction
+predicted box of highest IoU (`box_overlap.box_iou`), matched if IoU > 0.5; the fraction
 matched by how thin the true box is (its thinnest side in voxels); then the same with the
 paired box's centre, rotation, sizes or thinnest side replaced by the truth's (which error
 matters); centre, side and long-axis errors. Shape F1 (`metrics.shape_counts`, one-to-one
@@ -34,7 +34,8 @@ from ppdjax.conventions import OBS_KEYS, VOXEL_RESOLUTION
 from ppdjax.dataset.storage import open_dataset
 from ppdjax.infer import depth_fit
 from ppdjax.infer.fit import fit_boxes
-from ppdjax.primitives import Primitives, box_iou, quat_to_mat
+from ppdjax.box_overlap import box_iou
+from ppdjax.primitives import Primitives, quat_to_mat
 from ppdjax.training import checkpoints
 
 THIN_BINS = ((0, 1), (1, 2), (2, 4), (4, 1e9))  # thinnest side, voxels

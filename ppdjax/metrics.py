@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ppdjax.primitives import Primitives, box_iou, quat_mul
+from ppdjax.box_overlap import box_iou
+from ppdjax.primitives import Primitives, quat_mul
 
 IOU_THRESHOLD = 0.5
 ROTATION_LENGTH = 0.5  # m: a rotation of θ radians counts as θ · 0.5 m of displacement

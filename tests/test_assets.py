@@ -11,7 +11,7 @@ from flax import nnx
 import ppdjax
 from ppdjax.dataset.storage import DatasetError
 from ppdjax.infer import example as decompose_example
-from ppdjax.primitives import box_iou
+from ppdjax.box_overlap import box_iou
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

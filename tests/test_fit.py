@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import ppdjax
-from ppdjax import metrics, primitives
+from ppdjax import box_overlap, metrics, primitives
 from ppdjax.dataset import towers
 from ppdjax.infer import fit
 
@@ -122,7 +122,7 @@ def test_fit_recovers_rotated_boxes_from_noisy_starts():
   filled = vox.reshape(8, -1).sum(-1)
   miss = lambda p: (_voxelize(p) != vox).reshape(8, -1).sum(-1) / filled
   miss_start, miss_fit = miss(start), miss(got)
-  iou = np.asarray(primitives.box_iou(jax.tree.map(jnp.asarray, true), got)).max(-1)
+  iou = np.asarray(box_overlap.box_iou(jax.tree.map(jnp.asarray, true), got)).max(-1)
   mean_iou = np.where(true.valid, iou, 0).sum(-1) / true.valid.sum(-1)
   print("disagreement", miss_start.round(3), "->", miss_fit.round(3), "IoU", mean_iou.round(2))
   assert np.all(miss_fit < miss_start / 5)  # starts disagree on ~40 % of filled voxels

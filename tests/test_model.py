@@ -7,7 +7,7 @@ import optax
 import pytest
 from flax import nnx
 
-from ppdjax import metrics, primitives
+from ppdjax import box_overlap, metrics, primitives
 from ppdjax.configs import tiny
 from ppdjax.nn import losses, model
 from ppdjax.nn.resnet import ResNet18, load_torchvision_weights
@@ -195,19 +195,19 @@ def test_box_iou_against_exact_and_monte_carlo(rng):
                  jnp.array([1.0, 0, 0, 0]), 1.0, True)
   inter = 0.15 * 0.15 * 0.5
   exact = inter / (0.4 * 0.2 * 0.6 + 0.2 * 0.2 * 0.6 - inter)
-  np.testing.assert_allclose(primitives.pair_iou(a, b), exact, atol=1e-3)
-  np.testing.assert_allclose(primitives.pair_iou(a, a), 1.0, atol=1e-6)
+  np.testing.assert_allclose(box_overlap.pair_iou(a, b), exact, atol=1e-3)
+  np.testing.assert_allclose(box_overlap.pair_iou(a, a), 1.0, atol=1e-6)
   far = a.replace(pos=jnp.array([0.5, 0.0, 0.0]))  # disjoint: gap of 0.1 along x
-  np.testing.assert_allclose(primitives.pair_iou(a, far), 0.0, atol=1e-6)
+  np.testing.assert_allclose(box_overlap.pair_iou(a, far), 0.0, atol=1e-6)
   for _ in range(3):  # rotated boxes against 10^6 random points
     boxes = _random_boxes(rng, 1, 2)
     x, y = jax.tree.map(lambda v: v[0, 0], boxes), jax.tree.map(lambda v: v[0, 1], boxes)
     y = y.replace(pos=x.pos + 0.3 * (y.pos - x.pos))
     pts = jnp.asarray(rng.uniform(-1, 1, (1_000_000, 3)), jnp.float32)
-    ia, ib = primitives._inside(pts, x.half_size, x.pos, x.quat), primitives._inside(
+    ia, ib = box_overlap._inside(pts, x.half_size, x.pos, x.quat), box_overlap._inside(
         pts, y.half_size, y.pos, y.quat)
     mc = float((ia & ib).sum() / (ia | ib).sum())
-    assert abs(float(primitives.pair_iou(x, y)) - mc) < 0.01
+    assert abs(float(box_overlap.pair_iou(x, y)) - mc) < 0.01
 
 
 def test_shape_f1_and_density_metrics(rng):

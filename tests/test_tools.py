@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 import ppdjax
-from ppdjax import primitives
+from ppdjax import box_overlap, primitives
 from ppdjax.dataset import meshes, tools
 from ppdjax.dataset.materials import material_slots
 
@@ -103,7 +103,7 @@ def test_primitives_from_mesh_recovers_the_parts_of_a_composed_mesh():
   normalised = [p.copy().apply_transform(transform) for p in posed]
   for part, density in zip(normalised, (7800.0, 600.0)):
     truth = _oriented_bounds(part)
-    iou = np.asarray(primitives.box_iou(truth, prims))[0]
+    iou = np.asarray(box_overlap.box_iou(truth, prims))[0]
     k = int(np.argmax(iou))
     assert iou[k] > 0.5, iou
     assert prims.density[k] == density  # the box takes its part's density

@@ -8,7 +8,7 @@ import time
 import jax
 import numpy as np
 
-from ppdjax import metrics, primitives
+from ppdjax import box_overlap, metrics, primitives
 from ppdjax.conventions import OBS_KEYS, density_to_slot
 from ppdjax.dataset.storage import DatasetError
 from ppdjax.infer.decompose import make_decompose_fn
@@ -89,7 +89,7 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
   valid, true_valid = np.asarray(prims.valid), np.asarray(true_bt.valid)
   dens = np.asarray(prims.density)[valid]
   true_dens = np.asarray(true_bt.density)[true_valid]
-  iou = np.asarray(primitives.box_iou(prims, true_bt))
+  iou = np.asarray(box_overlap.box_iou(prims, true_bt))
   plot_decomposition(obs["image"], prims, out, true=true,
                      title=f"{samples} density samples; trajectory distance "
                            f"{float(got.score) * 1e3:.0f} mm; recovered {dens.round()} kg/m³, "

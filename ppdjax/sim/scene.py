@@ -13,10 +13,9 @@ import functools
 import jax
 import jax.numpy as jnp
 import mujoco
-import numpy as np
 
 from ppdjax.conventions import NUM_SLOTS, REST_DEPTH, TIMESTEP
-from ppdjax.primitives import Primitives, lowest_point, quat_to_mat
+from ppdjax.primitives import Primitives, array_module, lowest_point, quat_to_mat
 from ppdjax.sim import mass
 
 OBJECT_BODY = 1  # body id of the object (0 is the world)
@@ -67,7 +66,7 @@ def rest_position(prims: Primitives) -> jax.Array:
   """(..., 3) world position of the object-frame origin at rest on the ground; NumPy in,
   NumPy out (the renderer calls it once per sample)."""
   z = -lowest_point(prims) - REST_DEPTH
-  xp = np if isinstance(z, np.ndarray | np.generic) else jnp
+  xp = array_module(z)
   return xp.stack([xp.zeros_like(z), xp.zeros_like(z), z], -1)
 
 
