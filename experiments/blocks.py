@@ -92,10 +92,10 @@ class Pipeline:
       return {"samples": e.samples, "refine": e.refine, "with_baselines": True,
               "prior_weight": e.prior_weight, "fit": e.fit, "depth": e.get("depth", False),
               "refine_prior": e.refine_prior, "joint": FLAGS.joint,
-              "true_shapes": FLAGS.true_shapes}
+              "true_shapes": FLAGS.true_shapes, "table4_objects": e.get("table4_objects", 0)}
     return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0,
             "fit": False, "depth": False, "refine_prior": 0.0, "joint": False,
-            "true_shapes": False}
+            "true_shapes": False, "table4_objects": 0}
 
   def max_objects(self, variant: str) -> int:
     """The full model's evaluation (sampling, baselines, fit, refinement) covers
@@ -230,6 +230,7 @@ class Pipeline:
         + (" --fit" if s["fit"] else "") + (" --depth" if s["depth"] else "")
         + f" --refine_prior={s['refine_prior']}" + (" --joint" if s["joint"] else "")
         + (" --true_shapes" if s["true_shapes"] else "")
+        + (f" --table4_objects={s['table4_objects']}" if s["table4_objects"] else "")
         + (f" --max_objects={n} --subset={FLAGS.subset}" if n else ""))
     shutil.rmtree(saved, ignore_errors=True)
 

@@ -78,7 +78,7 @@ def collect(pipe) -> dict:
       "shape_fit": full.get("shape_fit"), "shape_fit_depth": full.get("shape_fit_depth"),
       "face_error_mm": full.get("face_error_mm"),
       "f1_ablations": {name: res[v]["f1"] for v, name in ablations.items()},
-      "table4": full["table4"], "table5": table5, "table5_ci95": table5_ci95,
+      "table4": full["table4"], "table4_evaluated": full.get("table4_evaluated"), "table5": table5, "table5_ci95": table5_ci95,
       "mae_units": full["mae_units"], "objects": full["objects"], "split": full["split"],
       "subset": full.get("subset", "first"), "samples": full["samples"],
       "refine": full["refine"],
@@ -110,6 +110,7 @@ def whole_split(r: dict, full: dict, command: str) -> dict:
   table5_ci95 = {name: full.get("table5_ci95", {}).get(row) for name, v, row in TABLE5_ROWS
                  if v == "full" and row in full["table5"]}
   keep = ("f1", "shape", "shape_fit", "shape_fit_depth", "face_error_mm", "table4",
+          "table4_evaluated",
           "oracle_pick", "prior_sweeps", "refine_stats", "objects", "split", "samples",
           "refine", "prior_weight", "seconds", "seconds_by_part", "mae_units")
   return {**{k: full.get(k) for k in keep}, "table2": table2, "table5": table5,
@@ -196,7 +197,8 @@ def report_md(r: dict, command: str) -> str:
             f"Shape F1 of the full model: **{r['f1']:.1f}** (paper {tables.PAPER_SHAPE_F1})"
             + markdown.shape_line(r) + "; ablations: "
             + ", ".join(f"{k} {v:.1f}" for k, v in r["f1_ablations"].items()) + ".", "",
-            "## Table 4: best of N samples, trajectory MAE (mm)", ""]
+            "## Table 4: best of N samples, trajectory MAE (mm)"
+            + (f" ({r['table4_evaluated']} objects)" if r.get("table4_evaluated") else ""), ""]
   lines += markdown.table4_md(r["table4"])
   if r.get("face_error_mm"):
     lines += ["", "## Face error (mm) against the true boxes, k-th box from the bottom", ""]

@@ -57,6 +57,10 @@ _REFINE_JACOBIAN = flags.DEFINE_enum(
     "How +Refine takes its Jacobian: forward mode, or forward or central differences (K + 1 "
     "or 2K + 1 rollouts in one call: 3x faster where the rollouts run as the GPU kernel, "
     "slightly less accurate) (default: eval.refine_jacobian).")
+_TABLE4_OBJECTS = flags.DEFINE_integer(
+    "table4_objects", None, "Table 4's sampling baselines on whole batches spread over at "
+    "least this many objects, and Table 4 on those (0: every object; default: "
+    "eval.table4_objects).")
 _MAX_OBJECTS = flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")
 _SUBSET = flags.DEFINE_enum("subset", "first", ["first", "spread"],
                             "With --max_objects: the first N objects, or N spread over the split.")
@@ -90,7 +94,8 @@ def main(argv):
                                         estimator_weight=_ESTIMATOR_WEIGHT.value,
                                         joint=_JOINT.value, true_shapes=_TRUE_SHAPES.value,
                                         selection_horizon=_SELECTION_HORIZON.value,
-                                        refine_jacobian=_REFINE_JACOBIAN.value)
+                                        refine_jacobian=_REFINE_JACOBIAN.value,
+                                        table4_objects=_TABLE4_OBJECTS.value)
     out = _OUT.value or os.path.join(_WORKDIR.value, "eval")
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,

@@ -1,5 +1,6 @@
 """Inference: density sampling and refinement through MJX, decompose, evaluate CLI, errors."""
 
+import collections
 import json
 import os
 import subprocess
@@ -565,6 +566,46 @@ def test_saved_batch_records_give_back_the_same_tables(tiny_run, tiny_dataset, t
       assert again["table2"][name][k] == row[k], (name, k)
   with pytest.raises(partial.OtherEvaluation, match="samples"):
     evaluation.evaluate(tiny_run[0], tiny_dataset, **{**kw, "samples": e.samples + 1})
+
+
+def test_table4_batches_are_spread_and_cover_what_was_asked():
+  np.testing.assert_array_equal(batches.table4_batches([64] * 75, 0), np.arange(75))
+  chosen = batches.table4_batches([64] * 75, 1000)
+  assert len(chosen) == 16 and chosen[0] == 0 and chosen[-1] == 74
+  assert np.all(np.diff(chosen) >= 4)  # spread over the split, not its first batches
+  sizes = [8, 8, 8, 1]  # a short last batch does not count as a whole one
+  assert np.asarray(sizes)[batches.table4_batches(sizes, 10)].sum() >= 10
+  np.testing.assert_array_equal(batches.table4_batches(sizes, 99), np.arange(4))
+  with pytest.raises(ValueError, match="table4_objects"):
+    batches.table4_batches(sizes, -1)
+
+
+def test_stages_compile_once_side_by_side_and_table4_takes_its_batches(tiny_run, tiny_dataset):
+  """`Evaluator.compile` compiles every stage before the first batch, each in its own
+  thread, on stand-ins shaped and placed as the batches' inputs: the batches then add no
+  compiled signature. With `table4_objects`, Table 4's sampling baselines run on whole
+  batches covering at least that many objects, and Table 4 is reported on those."""
+  from ppdjax.infer.evaluator import Evaluator
+  from ppdjax.sim.rollout_mjx import settings_for
+  e = tiny.get_config().eval
+  model, config = checkpoints.load(tiny_run[0])
+  test = storage.open_dataset(tiny_dataset, "test")
+  ev = Evaluator(model, config, samples=e.samples, refine=False, pushes=test.pushes,
+                 settings=settings_for(test.engine))
+  take = lambda start: test.take(np.arange(start, start + 4), keys=OBS_KEYS + ("primitives",))
+  ev.compile(take(0), jax.random.key(0))
+  stages = {"decode": ev._decode, "sample": ev._simulate, "sample_table4": ev._simulate_table4}
+  assert {k: f._cache_size() for k, f in stages.items()} == dict.fromkeys(stages, 1)
+  for start, table4 in ((0, True), (4, False)):
+    out = ev.batch(take(start), None, jax.random.key(start), table4=table4)
+    assert out["mae"].shape[1] == (ev.layout["shapes"].stop if table4
+                                   else ev.layout["baselines"].stop)
+  assert {k: f._cache_size() for k, f in stages.items()} == dict.fromkeys(stages, 1)
+  r = evaluation.evaluate((model, config), tiny_dataset, samples=e.samples, batch_size=4,
+                          max_objects=8, table4_objects=3, progress=False)
+  assert r["objects"] == 8 and r["table4_evaluated"] == 4  # one whole batch of 4
+  assert set(r["table4"]) >= {"PPD", "Sample Phys.", "Sample Phys.+Shape"}
+  assert r["table2"]["Oracle"]["mae"] is not None  # Table 2's baselines on every batch
 
 
 @pytest.mark.slow  # three evaluations: about 40 s on 2 cores

@@ -58,6 +58,9 @@ def get_config():
   # density scores (weight > 0) refined worse on every weight tried on the validation
   # split of unseen towers (experiments/results/prior_study_val.md)
   config.eval.refine_prior = 0.0
+  # Table 4 on 1,024 of the 4,800 test objects (16 batches spread over the split): its two
+  # sampling baselines are 40 % of a batch's rollouts (benchmarks.md, "The whole split")
+  config.eval.table4_objects = 1024
   config.eval.refine_jacobian = "forward"  # "differences": 3x faster on a GPU, less accurate
   # The density estimator: 400k simulated towers (about a minute of MJX on an H100) and
   # 20k steps at batch 1,024 (51 epochs).

@@ -108,4 +108,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.eval.estimator_weight = 1.0  # its log-probabilities' weight beside the network's
   config.eval.joint = False  # also +Joint: faces and densities fitted together (infer.joint)
   config.eval.true_shapes = False  # also the oracle rows on the true boxes
+  # Table 4's sampling baselines on whole batches spread over about this many objects
+  # (evaluation.evaluate; 0: every object)
+  config.eval.table4_objects = 0
   return config

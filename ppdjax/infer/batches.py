@@ -20,6 +20,23 @@ def evaluation_objects(total: int, max_objects: int = 0, subset: str = "first") 
   return np.unique(np.linspace(0, total - 1, n).round().astype(np.int64))
 
 
+def table4_batches(sizes, table4_objects: int) -> np.ndarray:
+  """Indices of the batches (of `sizes` objects each) that simulate Table 4's sampling
+  baselines: batches spread evenly over the evaluation, together at least `table4_objects`
+  objects (0, or more than there are: all)."""
+  sizes = np.asarray(sizes)
+  if table4_objects < 0:
+    raise ValueError(f"table4_objects must be >= 0 (0: every object), got {table4_objects}")
+  if not table4_objects or table4_objects >= sizes.sum():
+    return np.arange(len(sizes))
+  want = -(-table4_objects // sizes.max())
+  while True:
+    chosen = np.unique(np.linspace(0, len(sizes) - 1, want).round().astype(np.int64))
+    if sizes[chosen].sum() >= table4_objects:
+      return chosen
+    want += 1
+
+
 def read_ahead(read, starts, prefetch: bool):
   """(start, read(start)) for each start; with `prefetch`, the next batch is read in a
   background thread while the caller computes the current one (reading 64 objects' images

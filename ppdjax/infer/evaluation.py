@@ -43,7 +43,7 @@ from tqdm.auto import tqdm
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage
 from ppdjax.infer import baselines, partial, rows
-from ppdjax.infer.batches import evaluation_objects, read_ahead
+from ppdjax.infer.batches import evaluation_objects, read_ahead, table4_batches
 from ppdjax.infer.evaluator import REFINE_FROM_TAU, Evaluator, shape_pool
 from ppdjax.infer.refine import check_jacobian
 from ppdjax.infer.tables import PREFIXES, SELECTION_HORIZONS, model_switches, summarize
@@ -53,8 +53,9 @@ from ppdjax.training import estimator as estimator_module
 
 
 # of `rows.batch_records`' layout and what they hold: saved batches of another are not
-# reused (4: Table 4's shape pool drawn by `stream.sample_towers_jax`)
-RECORDS_VERSION = 4
+# reused (4: Table 4's shape pool drawn by `stream.sample_towers_jax`; 5: Table 4's rows
+# recorded only on the batches that simulate its baselines, `table4_objects`)
+RECORDS_VERSION = 5
 
 
 def _weights_hash(model) -> str:
@@ -67,7 +68,7 @@ def _weights_hash(model) -> str:
 
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
                  "depth", "refine_prior", "estimator", "estimator_weight", "joint",
-                 "true_shapes", "selection_horizon", "refine_jacobian")
+                 "true_shapes", "selection_horizon", "refine_jacobian", "table4_objects")
 
 
 def eval_settings(config, **overrides) -> dict:
@@ -75,7 +76,7 @@ def eval_settings(config, **overrides) -> dict:
   defaults = {"fit": False, "depth": False, "refine_prior": 0.0, "estimator": "",
               "estimator_weight": 1.0, "joint": False,
               "true_shapes": False, "selection_horizon": 0,
-              "refine_jacobian": "forward"}  # older presets lack them
+              "refine_jacobian": "forward", "table4_objects": 0}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -91,7 +92,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              depth: bool = False, refine_prior: float = 0.0, estimator: str = "",
              estimator_weight: float = 1.0, joint: bool = False, true_shapes: bool = False,
              selection_horizon: int = 0, horizon_sweep: bool = False,
-             refine_jacobian: str = "forward", progress: bool = True,
+             refine_jacobian: str = "forward", table4_objects: int = 0,
+             progress: bool = True,
              partial_dir: str = "", max_seconds: float = 0.0, prefetch: bool = True,
              devices=None) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
@@ -115,6 +117,10 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   boxes, its log-probabilities weighted by `estimator_weight` beside the network's.
   `refine_jacobian` is how +Refine takes its Jacobian (`refine.check_jacobian`: forward
   mode, or differences, 3x faster through the GPU kernel).
+  `table4_objects` > 0: Table 4's sampling baselines (2 × `samples` candidates an object,
+  40 % of a batch's rollouts at 512 samples with both fits) are simulated on whole batches
+  spread over the objects, at least this many objects, and Table 4 is reported on those
+  (`results["table4_evaluated"]` objects); 0: on every object.
   `true_shapes` adds the oracle rows "PPD+True boxes" (+Sample, +Sample+Refine): the
   network's k-th density scores on the k-th true box, sampled and refined alike.
   `partial_dir` saves each batch's records as it is made and reuses those a previous call
@@ -144,8 +150,12 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "estimator": estimator, "estimator_weight": estimator_weight if estimator else 0.0,
               "joint": joint, "true_shapes": true_shapes, "selection_horizon": selection_horizon,
               "horizon_sweep": horizon_sweep,
-              "refine_jacobian": refine_jacobian if refine else "forward"}
+              "refine_jacobian": refine_jacobian if refine else "forward",
+              "table4_objects": table4_objects if with_baselines else 0}
   check_jacobian(refine_jacobian)
+  starts = range(0, n, batch_size)
+  table4_starts = {starts[i] for i in table4_batches(
+      [min(batch_size, n - x) for x in starts], table4_objects)}
   if selection_horizon not in SELECTION_HORIZONS:
     raise ValueError(f"selection_horizon must be one of {SELECTION_HORIZONS} (0: all steps), "
                      f"got {selection_horizon}")
@@ -178,7 +188,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
     batch = test.take(np.pad(idx, (0, batch_size - len(idx)), mode="edge"), keys=keys_read)
     # the host's share of a batch, made here so that reading ahead hides it
     pool = (shape_pool(jax.random.fold_in(key, start), samples,
-                       batch["primitives"].density.shape[-1]) if with_baselines else None)
+                       batch["primitives"].density.shape[-1])
+            if with_baselines and start in table4_starts else None)
     return len(idx), None, (batch, pool), baselines.true_slots(batch["primitives"])
 
   def make_records(start, keep, out, slot, base):
@@ -189,7 +200,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                              None if base is None else base[:keep], samples=samples,
                              prior_weight=prior_weight, prefixes=prefixes,
                              with_baselines=with_baselines, refine=refine, layout=ev.layout,
-                             selection_horizon=selection_horizon, horizon_sweep=horizon_sweep)
+                             selection_horizon=selection_horizon, horizon_sweep=horizon_sweep,
+                             table4=start in table4_starts)
     if saved:
       saved.save(start, rec)
     return rec, clock() - t
@@ -212,14 +224,13 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
     pending.clear()
 
   with concurrent.futures.ThreadPoolExecutor(1) as behind:
-    for start, (keep, rec, read_batch, slot) in read_ahead(read, range(0, n, batch_size),
-                                                           prefetch):
+    for start, (keep, rec, read_batch, slot) in read_ahead(read, starts, prefetch):
       batch, pool = read_batch if read_batch is not None else (None, None)
       t = clock()
       if rec is None:
-        if ev is None:
-          train = baselines.TrainingSet(storage.open_dataset(data_dir, "train"),
-                                        progress=progress) if with_baselines else None
+        if ev is None:  # the training split (Nearest's) is read while the stages compile
+          reading = behind.submit(baselines.TrainingSet, storage.open_dataset(data_dir, "train"),
+                                  progress=False) if with_baselines else None
           ev = Evaluator(model, config, samples=samples, refine=refine,
                          refine_steps=refine_steps, baselines_on=with_baselines, fit=fit,
                          depth=depth, camera=test.camera if depth else None,
@@ -229,11 +240,14 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                          true_shapes=true_shapes, pushes=test.pushes,
                          settings=settings_for(test.engine), refine_jacobian=refine_jacobian,
                          devices=devices)
+          ev.compile(batch, jax.random.fold_in(key, start), pool)
+          train = reading.result() if reading else None
           t = clock()
         base = (baselines.baseline_scores(train, batch, seed * 1_000_003 + start)
                 if with_baselines else None)
         t, parts["baselines"] = clock(), parts["baselines"] + clock() - t
-        out = ev.batch(batch, base, jax.random.fold_in(key, start), pool)
+        out = ev.batch(batch, base, jax.random.fold_in(key, start), pool,
+                       table4=start in table4_starts)
         out = jax.tree.map(lambda x: x[:keep], out)
         parts["device"] += clock() - t
         if not computed:  # the stages' seconds after the first batch (its compilation)
@@ -252,6 +266,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
     collect()
   bar.close()
   results = summarize(model_switches(config), {k: np.concatenate(v) for k, v in records.items()})
+  results["table4_evaluated"] = sum(len(r) for r in records.get(("prefix", "PPD", prefixes[0]), []))
   results.update({
       "workdir": trained if isinstance(trained, str) else None, "data": data_dir,
       "split": split, "objects": int(n), **settings,

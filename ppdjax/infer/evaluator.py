@@ -8,6 +8,7 @@ rows of Tables 2, 4 and 5 (`evaluation.evaluate` runs it over a split).
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import functools
 import time
 
@@ -36,15 +37,13 @@ def simultaneous_candidates() -> int:
   return 2048 if jax.default_backend() == "cpu" else 16384
 
 
-def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj, keys, *,
+def _simulate(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys, *,
               samples, with_baselines, chunk, pushes, settings):
   """Per object: (distance (C, H) over each of SELECTION_HORIZONS, MAE (C,)) of every
-  candidate (`candidate_layout`), the network's
-  candidate slots on its boxes, and a tuple of them on each of `fitted` (a tuple of the
-  fit groups' boxes, in layout order, scored by `fit_logits`, a tuple alike). `keys`
-  (B, 4): each object's own, so that a batch split over devices draws the same."""
-  k = pred.density.shape[-1]
-
+  candidate before Table 4's (`candidate_layout`), the network's candidate slots on its
+  boxes, and a tuple of them on each of `fitted` (a tuple of the fit groups' boxes, in
+  layout order, scored by `fit_logits`, a tuple alike). `keys` (B, 4): each object's own,
+  so that a batch split over devices draws the same."""
   def one(args):
     p, fs, lg, flg, t, bs, traj, kk = args
     slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
@@ -55,12 +54,7 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj
       fit_slots.append(sampling.candidate_slots(fl, f.valid, samples, kk[3])[0])
       cands.append(sampling.with_slots(f, fit_slots[-1]))
     if with_baselines:
-      uniform, _ = sampling.candidate_slots(jnp.zeros_like(lg), t.valid, samples, kk[1],
-                                            include_mode=False)
-      shape_slots = jax.random.randint(kk[2], (samples, k), 0, NUM_DENSITY_SLOTS)
-      cands += [sampling.with_slots(t, uniform),
-                pool.replace(density=slot_to_density_jax(shape_slots)),
-                sampling.with_slots(t, bs)]
+      cands.append(sampling.with_slots(t, bs))
     cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
     dist, mae = sampling.score_candidates(cands, traj, pushes, settings,
                                           horizons=SELECTION_HORIZONS)
@@ -68,6 +62,24 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, pool, obs_traj
 
   return jax.lax.map(one, (pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys),
                      batch_size=chunk)
+
+
+def _simulate_table4(true, pool, obs_traj, keys, *, samples, chunk, pushes, settings):
+  """Table 4's sampling baselines per object, (distance (C, H), MAE (C,)) of its `samples`
+  uniform densities on the true boxes, then of `pool` (random tower shapes) with uniform
+  densities (`candidate_layout`'s "uniform" and "shapes")."""
+  k = true.density.shape[-1]
+
+  def one(args):
+    t, traj, kk = args
+    uniform, _ = sampling.candidate_slots(jnp.zeros(t.valid.shape + (NUM_DENSITY_SLOTS,)),
+                                          t.valid, samples, kk[1], include_mode=False)
+    shape_slots = jax.random.randint(kk[2], (samples, k), 0, NUM_DENSITY_SLOTS)
+    cands = [sampling.with_slots(t, uniform), pool.replace(density=slot_to_density_jax(shape_slots))]
+    cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
+    return sampling.score_candidates(cands, traj, pushes, settings, horizons=SELECTION_HORIZONS)
+
+  return jax.lax.map(one, (true, obs_traj, keys), batch_size=chunk)
 
 
 # +Refine and +Joint start from the sample closest in trajectory, whatever τ the +Sample
@@ -110,21 +122,37 @@ class Evaluator:
     # every group sampled and scored; "true" (the oracle boxes) after the fits
     self.groups = self.fits + (("true",) if true_shapes else ())
     self.layout = candidate_layout(samples, self.groups, baselines_on)
-    per_object = max(s.stop for s in self.layout.values())
+    table4 = [self.layout[g] for g in ("uniform", "shapes") if g in self.layout]
+    per_object = table4[0].start if table4 else max(s.stop for s in self.layout.values())
     chunk = max(1, simultaneous_candidates() // per_object)
+    self.compiled = False  # `compile` ran: every stage is compiled
+    # the weights placed without a committed sharding (as restored from a checkpoint they
+    # have one): the stages' outputs are then placed alike, whatever made them, and
+    # `compile`'s stand-ins match the batches' inputs
+    uncommitted = lambda state: jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), state)
     self.graphdef, self.state = nnx.split(model)
+    self.state = uncommitted(self.state)
     est_graphdef, self.est_state = (nnx.split(estimator) if estimator is not None
                                     else (None, None))
+    self.est_state = None if estimator is None else uncommitted(self.est_state)
     # each call runs per object: on several local devices, each takes its share of the
     # batch (`sharding.jit_over_local_devices`; the weights and the baselines' shape pool whole)
     per_device = functools.partial(sharding.jit_over_local_devices, devices=devices)
-    self._decode = per_device(functools.partial(
+    decode = functools.partial(
         decode_groups, self.graphdef, groups=self.fits, camera=camera,
-        est_graphdef=est_graphdef, est_weight=estimator_weight, true_shapes=true_shapes),
+        est_graphdef=est_graphdef, est_weight=estimator_weight, true_shapes=true_shapes)
+    self._decode = per_device(decode, replicated=(0, 3))
+    # zeros shaped, typed and placed as the decode's outputs (XLA drops the network), for
+    # `compile`'s stand-ins: any difference would make the batches compile again
+    self._decode_zeros = per_device(
+        lambda *a: jax.tree.map(lambda x: jax.lax.full_like(x, 0), decode(*a)),
         replicated=(0, 3))
     self._simulate = per_device(functools.partial(
         _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
-        settings=settings), replicated=(6,))
+        settings=settings))
+    self._simulate_table4 = per_device(functools.partial(
+        _simulate_table4, samples=samples, pushes=pushes, settings=settings,
+        chunk=max(1, simultaneous_candidates() // (2 * samples))), replicated=(1,))
     # without a fit, the network's boxes are refined as the paper's least squares; with a
     # fit, the fitted boxes, as a MAP step when refine_prior > 0 (the presets: 0)
     self._refine = per_device(functools.partial(
@@ -145,12 +173,60 @@ class Evaluator:
     self.seconds[stage] += time.perf_counter() - t
     return out
 
-  def batch(self, batch: dict, base_scores: np.ndarray | None, key, pool=None) -> dict:
-    """Per-object arrays for one batch (see `evaluate` for what they become). `pool`:
-    Table 4's random tower shapes (`shape_pool`; drawn here from `key` when None)."""
+  def _inputs(self, batch: dict):
+    """The observations and the true boxes (bottom to top) of a batch, on the device."""
     obs = {k: jnp.asarray(batch[k])
            for k in OBS_KEYS + (("depth",) if "fit_depth" in self.fits else ())}
-    true = bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
+    return obs, bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
+
+  def compile(self, batch: dict, key, pool=None) -> None:
+    """Compiles every stage for batches shaped like `batch`, all at once: each stage runs
+    in its own thread on stand-ins of the shapes it will get (zeros where an earlier stage
+    makes its input), and XLA compiles outside the GIL, so this takes about as long as
+    the slowest stage's compilation instead of the sum of all (the sampling call and the
+    refinement each hold a GPU kernel of 80-100 s to compile). `batch` calls it first if
+    it has not run."""
+    obs, true = self._inputs(batch)
+    b, k = true.density.shape
+    decoded = self._decode_zeros(self.state, obs, true, self.est_state)
+    keys = jax.random.split(key, (b, 4))
+    tasks = [(self._decode, (self.state, obs, true, self.est_state)),
+             (self._simulate, (decoded["pred"], tuple(decoded["fitted"][g] for g in self.groups),
+                               decoded["logits"],
+                               tuple(decoded["group_logits"][g] for g in self.groups), true,
+                               jnp.zeros((b, len(BASELINES), k), jnp.int32),
+                               obs["trajectories"], keys))]
+    if self.baselines_on:
+      pool = shape_pool(key, self.samples, k) if pool is None else pool
+      tasks.append((self._simulate_table4, (true, jax.tree.map(jnp.asarray, pool),
+                                            obs["trajectories"], keys)))
+    if self.refine or self.joint:
+      group = self.fits[-1] if self.fits else "ppd"
+      boxes = decoded["fitted"][group] if self.fits else decoded["pred"]
+      prims = boxes.replace(density=jnp.zeros(boxes.density.shape, jnp.float32))
+      prior = decoded["group_logits"][group] if self.fits else decoded["logits"]
+      zero = np.zeros(b, np.float32)  # the start's distance and MAE, as `batch` has them
+      if self.refine:
+        tasks.append((self._refine, (prims, prior, obs["trajectories"], zero, zero)))
+      if self.joint:
+        depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((b,))
+        tasks.append((self._joint, (prims, prior, obs["trajectories"], depth, true)))
+    t = time.perf_counter()
+    with concurrent.futures.ThreadPoolExecutor(len(tasks)) as threads:
+      for future in [threads.submit(fn, *args) for fn, args in tasks]:
+        jax.block_until_ready(future.result())
+    self.seconds["compile"] += time.perf_counter() - t
+    self.compiled = True
+
+  def batch(self, batch: dict, base_scores: np.ndarray | None, key, pool=None,
+            table4: bool = True) -> dict:
+    """Per-object arrays for one batch (see `evaluate` for what they become). `pool`:
+    Table 4's random tower shapes (`shape_pool`; drawn here from `key` when None).
+    `table4`: simulate Table 4's sampling baselines too (with the baselines on): their
+    candidates then follow the others in "hdist" and "mae" (`candidate_layout`)."""
+    if not self.compiled:
+      self.compile(batch, key, pool)
+    obs, true = self._inputs(batch)
     decoded = self._timed("decode", self._decode, self.state, obs, true, self.est_state)
     pred, logits = decoded["pred"], decoded["logits"]
     fitted = tuple(decoded["fitted"][g] for g in self.groups)
@@ -158,12 +234,17 @@ class Evaluator:
     b, k = true.density.shape
     base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
                   else np.zeros((b, len(BASELINES), k), np.int32))
-    if pool is None:  # (unused without the baselines: one shape then)
-      pool = shape_pool(key, self.samples if self.baselines_on else 1, k)
+    keys = jax.random.split(key, (b, 4))
     dist, mae, slots, fit_slots = self._timed(
         "sample", self._simulate, pred, fitted, logits, fit_logits, true,
-        jnp.asarray(base_slots), jax.tree.map(jnp.asarray, pool), obs["trajectories"],
-        jax.random.split(key, (b, 4)))
+        jnp.asarray(base_slots), obs["trajectories"], keys)
+    table4 = table4 and self.baselines_on
+    if table4:
+      if pool is None:
+        pool = shape_pool(key, self.samples, k)
+      d4, m4 = self._timed("sample_table4", self._simulate_table4, true,
+                           jax.tree.map(jnp.asarray, pool), obs["trajectories"], keys)
+      dist, mae = jnp.concatenate([dist, d4], 1), jnp.concatenate([mae, m4], 1)
     out = jax.device_get({**decoded, "hdist": dist, "mae": mae, "slots": slots})
     out["dist"] = out["hdist"][..., SELECTION_HORIZONS.index(0)]  # the whole trajectory
     out["logp"] = np.asarray(_log_priors(logits, slots, pred.valid))

@@ -37,12 +37,13 @@ def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) 
   "ppd": the network's samples on its boxes; "fit" / "fit_depth" (`fits`): the network's
   samples on the fitted boxes ("..._est": the combined scores' samples on them; "true":
   on the true boxes);
-  "uniform" / "shapes": Table 4's sampling baselines;
-  "baselines": Table 2's three.
+  "baselines": Table 2's three guesses;
+  "uniform" / "shapes": Table 4's sampling baselines, last (`evaluator.Evaluator`
+  simulates them in a call of their own, on the batches Table 4 covers).
   """
   sizes = [("ppd", samples)] + [(g, samples) for g in fits]
   if with_baselines:
-    sizes += [("uniform", samples), ("shapes", samples), ("baselines", len(BASELINES))]
+    sizes += [("baselines", len(BASELINES)), ("uniform", samples), ("shapes", samples)]
   out, start = {}, 0
   for name, n in sizes:
     out[name] = slice(start, start + n)

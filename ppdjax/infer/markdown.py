@@ -152,6 +152,9 @@ def results_md(results: dict, command: str = "") -> str:
   if results["table4"]:
     lines += ["## Table 4: best of N samples, trajectory MAE (mm)", ""]
     lines += table4_md(results["table4"])
+    if results.get("table4_evaluated", results.get("objects", 0)) < results.get("objects", 0):
+      lines += ["", f"On {results['table4_evaluated']} of the {results['objects']} objects: whole "
+                "batches spread over the split (`--table4_objects`)."]
     lines += ["", "Paper (1×/8×/64×/512×): " + paper_line(PAPER_TABLE4) + ".", ""]
   if results.get("face_error_mm"):
     lines += ["## Face error (mm) against the true boxes, k-th box from the bottom", ""]

@@ -124,13 +124,16 @@ def _sweep(row, logits, slots, objective, mae, pvalid, slot, valid, selection_in
 
 def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: float,
                    prefixes, with_baselines: bool, refine: bool, layout: dict,
-                   selection_horizon: int = 0, horizon_sweep: bool = False) -> dict:
+                   selection_horizon: int = 0, horizon_sweep: bool = False,
+                   table4: bool = True) -> dict:
   """Per-object records of one batch, keyed by (kind, row, name); `evaluation.evaluate`
   concatenates them and `tables.summarize` turns them into the tables. +Sample selects by
   the distance over the first `selection_horizon` steps (0: all; one of
   SELECTION_HORIZONS), out["hdist"] (B, C, H) holding each candidate's; Table 4's best of
   N and refinement's start use the whole trajectory (out["dist"]). `horizon_sweep` adds
-  the τ sweep at every horizon (`_sweep`)."""
+  the τ sweep at every horizon (`_sweep`). `table4`: the batch simulated Table 4's
+  sampling baselines (with the baselines on): then, and only then, every row's best of N
+  is recorded, so that Table 4 compares its rows on the same objects."""
   if selection_horizon not in SELECTION_HORIZONS:
     raise ValueError(f"selection_horizon must be one of {SELECTION_HORIZONS}, got "
                      f"{selection_horizon}")
@@ -155,14 +158,18 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   rec.update(oracle_pick("PPD+Sample", logits, slots, slot, valid, pvalid))
   rec.update(screen_records("PPD+Sample", hdist, objective(prior_weight), omae, logits, slots,
                             slot, valid, pvalid))
-  for p in prefixes:
-    rec[("prefix", "PPD", p)] = omae[rows, np.argmin(dist[:, :p], -1)]
+  table4 = table4 or not with_baselines  # without the baselines: the network's rows
+  if table4:
+    for p in prefixes:
+      rec[("prefix", "PPD", p)] = omae[rows, np.argmin(dist[:, :p], -1)]
   if with_baselines:
     base_mae = out["mae"][:, layout["baselines"]]
     for j, name in enumerate(BASELINES):
       scores[name] = base[:, j]
       mae[name] = base_mae[:, j]
     for group, name in (("uniform", "Sample Phys."), ("shapes", "Sample Phys.+Shape")):
+      if not table4:
+        break
       d, e = out["dist"][:, layout[group]], out["mae"][:, layout[group]]
       for p in prefixes:
         rec[("prefix", name, p)] = e[rows, np.argmin(d[:, :p], -1)]
@@ -190,7 +197,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
                               out["fit_slots"][group], slot, valid, fvalid))
     if group != "true":  # +Refine and +Joint start from the most precise fit
       sample_row, pvalid = name + "+Sample", fvalid
-    for p in prefixes:
+    for p in prefixes if table4 else ():
       rec[("prefix", name, p)] = fm[rows, np.argmin(fd[:, :p], -1)]
   if "est_logits" in out:  # the estimator alone, on the boxes it read
     scores["Estimator"] = out["est_logits"].astype(np.float64)  # no MAE: nothing simulated
