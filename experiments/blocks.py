@@ -92,10 +92,11 @@ class Pipeline:
       return {"samples": e.samples, "refine": e.refine, "with_baselines": True,
               "prior_weight": e.prior_weight, "fit": e.fit, "depth": e.get("depth", False),
               "refine_prior": e.refine_prior, "joint": FLAGS.joint,
-              "true_shapes": FLAGS.true_shapes, "table4_objects": e.get("table4_objects", 0)}
+              "true_shapes": FLAGS.true_shapes, "table4_objects": e.get("table4_objects", 0),
+              "refine_jacobian": e.get("refine_jacobian", "forward")}
     return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0,
             "fit": False, "depth": False, "refine_prior": 0.0, "joint": False,
-            "true_shapes": False, "table4_objects": 0}
+            "true_shapes": False, "table4_objects": 0, "refine_jacobian": "forward"}
 
   def max_objects(self, variant: str) -> int:
     """The full model's evaluation (sampling, baselines, fit, refinement) covers
@@ -231,6 +232,7 @@ class Pipeline:
         + f" --refine_prior={s['refine_prior']}" + (" --joint" if s["joint"] else "")
         + (" --true_shapes" if s["true_shapes"] else "")
         + (f" --table4_objects={s['table4_objects']}" if s["table4_objects"] else "")
+        + (f" --refine_jacobian={s['refine_jacobian']}" if s["refine"] else "")
         + (f" --max_objects={n} --subset={FLAGS.subset}" if n else ""))
     shutil.rmtree(saved, ignore_errors=True)
 

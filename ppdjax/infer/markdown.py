@@ -206,7 +206,9 @@ def seconds_by_part(results: dict) -> str:
            "records_waited": "waiting for the records"}
   stages = results.get("seconds_by_stage", {})
   per = stages.get("batches_after_first", 0)
-  steady = (f"; first batch (compilation) {stages['first_batch']:.0f} s" if stages else "")
+  steady = (f"; first batch {stages['first_batch']:.0f} s" if stages else "")
+  steady += (f", {stages['compile']:.0f} s of it compiling every stage at once"
+             if stages.get("compile") else " (compilation)" if stages else "")
   steady += (", then per batch " + ", ".join(f"{k} {v / per:.2f} s"
                                              for k, v in stages["after_first"].items())
              if per else "")
