@@ -168,9 +168,12 @@ class Pipeline:
     refine_prior = s["refine_prior"] if (s["fit"] or s["depth"]) and s["refine"] else 0.0
     return ((r["samples"], r["refine"], r.get("max_objects", 0), r.get("prior_weight", 0.0),
              r.get("subset", "first"), r.get("fit", False), r.get("depth", False),
-             r.get("refine_prior", 0.0), r.get("joint", False), r.get("true_shapes", False)) ==
+             r.get("refine_prior", 0.0), r.get("joint", False), r.get("true_shapes", False),
+             r.get("table4_objects", 0), r.get("refine_jacobian", "forward")) ==
             (s["samples"], s["refine"], self.max_objects(variant), s["prior_weight"],
-             FLAGS.subset, s["fit"], s["depth"], refine_prior, s["joint"], s["true_shapes"]))
+             FLAGS.subset, s["fit"], s["depth"], refine_prior, s["joint"], s["true_shapes"],
+             s["table4_objects"] if s["with_baselines"] else 0,
+             s["refine_jacobian"] if s["refine"] else "forward"))
 
   def val_path(self) -> str:
     return os.path.join(self.workdir("full"), "eval_val", "results.json")

@@ -78,9 +78,12 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
   if os.path.exists(path):
     with open(path) as f:
       results = json.load(f)
+    e = config.eval
     if (results["samples"], results["refine"], results.get("max_objects", 0),
-        results.get("prior_weight", 0.0)) == (samples, refine, max_objects,
-                                               config.eval.prior_weight):
+        results.get("prior_weight", 0.0), results.get("table4_objects", 0),
+        results.get("refine_jacobian", "forward")) == (
+            samples, refine, max_objects, e.prior_weight, e.get("table4_objects", 0),
+            e.get("refine_jacobian", "forward") if refine else "forward"):
       return results
   print(f"[{variant}] evaluating ({samples} samples{', refine' if refine else ''})", flush=True)
   t0 = time.perf_counter()

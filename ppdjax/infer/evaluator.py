@@ -184,8 +184,10 @@ class Evaluator:
     in its own thread on stand-ins of the shapes it will get (zeros where an earlier stage
     makes its input), and XLA compiles outside the GIL, so this takes about as long as
     the slowest stage's compilation instead of the sum of all (the sampling call and the
-    refinement each hold a GPU kernel of 80-100 s to compile). `batch` calls it first if
-    it has not run."""
+    refinement each hold a GPU kernel of 80-100 s to compile). Each stage also runs once
+    on its stand-ins, all at the same time: the accelerator's memory must hold every
+    stage's batch at once (the paper preset's 64 objects ran within an H100's 80 GB).
+    `batch` calls it first if it has not run."""
     obs, true = self._inputs(batch)
     b, k = true.density.shape
     decoded = self._decode_zeros(self.state, obs, true, self.est_state)

@@ -209,9 +209,11 @@ def seconds_by_part(results: dict) -> str:
   steady = (f"; first batch {stages['first_batch']:.0f} s" if stages else "")
   steady += (f", {stages['compile']:.0f} s of it compiling every stage at once"
              if stages.get("compile") else " (compilation)" if stages else "")
-  steady += (", then per batch " + ", ".join(f"{k} {v / per:.2f} s"
-                                             for k, v in stages["after_first"].items())
-             if per else "")
+  t4 = stages.get("table4_batches_after_first", per)  # the batches that ran Table 4's call
+  steady += (", then per batch " + ", ".join(
+      f"{k} {v / max(t4 if k == 'sample_table4' else per, 1):.2f} s"
+      + (f" (on its {t4} batches)" if k == "sample_table4" and t4 != per else "")
+      for k, v in stages["after_first"].items()) if per else "")
   return (" (of the batches computed: " + ", ".join(f"{names.get(k, k)} {v:.0f} s"
                                                     for k, v in parts.items()) + steady + ")"
           if parts else "")
