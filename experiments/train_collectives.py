@@ -33,7 +33,7 @@ flags.DEFINE_integer("devices", 2, "Devices of the partitioned step (at least 2)
 flags.DEFINE_integer("batch", 256, "Training batch a device.")
 FLAGS = flags.FLAGS
 
-COLLECTIVE = re.compile(r"=\s*(\S+)\s+(all-reduce|all-gather|reduce-scatter|"
+COLLECTIVE = re.compile(r"=\s*(\([^()]*\)|\S+)\s+(all-reduce|all-gather|reduce-scatter|"
                         r"collective-permute|all-to-all)(?:-start)?\(")
 BYTES = {"f32": 4, "s32": 4, "u32": 4, "bf16": 2, "f16": 2, "pred": 1, "u8": 1, "s8": 1,
          "f64": 8, "s64": 8}
