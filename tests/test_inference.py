@@ -362,10 +362,10 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   assert "+Sample's ceiling" in text
   # where the time went: the first batch (compilation), then each jitted stage per batch
   stages = results["seconds_by_stage"]
-  assert stages["batches_after_first"] >= 0 and stages["first_batch"] >= stages["compile"] > 0
+  assert stages["batches_after_first"] >= 0 and stages["first_batch"] >= stages["compile"] >= 0
   assert set(stages["after_first"]) >= {"decode", "sample", "host"}
-  assert "compile" not in stages["after_first"]
-  assert "of it compiling every stage at once" in text
+  assert "compile" not in stages["after_first"]  # on a CPU the stages compile when called
+  assert "first batch" in text
 
 
 @pytest.mark.slow  # the fits compile inside the evaluation: about a minute more on 2 cores
@@ -584,8 +584,9 @@ def test_table4_batches_are_spread_and_cover_what_was_asked():
 def test_stages_compile_once_side_by_side_and_table4_takes_its_batches(tiny_run, tiny_dataset):
   """`Evaluator.compile` compiles every stage before the first batch, each in its own
   thread, on stand-ins shaped and placed as the batches' inputs: the batches then add no
-  compiled signature. With `table4_objects`, Table 4's sampling baselines run on whole
-  batches covering at least that many objects, and Table 4 is reported on those."""
+  compiled signature. Table 4's sampling runs only on the batches asked to, and a batch
+  without it records no Table 4 row."""
+  from ppdjax.infer import rows
   from ppdjax.infer.evaluator import Evaluator
   from ppdjax.sim.rollout_mjx import settings_for
   e = tiny.get_config().eval
@@ -601,8 +602,21 @@ def test_stages_compile_once_side_by_side_and_table4_takes_its_batches(tiny_run,
     out = ev.batch(take(start), None, jax.random.key(start), table4=table4)
     assert out["mae"].shape[1] == (ev.layout["shapes"].stop if table4
                                    else ev.layout["baselines"].stop)
+    k = out["logits"].shape[1]
+    slot = np.zeros((4, k), np.int32)
+    rec = rows.batch_records(out, slot, slot >= 0, np.zeros((4, 3, k, 100)), samples=e.samples,
+                             prior_weight=0.0, prefixes=(1, 8), with_baselines=True,
+                             refine=False, layout=ev.layout, table4=table4)
+    assert (("prefix", "Sample Phys.", 8) in rec) == (("prefix", "PPD", 8) in rec) == table4
   assert {k: f._cache_size() for k, f in stages.items()} == dict.fromkeys(stages, 1)
-  r = evaluation.evaluate((model, config), tiny_dataset, samples=e.samples, batch_size=4,
+
+
+@pytest.mark.slow  # two more compiled batches on a CPU: about 40 s
+def test_table4_is_reported_on_its_batches_only(tiny_run, tiny_dataset):
+  """With `table4_objects`, Table 4's sampling baselines run on whole batches covering at
+  least that many objects, and Table 4 is reported on those; Table 2 on every object."""
+  e = tiny.get_config().eval
+  r = evaluation.evaluate(tiny_run[0], tiny_dataset, samples=e.samples, batch_size=4,
                           max_objects=8, table4_objects=3, progress=False)
   assert r["objects"] == 8 and r["table4_evaluated"] == 4  # one whole batch of 4
   assert set(r["table4"]) >= {"PPD", "Sample Phys.", "Sample Phys.+Shape"}

@@ -125,7 +125,9 @@ class Evaluator:
     table4 = [self.layout[g] for g in ("uniform", "shapes") if g in self.layout]
     per_object = table4[0].start if table4 else max(s.stop for s in self.layout.values())
     chunk = max(1, simultaneous_candidates() // per_object)
-    self.compiled = False  # `compile` ran: every stage is compiled
+    # `compile` before the first batch: on an accelerator (on a CPU, with its few cores, the
+    # stages compile no faster side by side, and running the stand-ins costs a batch)
+    self.compiled = jax.default_backend() == "cpu"
     # the weights placed without a committed sharding (as restored from a checkpoint they
     # have one): the stages' outputs are then placed alike, whatever made them, and
     # `compile`'s stand-ins match the batches' inputs
@@ -184,7 +186,8 @@ class Evaluator:
     in its own thread on stand-ins of the shapes it will get (zeros where an earlier stage
     makes its input), and XLA compiles outside the GIL, so this takes about as long as
     the slowest stage's compilation instead of the sum of all (the sampling call and the
-    refinement each hold a GPU kernel of 80-100 s to compile). Each stage also runs once
+    refinement each hold a GPU kernel of 80-100 s to compile; on a CPU `batch` skips it,
+    and each stage compiles when first called). Each stage also runs once
     on its stand-ins, all at the same time: the accelerator's memory must hold every
     stage's batch at once (the paper preset's 64 objects ran within an H100's 80 GB).
     `batch` calls it first if it has not run."""
