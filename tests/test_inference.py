@@ -594,17 +594,18 @@ def test_stages_compile_once_side_by_side_and_table4_takes_its_batches(tiny_run,
   test = storage.open_dataset(tiny_dataset, "test")
   ev = Evaluator(model, config, samples=e.samples, refine=False, pushes=test.pushes,
                  settings=settings_for(test.engine))
-  take = lambda start: test.take(np.arange(start, start + 4), keys=OBS_KEYS + ("primitives",))
-  ev.compile(take(0), jax.random.key(0))
+  # the evaluate command's batch (the CLI test's): its compiled programs are on disk
+  batch = test.take(np.arange(e.batch_size), keys=OBS_KEYS + ("primitives",))
+  ev.compile(batch, jax.random.key(0))
   stages = {"decode": ev._decode, "sample": ev._simulate, "sample_table4": ev._simulate_table4}
   assert {k: f._cache_size() for k, f in stages.items()} == dict.fromkeys(stages, 1)
-  for start, table4 in ((0, True), (4, False)):
-    out = ev.batch(take(start), None, jax.random.key(start), table4=table4)
+  for seed, table4 in ((0, True), (1, False)):
+    out = ev.batch(batch, None, jax.random.key(seed), table4=table4)
     assert out["mae"].shape[1] == (ev.layout["shapes"].stop if table4
                                    else ev.layout["baselines"].stop)
-    k = out["logits"].shape[1]
-    slot = np.zeros((4, k), np.int32)
-    rec = rows.batch_records(out, slot, slot >= 0, np.zeros((4, 3, k, 100)), samples=e.samples,
+    b, k = out["logits"].shape[:2]
+    slot = np.zeros((b, k), np.int32)
+    rec = rows.batch_records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), samples=e.samples,
                              prior_weight=0.0, prefixes=(1, 8), with_baselines=True,
                              refine=False, layout=ev.layout, table4=table4)
     assert (("prefix", "Sample Phys.", 8) in rec) == (("prefix", "PPD", 8) in rec) == table4
