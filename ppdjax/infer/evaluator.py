@@ -121,6 +121,7 @@ class Evaluator:
     pushes = default_pushes() if pushes is None else pushes
     # every group sampled and scored; "true" (the oracle boxes) after the fits
     self.groups = self.fits + (("true",) if true_shapes else ())
+    self.refine_group = self.fits[-1] if self.fits else "ppd"  # +Refine's and +Joint's boxes
     self.layout = candidate_layout(samples, self.groups, baselines_on)
     table4 = [self.layout[g] for g in ("uniform", "shapes") if g in self.layout]
     per_object = table4[0].start if table4 else max(s.stop for s in self.layout.values())
@@ -181,6 +182,12 @@ class Evaluator:
            for k in OBS_KEYS + (("depth",) if "fit_depth" in self.fits else ())}
     return obs, bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
 
+  def _sample_args(self, decoded, true, base_slots, obs, keys) -> tuple:
+    """`_simulate`'s arguments for a batch (`compile` makes its stand-ins with it too)."""
+    return (decoded["pred"], tuple(decoded["fitted"][g] for g in self.groups),
+            decoded["logits"], tuple(decoded["group_logits"][g] for g in self.groups), true,
+            jnp.asarray(base_slots), obs["trajectories"], keys)
+
   def compile(self, batch: dict, key, pool=None) -> None:
     """Compiles every stage for batches shaped like `batch`, all at once: each stage runs
     in its own thread on stand-ins of the shapes it will get (zeros where an earlier stage
@@ -196,17 +203,14 @@ class Evaluator:
     decoded = self._decode_zeros(self.state, obs, true, self.est_state)
     keys = jax.random.split(key, (b, 4))
     tasks = [(self._decode, (self.state, obs, true, self.est_state)),
-             (self._simulate, (decoded["pred"], tuple(decoded["fitted"][g] for g in self.groups),
-                               decoded["logits"],
-                               tuple(decoded["group_logits"][g] for g in self.groups), true,
-                               jnp.zeros((b, len(BASELINES), k), jnp.int32),
-                               obs["trajectories"], keys))]
+             (self._simulate, self._sample_args(decoded, true, np.zeros(
+                 (b, len(BASELINES), k), np.int32), obs, keys))]
     if self.baselines_on:
       pool = shape_pool(key, self.samples, k) if pool is None else pool
       tasks.append((self._simulate_table4, (true, jax.tree.map(jnp.asarray, pool),
                                             obs["trajectories"], keys)))
     if self.refine or self.joint:
-      group = self.fits[-1] if self.fits else "ppd"
+      group = self.refine_group
       boxes = decoded["fitted"][group] if self.fits else decoded["pred"]
       prims = boxes.replace(density=jnp.zeros(boxes.density.shape, jnp.float32))
       prior = decoded["group_logits"][group] if self.fits else decoded["logits"]
@@ -233,16 +237,13 @@ class Evaluator:
       self.compile(batch, key, pool)
     obs, true = self._inputs(batch)
     decoded = self._timed("decode", self._decode, self.state, obs, true, self.est_state)
-    pred, logits = decoded["pred"], decoded["logits"]
-    fitted = tuple(decoded["fitted"][g] for g in self.groups)
-    fit_logits = tuple(decoded["group_logits"][g] for g in self.groups)
     b, k = true.density.shape
     base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
                   else np.zeros((b, len(BASELINES), k), np.int32))
     keys = jax.random.split(key, (b, 4))
-    dist, mae, slots, fit_slots = self._timed(
-        "sample", self._simulate, pred, fitted, logits, fit_logits, true,
-        jnp.asarray(base_slots), obs["trajectories"], keys)
+    args = self._sample_args(decoded, true, base_slots, obs, keys)
+    pred, fitted, logits, fit_logits = args[:4]
+    dist, mae, slots, fit_slots = self._timed("sample", self._simulate, *args)
     table4 = table4 and self.baselines_on
     if table4:
       if pool is None:
@@ -257,7 +258,7 @@ class Evaluator:
     out["fit_logp"] = {g: np.asarray(_log_priors(fl, s, f.valid))
                        for g, s, f, fl in zip(self.groups, fit_slots, fitted, fit_logits)}
     if self.refine or self.joint:  # from the closest sample, on the most precise boxes
-      group = self.fits[-1] if self.fits else "ppd"
+      group = self.refine_group
       prims, prior, d0, m0 = self._best_sample(out, decoded, group, REFINE_FROM_TAU)
       if self.refine:
         out["refine"] = jax.device_get(self._timed("refine", self._refine, prims, prior,
