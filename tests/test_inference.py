@@ -581,11 +581,11 @@ def test_table4_batches_are_spread_and_cover_what_was_asked():
     batches.table4_batches(sizes, -1)
 
 
-def test_stages_compile_once_side_by_side_and_table4_takes_its_batches(tiny_run, tiny_dataset):
+def test_stages_compile_once_side_by_side(tiny_run, tiny_dataset):
   """`Evaluator.compile` compiles every stage before the first batch, each in its own
   thread, on stand-ins shaped and placed as the batches' inputs: the batches then add no
-  compiled signature. Table 4's sampling runs only on the batches asked to, and a batch
-  without it records no Table 4 row."""
+  compiled signature. With Table 4 on every batch its candidates are simulated in the
+  sampling call, and a batch cannot skip them."""
   from ppdjax.infer import rows
   from ppdjax.infer.evaluator import Evaluator
   from ppdjax.sim.rollout_mjx import settings_for
@@ -593,35 +593,58 @@ def test_stages_compile_once_side_by_side_and_table4_takes_its_batches(tiny_run,
   model, config = checkpoints.load(tiny_run[0])
   test = storage.open_dataset(tiny_dataset, "test")
   ev = Evaluator(model, config, samples=e.samples, refine=False, pushes=test.pushes,
-                 settings=settings_for(test.engine))
+                 settings=settings_for(test.engine), table4_every_batch=True)
   # the evaluate command's batch (the CLI test's): its compiled programs are on disk
   batch = test.take(np.arange(e.batch_size), keys=OBS_KEYS + ("primitives",))
   ev.compile(batch, jax.random.key(0))
-  stages = {"decode": ev._decode, "sample": ev._simulate, "sample_table4": ev._simulate_table4}
+  stages = {"decode": ev._decode, "sample": ev._simulate}
   assert {k: f._cache_size() for k, f in stages.items()} == dict.fromkeys(stages, 1)
-  for seed, table4 in ((0, True), (1, False)):
-    out = ev.batch(batch, None, jax.random.key(seed), table4=table4)
-    assert out["mae"].shape[1] == (ev.layout["shapes"].stop if table4
-                                   else ev.layout["baselines"].stop)
-    b, k = out["logits"].shape[:2]
-    slot = np.zeros((b, k), np.int32)
-    rec = rows.batch_records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), samples=e.samples,
-                             prior_weight=0.0, prefixes=(1, 8), with_baselines=True,
-                             refine=False, layout=ev.layout, table4=table4)
-    assert (("prefix", "Sample Phys.", 8) in rec) == (("prefix", "PPD", 8) in rec) == table4
+  assert ev._simulate_table4._cache_size() == 0  # not needed: one program fewer to compile
+  out = ev.batch(batch, None, jax.random.key(1))
+  assert out["mae"].shape[1] == ev.layout["shapes"].stop
+  b, k = out["logits"].shape[:2]
+  slot = np.zeros((b, k), np.int32)
+  rec = rows.batch_records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), samples=e.samples,
+                           prior_weight=0.0, prefixes=(1, 8), with_baselines=True,
+                           refine=False, layout=ev.layout, table4=True)
+  assert ("prefix", "Sample Phys.", 8) in rec and ("prefix", "PPD", 8) in rec
   assert {k: f._cache_size() for k, f in stages.items()} == dict.fromkeys(stages, 1)
+  with pytest.raises(ValueError, match="table4_every_batch"):
+    ev.batch(batch, None, jax.random.key(2), table4=False)
 
 
-@pytest.mark.slow  # two more compiled batches on a CPU: about 40 s
+@pytest.mark.slow  # three more compiled programs on a CPU: about two minutes
 def test_table4_is_reported_on_its_batches_only(tiny_run, tiny_dataset):
   """With `table4_objects`, Table 4's sampling baselines run on whole batches covering at
-  least that many objects, and Table 4 is reported on those; Table 2 on every object."""
+  least that many objects, and Table 4 is reported on those; Table 2 on every object.
+  Simulated in a call of their own, they score what the sampling call scores with them."""
+  from ppdjax.infer import rows
+  from ppdjax.infer.evaluator import Evaluator
+  from ppdjax.sim.rollout_mjx import settings_for
   e = tiny.get_config().eval
   r = evaluation.evaluate(tiny_run[0], tiny_dataset, samples=e.samples, batch_size=4,
                           max_objects=8, table4_objects=3, progress=False)
   assert r["objects"] == 8 and r["table4_evaluated"] == 4  # one whole batch of 4
   assert set(r["table4"]) >= {"PPD", "Sample Phys.", "Sample Phys.+Shape"}
   assert r["table2"]["Oracle"]["mae"] is not None  # Table 2's baselines on every batch
+  model, config = checkpoints.load(tiny_run[0])
+  test = storage.open_dataset(tiny_dataset, "test")
+  batch = test.take(np.arange(4), keys=OBS_KEYS + ("primitives",))
+  kw = dict(samples=e.samples, refine=False, pushes=test.pushes,
+            settings=settings_for(test.engine))
+  apart = Evaluator(model, config, **kw)
+  fused = Evaluator(model, config, **kw, table4_every_batch=True)
+  both = [ev.batch(batch, None, jax.random.key(0)) for ev in (apart, fused)]
+  np.testing.assert_allclose(both[0]["mae"], both[1]["mae"], rtol=1e-5, atol=1e-6)
+  out = apart.batch(batch, None, jax.random.key(1), table4=False)
+  assert out["mae"].shape[1] == apart.layout["baselines"].stop
+  b, k = out["logits"].shape[:2]
+  slot = np.zeros((b, k), np.int32)
+  rec = rows.batch_records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), samples=e.samples,
+                           prior_weight=0.0, prefixes=(1, 8), with_baselines=True,
+                           refine=False, layout=apart.layout, table4=False)
+  assert ("prefix", "Sample Phys.", 8) not in rec and ("prefix", "PPD", 8) not in rec
+  assert apart._simulate_table4._cache_size() == 1
 
 
 @pytest.mark.slow  # three evaluations: about 40 s on 2 cores

@@ -240,7 +240,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                          estimator_weight=estimator_weight, joint=joint,
                          true_shapes=true_shapes, pushes=test.pushes,
                          settings=settings_for(test.engine), refine_jacobian=refine_jacobian,
-                         devices=devices)
+                         table4_every_batch=table4_starts == set(starts), devices=devices)
           t = clock()  # the first batch's device time includes compiling every stage
           if not ev.compiled:  # every stage at once (on an accelerator)
             ev.compile(batch, jax.random.fold_in(key, start), pool)

@@ -37,13 +37,25 @@ def simultaneous_candidates() -> int:
   return 2048 if jax.default_backend() == "cpu" else 16384
 
 
-def _simulate(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys, *,
-              samples, with_baselines, chunk, pushes, settings):
+def _table4_candidates(t, pool, kk, samples: int):
+  """Table 4's sampling baselines for one object (`candidate_layout`'s "uniform" and
+  "shapes"): `samples` uniform densities on its true boxes `t`, then `pool` (random tower
+  shapes) with uniform densities."""
+  uniform, _ = sampling.candidate_slots(jnp.zeros(t.valid.shape + (NUM_DENSITY_SLOTS,)),
+                                        t.valid, samples, kk[1], include_mode=False)
+  shape_slots = jax.random.randint(kk[2], (samples, t.density.shape[-1]), 0, NUM_DENSITY_SLOTS)
+  return [sampling.with_slots(t, uniform),
+          pool.replace(density=slot_to_density_jax(shape_slots))]
+
+
+def _simulate(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys, pool=None,
+              *, samples, with_baselines, chunk, pushes, settings):
   """Per object: (distance (C, H) over each of SELECTION_HORIZONS, MAE (C,)) of every
-  candidate before Table 4's (`candidate_layout`), the network's candidate slots on its
-  boxes, and a tuple of them on each of `fitted` (a tuple of the fit groups' boxes, in
-  layout order, scored by `fit_logits`, a tuple alike). `keys` (B, 4): each object's own,
-  so that a batch split over devices draws the same."""
+  candidate (`candidate_layout`; Table 4's too when `pool`, its random tower shapes, is
+  given), the network's candidate slots on its boxes, and a tuple of them on each of
+  `fitted` (a tuple of the fit groups' boxes, in layout order, scored by `fit_logits`, a
+  tuple alike). `keys` (B, 4): each object's own, so that a batch split over devices draws
+  the same."""
   def one(args):
     p, fs, lg, flg, t, bs, traj, kk = args
     slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
@@ -55,6 +67,8 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys
       cands.append(sampling.with_slots(f, fit_slots[-1]))
     if with_baselines:
       cands.append(sampling.with_slots(t, bs))
+    if pool is not None:
+      cands += _table4_candidates(t, pool, kk, samples)
     cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
     dist, mae = sampling.score_candidates(cands, traj, pushes, settings,
                                           horizons=SELECTION_HORIZONS)
@@ -65,18 +79,11 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys
 
 
 def _simulate_table4(true, pool, obs_traj, keys, *, samples, chunk, pushes, settings):
-  """Table 4's sampling baselines per object, (distance (C, H), MAE (C,)) of its `samples`
-  uniform densities on the true boxes, then of `pool` (random tower shapes) with uniform
-  densities (`candidate_layout`'s "uniform" and "shapes")."""
-  k = true.density.shape[-1]
-
+  """Table 4's sampling baselines per object, (distance (C, H), MAE (C,)) of
+  `_table4_candidates`: on the batches Table 4 covers when it covers only some."""
   def one(args):
     t, traj, kk = args
-    uniform, _ = sampling.candidate_slots(jnp.zeros(t.valid.shape + (NUM_DENSITY_SLOTS,)),
-                                          t.valid, samples, kk[1], include_mode=False)
-    shape_slots = jax.random.randint(kk[2], (samples, k), 0, NUM_DENSITY_SLOTS)
-    cands = [sampling.with_slots(t, uniform), pool.replace(density=slot_to_density_jax(shape_slots))]
-    cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
+    cands = jax.tree.map(lambda *x: jnp.concatenate(x), *_table4_candidates(t, pool, kk, samples))
     return sampling.score_candidates(cands, traj, pushes, settings, horizons=SELECTION_HORIZONS)
 
   return jax.lax.map(one, (true, obs_traj, keys), batch_size=chunk)
@@ -105,8 +112,12 @@ class Evaluator:
                depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
                estimator=None, estimator_weight: float = 1.0, joint: bool = False,
                true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS,
-               refine_jacobian: str = "forward", devices=None):
-    """`devices`: the local devices each batch splits over (None: all of them)."""
+               refine_jacobian: str = "forward", table4_every_batch: bool = False,
+               devices=None):
+    """`devices`: the local devices each batch splits over (None: all of them).
+    `table4_every_batch`: Table 4's sampling baselines run on every batch, inside the
+    sampling call (one program to compile: on a CPU that is a minute less); otherwise in a
+    call of their own on the batches `batch` is asked to (`table4=True`)."""
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:
@@ -123,8 +134,10 @@ class Evaluator:
     self.groups = self.fits + (("true",) if true_shapes else ())
     self.refine_group = self.fits[-1] if self.fits else "ppd"  # +Refine's and +Joint's boxes
     self.layout = candidate_layout(samples, self.groups, baselines_on)
+    self.table4_fused = baselines_on and table4_every_batch
     table4 = [self.layout[g] for g in ("uniform", "shapes") if g in self.layout]
-    per_object = table4[0].start if table4 else max(s.stop for s in self.layout.values())
+    per_object = (table4[0].start if table4 and not self.table4_fused
+                  else max(s.stop for s in self.layout.values()))
     chunk = max(1, simultaneous_candidates() // per_object)
     # `compile` before the first batch: on an accelerator (on a CPU, with its few cores, the
     # stages compile no faster side by side, and running the stand-ins costs a batch)
@@ -152,7 +165,7 @@ class Evaluator:
         replicated=(0, 3))
     self._simulate = per_device(functools.partial(
         _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
-        settings=settings))
+        settings=settings), replicated=(8,) if self.table4_fused else ())
     self._simulate_table4 = per_device(functools.partial(
         _simulate_table4, samples=samples, pushes=pushes, settings=settings,
         chunk=max(1, simultaneous_candidates() // (2 * samples))), replicated=(1,))
@@ -182,11 +195,13 @@ class Evaluator:
            for k in OBS_KEYS + (("depth",) if "fit_depth" in self.fits else ())}
     return obs, bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
 
-  def _sample_args(self, decoded, true, base_slots, obs, keys) -> tuple:
-    """`_simulate`'s arguments for a batch (`compile` makes its stand-ins with it too)."""
+  def _sample_args(self, decoded, true, base_slots, obs, keys, pool) -> tuple:
+    """`_simulate`'s arguments for a batch (`compile` makes its stand-ins with it too);
+    Table 4's shape `pool` among them when its candidates are simulated there."""
     return (decoded["pred"], tuple(decoded["fitted"][g] for g in self.groups),
             decoded["logits"], tuple(decoded["group_logits"][g] for g in self.groups), true,
-            jnp.asarray(base_slots), obs["trajectories"], keys)
+            jnp.asarray(base_slots), obs["trajectories"], keys) + (
+                (jax.tree.map(jnp.asarray, pool),) if self.table4_fused else ())
 
   def compile(self, batch: dict, key, pool=None) -> None:
     """Compiles every stage for batches shaped like `batch`, all at once: each stage runs
@@ -202,11 +217,11 @@ class Evaluator:
     b, k = true.density.shape
     decoded = self._decode_zeros(self.state, obs, true, self.est_state)
     keys = jax.random.split(key, (b, 4))
+    pool = shape_pool(key, self.samples, k) if pool is None and self.baselines_on else pool
     tasks = [(self._decode, (self.state, obs, true, self.est_state)),
              (self._simulate, self._sample_args(decoded, true, np.zeros(
-                 (b, len(BASELINES), k), np.int32), obs, keys))]
-    if self.baselines_on:
-      pool = shape_pool(key, self.samples, k) if pool is None else pool
+                 (b, len(BASELINES), k), np.int32), obs, keys, pool))]
+    if self.baselines_on and not self.table4_fused:
       tasks.append((self._simulate_table4, (true, jax.tree.map(jnp.asarray, pool),
                                             obs["trajectories"], keys)))
     if self.refine or self.joint:
@@ -232,7 +247,11 @@ class Evaluator:
     """Per-object arrays for one batch (see `evaluate` for what they become). `pool`:
     Table 4's random tower shapes (`shape_pool`; drawn here from `key` when None).
     `table4`: simulate Table 4's sampling baselines too (with the baselines on): their
-    candidates then follow the others in "hdist" and "mae" (`candidate_layout`)."""
+    candidates then follow the others in "hdist" and "mae" (`candidate_layout`); with
+    `table4_every_batch` it must be."""
+    if self.table4_fused and not table4:
+      raise ValueError("this Evaluator simulates Table 4's baselines on every batch "
+                       "(table4_every_batch=True): batch(table4=False) cannot skip them")
     if not self.compiled:
       self.compile(batch, key, pool)
     obs, true = self._inputs(batch)
@@ -241,13 +260,13 @@ class Evaluator:
     base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
                   else np.zeros((b, len(BASELINES), k), np.int32))
     keys = jax.random.split(key, (b, 4))
-    args = self._sample_args(decoded, true, base_slots, obs, keys)
+    table4 = table4 and self.baselines_on
+    if table4 and pool is None:
+      pool = shape_pool(key, self.samples, k)
+    args = self._sample_args(decoded, true, base_slots, obs, keys, pool)
     pred, fitted, logits, fit_logits = args[:4]
     dist, mae, slots, fit_slots = self._timed("sample", self._simulate, *args)
-    table4 = table4 and self.baselines_on
-    if table4:
-      if pool is None:
-        pool = shape_pool(key, self.samples, k)
+    if table4 and not self.table4_fused:
       d4, m4 = self._timed("sample_table4", self._simulate_table4, true,
                            jax.tree.map(jnp.asarray, pool), obs["trajectories"], keys)
       dist, mae = jnp.concatenate([dist, d4], 1), jnp.concatenate([mae, m4], 1)

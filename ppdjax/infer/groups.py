@@ -39,7 +39,8 @@ def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) 
   on the true boxes);
   "baselines": Table 2's three guesses;
   "uniform" / "shapes": Table 4's sampling baselines, last (`evaluator.Evaluator`
-  simulates them in a call of their own, on the batches Table 4 covers).
+  simulates them with the others when Table 4 covers every batch, otherwise in a call of
+  their own on the batches it covers).
   """
   sizes = [("ppd", samples)] + [(g, samples) for g in fits]
   if with_baselines:
