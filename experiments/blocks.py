@@ -55,8 +55,9 @@ flags.DEFINE_integer("max_objects", 0, "Evaluate the full model on N test object
                      "whole split, Tables 2 and 5's; the ablations always on all).")
 flags.DEFINE_enum("subset", "spread", ["first", "spread"],
                   "The first N test objects, or N spread over the split (many towers).")
-flags.DEFINE_integer("val_objects", 256, "Validation objects for the τ sweep of the full "
-                     "model (0: no validation step).")
+flags.DEFINE_integer("val_objects", 0, "Validation objects for a τ sweep of the full "
+                     "model (0, the default: no validation step; τ = 0 is the preset's, "
+                     "chosen on validation in experiments/results/mass_match_study).")
 flags.DEFINE_bool("joint", False, "The full model's evaluation also runs +Joint (faces and "
                   "densities together; 4 s per batch of 64 on an H100, minutes to compile "
                   "on a CPU).")
