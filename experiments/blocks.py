@@ -3,7 +3,7 @@
   python experiments/blocks.py                     # every step left, in order
   python experiments/blocks.py --step=next         # only the next step, then exit
   python experiments/blocks.py --list              # what is done and what is left
-  python experiments/blocks.py --jobs=2            # independent steps side by side
+  python experiments/blocks.py --jobs=4            # independent steps side by side
 
 Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder and
 generator on the stream of fresh towers, `train.stream_steps`), then the full model and
@@ -11,10 +11,11 @@ the no-trajectory and no-image ablations starting from it, and the no-voxels abl
 from scratch; evaluate the full model on --max_objects test objects spread over the split
 (the whole split by default; +Sample, the +Fit and +Fit(depth) rows,
 +Fit(depth)+Sample+Refine, with --joint +Fit(depth)+Sample+Joint, with --true_shapes the
-true-box column, and the baselines),
-its τ sweep on --val_objects validation objects (validate:full), and the ablations on the
-whole split (plain); then `report`: experiments/results/blocks.{json,md} and PNGs, the full model
-exported to assets/blocks_model and a decomposed example tower. Every step resumes:
+true-box column, and the baselines), with --val_objects a τ sweep on validation objects
+(validate:full), and the ablations on the whole split (plain); `export`, once the full
+model is trained: it goes to assets/blocks_model, with an example tower and the picture
+of its decomposition; then `report`: experiments/results/blocks.{json,md} and PNGs.
+Every step resumes:
 generation by shard, training from its last checkpoint (a training step stops itself
 after --step_seconds and the next call goes on); the test-split evaluations save each batch
 as it is made and stop after --step_seconds too (the next call goes on); evaluations are
@@ -136,6 +137,8 @@ class Pipeline:
       if v != GEOMETRY:
         out.append((f"evaluate:{v}", lambda v=v: self.evaluated(v),
                     lambda v=v: self.evaluate(v)))
+      if v == "full":  # the model and example shipped, beside the ablations
+        out.append(("export", self.is_exported, self.export))
       if v == "full" and FLAGS.val_objects:
         out.append(("validate:full", self.validated, self.validate))
     if "full" in chosen:
@@ -154,11 +157,31 @@ class Pipeline:
       return ("generate",) + ((f"train:{GEOMETRY}",) if init == self.workdir(GEOMETRY) else ())
     if kind in ("evaluate", "validate"):
       return (f"train:{variant}",)
+    if kind == "export":
+      return ("train:full",)
     return tuple(n for n, _, _ in self.steps() if n != "report")
 
   def train(self, variant: str) -> None:
     loop.train_and_evaluate(self.train_config(variant), self.data, self.workdir(variant),
                              time_limit_s=FLAGS.step_seconds)
+
+  def trained_steps(self, variant: str) -> int:
+    return int(loop.trained_steps(self.workdir(variant)))
+
+  def example_record(self) -> str:
+    return os.path.join(self.workdir("full"), "example.json")
+
+  def exported_example(self) -> dict:
+    with open(self.example_record()) as f:
+      return json.load(f)
+
+  def is_exported(self) -> bool:
+    """Whether the export step ran on the full model as trained now."""
+    return (os.path.exists(self.example_record())
+            and self.exported_example().get("trained_steps") == self.trained_steps("full"))
+
+  def export(self) -> None:
+    blocks_report.export_example(self, FLAGS.results, FLAGS.assets)
 
   def evaluated(self, variant: str) -> bool:
     if not os.path.exists(self.eval_path(variant)):

@@ -273,9 +273,37 @@ def save_logs(pipe, out_dir: str) -> None:
       shutil.copyfile(src, os.path.join(out_dir, name))
 
 
+def export_example(pipe, results_dir: str, assets_dir: str, exported: bool = False) -> dict:
+  """The export step (beside the ablations, once the full model is trained): the full model
+  to ASSETS/blocks_model, an example test tower to ASSETS/blocks_example.npz and the
+  picture of its decomposition in RESULTS; returns the example's record, also saved at
+  `pipe.example_record()` for the report. With `exported`, the model and example exist
+  already (a report redone away from the run's machine): only the picture is made."""
+  os.makedirs(results_dir, exist_ok=True)
+  model_dir = os.path.join(assets_dir, "blocks_model")
+  example_path = os.path.join(assets_dir, "blocks_example.npz")
+  if not exported:
+    checkpoints.export(pipe.workdir("full"), model_dir)
+    test = storage.open_dataset(pipe.data, "test")
+    index = next((i for i in range(min(len(test), 64))
+                  if int(np.asarray(test[i]["primitives"].valid).sum()) == 4), 0)
+    example.save_example(test[index], example_path, camera=test.camera)
+  record = example.decompose_example(
+      model_dir, example_path, os.path.join(results_dir, "blocks_decomposition.png"),
+      samples=pipe.config.eval.samples)
+  record["path"] = "blocks_decomposition.png"
+  record["trained_steps"] = pipe.trained_steps("full")
+  os.makedirs(os.path.dirname(pipe.example_record()), exist_ok=True)
+  with open(pipe.example_record(), "w") as f:
+    json.dump(record, f, indent=1)
+  return record
+
+
 def write_all(pipe, results_dir: str, assets_dir: str, command: str,
               exported: bool = False) -> dict:
-  """The report step: every output file; returns blocks.json's content.
+  """The report step: every output file; returns blocks.json's content. The export step's
+  model, example and picture are taken as made (`export_example`), or made here when
+  missing or older than the full model.
 
   With `exported`, ASSETS/blocks_model and blocks_example.npz exist already (a report
   redone away from the run's machine: no checkpoints or dataset needed).
@@ -288,24 +316,17 @@ def write_all(pipe, results_dir: str, assets_dir: str, command: str,
                       path("blocks_learning_curves.png"))
   with open(pipe.eval_path("full")) as f:
     plot_confusion(json.load(f)["confusion"], path("blocks_confusion.png"))
-  model_dir = os.path.join(assets_dir, "blocks_model")
-  example_path = os.path.join(assets_dir, "blocks_example.npz")
-  if not exported:
-    checkpoints.export(pipe.workdir("full"), model_dir)
-    test = storage.open_dataset(pipe.data, "test")
-    index = next((i for i in range(min(len(test), 64))
-                  if int(np.asarray(test[i]["primitives"].valid).sum()) == 4), 0)
-    example.save_example(test[index], example_path, camera=test.camera)
-  with open(os.path.join(model_dir, checkpoints.EXPORT)) as f:
+  r["example"] = (export_example(pipe, results_dir, assets_dir, exported=True) if exported
+                  else pipe.exported_example() if pipe.is_exported()
+                  else export_example(pipe, results_dir, assets_dir))
+  with open(os.path.join(assets_dir, "blocks_model", checkpoints.EXPORT)) as f:
     r["export"] = json.load(f)
-  r["example"] = example.decompose_example(
-      model_dir, example_path, path("blocks_decomposition.png"), samples=pipe.config.eval.samples)
-  r["example"]["path"] = "blocks_decomposition.png"
   r["command"] = command
   save_logs(pipe, path("blocks_runs"))
   with open(path("blocks.json"), "w") as f:
     json.dump(r, f, indent=1)
   with open(path("blocks.md"), "w") as f:
     f.write(report_md(r, command))
-  print(f"wrote {path('blocks.md')}, blocks.json and PNGs; model in {model_dir}", flush=True)
+  print(f"wrote {path('blocks.md')}, blocks.json and PNGs; model in "
+        f"{os.path.join(assets_dir, 'blocks_model')}", flush=True)
   return r

@@ -26,7 +26,7 @@ def test_list_shows_every_step_and_bad_steps_are_named(tmp_path):
   done = _blocks(*TINY, f"--root={tmp_path}", "--list")
   assert done.returncode == 0, done.stderr[-2000:]
   names = [line.split()[1] for line in done.stdout.splitlines() if line.startswith("todo")]
-  assert names == ["generate", "train:full", "evaluate:full", "validate:full", "train:no_image",
+  assert names == ["generate", "train:full", "evaluate:full", "export", "train:no_image",
                    "evaluate:no_image", "train:no_trajectory", "evaluate:no_trajectory",
                    "train:no_voxels", "evaluate:no_voxels", "report"]
   streamed = _blocks(*TINY, "--config.train.stream_steps=5", f"--root={tmp_path}", "--list")
