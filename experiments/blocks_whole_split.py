@@ -1,7 +1,8 @@
 """The full model on the whole test split, added to blocks.json / blocks.md.
 
-`experiments/blocks.py` evaluates the full model on `--max_objects` (512) test objects
-(with +Joint and the true boxes); this adds a separate evaluation of every test object
+`experiments/blocks.py` evaluates the full model on the whole test split by default; run
+with `--max_objects=N` (e.g. 512, with the +Joint and true-box studies), this adds a
+separate evaluation of every test object
 (`python -m ppdjax.evaluate ... --out=DIR`, the command in its results.json) as
 blocks.json's "whole_split", which the targets then read, and rewrites blocks.md:
 
