@@ -16,8 +16,9 @@ $(VENV)/.installed: pyproject.toml
 demo: $(VENV)/.installed
 	$(PY) -m ppdjax.demo --config=ppdjax/configs/tiny.py --out=$(OUT)
 
-# two pytest workers, each taking whole test modules (their fixtures are made once): on 2
-# cores the suite takes about 7.5 minutes instead of 10 (compilation is single-threaded)
+# two pytest workers, each taking whole test modules (a module's fixtures are made once;
+# session fixtures, the tiny dataset and run, once per worker): on 2 cores the suite takes
+# about 7.5 minutes instead of 10 (compilation is single-threaded)
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 --dist loadscope
 

@@ -43,7 +43,7 @@ import blocks_report  # noqa: E402
 import pipeline_steps  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
 from ppdjax.infer import evaluation, markdown, partial  # noqa: E402
-from ppdjax.training import loop  # noqa: E402
+from ppdjax.training import checkpoints, loop  # noqa: E402
 from ppdjax.training.state import total_steps  # noqa: E402
 
 config_flags.DEFINE_config_file("config", "ppdjax/configs/paper.py", "Preset file.")
@@ -165,9 +165,6 @@ class Pipeline:
     loop.train_and_evaluate(self.train_config(variant), self.data, self.workdir(variant),
                              time_limit_s=FLAGS.step_seconds)
 
-  def trained_steps(self, variant: str) -> int:
-    return int(loop.trained_steps(self.workdir(variant)))
-
   def example_record(self) -> str:
     return os.path.join(self.workdir("full"), "example.json")
 
@@ -175,10 +172,23 @@ class Pipeline:
     with open(self.example_record()) as f:
       return json.load(f)
 
+  def export_stamp(self) -> dict:
+    """What an export was made from and to: the full model's latest checkpoint (its step
+    and time) and the folders written."""
+    step = loop.trained_steps(self.workdir("full"))
+    ckpt = os.path.join(self.workdir("full"), checkpoints.LATEST, str(step))
+    return {"trained_steps": int(step),
+            "checkpoint_mtime": os.path.getmtime(ckpt) if os.path.exists(ckpt) else None,
+            "assets": os.path.abspath(FLAGS.assets), "results": os.path.abspath(FLAGS.results)}
+
   def is_exported(self) -> bool:
-    """Whether the export step ran on the full model as trained now."""
-    return (os.path.exists(self.example_record())
-            and self.exported_example().get("trained_steps") == self.trained_steps("full"))
+    """Whether the export step ran on the full model as trained now, into these folders,
+    and its files are there."""
+    files = [os.path.join(FLAGS.assets, "blocks_model", checkpoints.EXPORT),
+             os.path.join(FLAGS.assets, "blocks_example.npz"),
+             os.path.join(FLAGS.results, "blocks_decomposition.png"), self.example_record()]
+    return (all(os.path.exists(f) for f in files)
+            and self.exported_example().get("exported") == self.export_stamp())
 
   def export(self) -> None:
     blocks_report.export_example(self, FLAGS.results, FLAGS.assets)

@@ -1,9 +1,12 @@
-"""The `report` step of experiments/blocks.py: tables, figures, the shipped model, the example.
+"""The `export` and `report` steps of experiments/blocks.py: the shipped model, the example,
+tables and figures.
 
-Writes RESULTS/blocks.json and blocks.md (Tables 2, 4, 5 beside the paper's numbers, the
-targets, each step's wall time and machine), blocks_learning_curves.png,
-blocks_confusion.png and blocks_decomposition.png; exports the full model to
-ASSETS/blocks_model and a test tower to ASSETS/blocks_example.npz.
+`export_example` exports the full model to ASSETS/blocks_model, a test tower to
+ASSETS/blocks_example.npz and the picture of its decomposition to
+RESULTS/blocks_decomposition.png. `write_all` writes RESULTS/blocks.json and blocks.md
+(Tables 2, 4, 5 beside the paper's numbers, the targets, each step's wall time and
+machine), blocks_learning_curves.png and blocks_confusion.png, and takes the export as made
+(or makes it when missing).
 """
 
 from __future__ import annotations
@@ -292,10 +295,12 @@ def export_example(pipe, results_dir: str, assets_dir: str, exported: bool = Fal
       model_dir, example_path, os.path.join(results_dir, "blocks_decomposition.png"),
       samples=pipe.config.eval.samples)
   record["path"] = "blocks_decomposition.png"
-  record["trained_steps"] = pipe.trained_steps("full")
-  os.makedirs(os.path.dirname(pipe.example_record()), exist_ok=True)
-  with open(pipe.example_record(), "w") as f:
-    json.dump(record, f, indent=1)
+  if not exported:  # what `pipe.is_exported` checks: this model, these folders
+    record["exported"] = pipe.export_stamp()
+    tmp = pipe.example_record() + ".tmp"
+    with open(tmp, "w") as f:
+      json.dump(record, f, indent=1)
+    os.replace(tmp, pipe.example_record())
   return record
 
 

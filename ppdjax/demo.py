@@ -31,7 +31,8 @@ def main(argv):
   config, out = _CONFIG.value, _OUT.value
   samples = config.demo.example_samples
   print(f"[1/3] the shipped model decomposes the example tower ({samples} density samples "
-        "simulated in MJX; the first call compiles)...", flush=True)
+        "simulated with the engine of its training data; the first call compiles)...",
+        flush=True)
   r = showcase.shipped_example(_MODEL.value, _EXAMPLE.value, out, samples)
   print(f"  {r['shape_matched']}/{len(r['true_densities'])} boxes found (IoU > 0.5); "
         f"densities {[round(d) for d in r['densities']]} kg/m³, true "

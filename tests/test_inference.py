@@ -635,7 +635,8 @@ def test_table4_is_reported_on_its_batches_only(tiny_run, tiny_dataset):
   apart = Evaluator(model, config, **kw)
   fused = Evaluator(model, config, **kw, table4_every_batch=True)
   both = [ev.batch(batch, None, jax.random.key(0)) for ev in (apart, fused)]
-  np.testing.assert_allclose(both[0]["mae"], both[1]["mae"], rtol=1e-5, atol=1e-6)
+  for key in ("mae", "hdist"):  # the same rollouts, batched differently
+    np.testing.assert_allclose(both[0][key], both[1][key], rtol=1e-4, atol=1e-5)
   out = apart.batch(batch, None, jax.random.key(1), table4=False)
   assert out["mae"].shape[1] == apart.layout["baselines"].stop
   b, k = out["logits"].shape[:2]

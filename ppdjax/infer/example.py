@@ -72,7 +72,8 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
     {"densities": recovered kg/m³ of the valid boxes (bottom to top), "true_densities",
      "boxes", "true_boxes", "shape_matched" (boxes with IoU > 0.5), "iou" of the k-th
      recovered with the k-th true box, "distance_m", "mae_mm", "samples", "seconds" of a
-     warm call, "path"}.
+     warm call, "path", "engine" (the model's training data's, which simulates the
+     candidates)}.
   """
   trained = checkpoints.load(model_dir)
   obs, true = load_example(example)
@@ -102,7 +103,8 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
           "iou": [float(iou[k, k]) for k in range(min(valid.sum(), true_valid.sum()))],
           "distance_m": float(got.score),
           "mae_mm": float(metrics.trajectory_mae(got.trajectories, obs["trajectories"])),
-          "samples": samples, "depth_fit": camera is not None, "seconds": seconds, "path": out}
+          "samples": samples, "depth_fit": camera is not None, "seconds": seconds, "path": out,
+          "engine": trained[1].data.get("backend", "mjx")}
 
 
 def heaviest_line(r: dict, count: int = 2) -> str:
@@ -113,13 +115,17 @@ def heaviest_line(r: dict, count: int = 2) -> str:
           f"{top(r['densities'])}, true {top(r['true_densities'])}.")
 
 
+ENGINES = {"mjx": "MJX", "box_plane": "the box-plane step", "mujoco": "MuJoCo C"}
+
+
 def report_md(r: dict, model_dir: str, example: str) -> str:
   """A short report: each box's recovered density and geometry beside the truth."""
   lines = [f"# `{os.path.basename(os.path.normpath(model_dir))}` on "
            f"`{os.path.basename(example)}`", "",
            f"{len(r['densities'])} boxes recovered, {len(r['true_densities'])} true; "
            f"{r['shape_matched']} match a true box at IoU > 0.5. {r['samples']} density "
-           f"samples simulated in MJX; the closest trajectories are "
+           f"samples simulated with {ENGINES.get(r.get('engine', 'mjx'), r.get('engine'))}; "
+           f"the closest trajectories are "
            f"{r['distance_m'] * 1e3:.1f} mm away on average (MAE {r['mae_mm']:.1f} mm). "
            f"One warm call: {r['seconds'] * 1e3:.0f} ms. {heaviest_line(r)}", "",
            "| box (bottom to top) | density (kg/m³) | true | slot error | IoU with true box |",
