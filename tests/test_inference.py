@@ -581,12 +581,22 @@ def test_table4_batches_are_spread_and_cover_what_was_asked():
     batches.table4_batches(sizes, -1)
 
 
+def _records_of(ev, out, samples, table4):
+  """`rows.batch_records` of an `Evaluator.batch` output (every answer slot 0, no baselines'
+  scores): what the evaluation would record of that batch."""
+  from ppdjax.infer import rows
+  b, k = out["logits"].shape[:2]
+  slot = np.zeros((b, k), np.int32)
+  return rows.batch_records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), samples=samples,
+                            prior_weight=0.0, prefixes=(1, 8), with_baselines=True,
+                            refine=False, layout=ev.layout, table4=table4)
+
+
 def test_stages_compile_once_side_by_side(tiny_run, tiny_dataset):
   """`Evaluator.compile` compiles every stage before the first batch, each in its own
   thread, on stand-ins shaped and placed as the batches' inputs: the batches then add no
   compiled signature. With Table 4 on every batch its candidates are simulated in the
   sampling call, and a batch cannot skip them."""
-  from ppdjax.infer import rows
   from ppdjax.infer.evaluator import Evaluator
   from ppdjax.sim.rollout_mjx import settings_for
   e = tiny.get_config().eval
@@ -602,11 +612,7 @@ def test_stages_compile_once_side_by_side(tiny_run, tiny_dataset):
   assert ev._simulate_table4._cache_size() == 0  # not needed: one program fewer to compile
   out = ev.batch(batch, None, jax.random.key(1))
   assert out["mae"].shape[1] == ev.layout["shapes"].stop
-  b, k = out["logits"].shape[:2]
-  slot = np.zeros((b, k), np.int32)
-  rec = rows.batch_records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), samples=e.samples,
-                           prior_weight=0.0, prefixes=(1, 8), with_baselines=True,
-                           refine=False, layout=ev.layout, table4=True)
+  rec = _records_of(ev, out, e.samples, table4=True)
   assert ("prefix", "Sample Phys.", 8) in rec and ("prefix", "PPD", 8) in rec
   assert {k: f._cache_size() for k, f in stages.items()} == dict.fromkeys(stages, 1)
   with pytest.raises(ValueError, match="table4_every_batch"):
@@ -618,7 +624,6 @@ def test_table4_is_reported_on_its_batches_only(tiny_run, tiny_dataset):
   """With `table4_objects`, Table 4's sampling baselines run on whole batches covering at
   least that many objects, and Table 4 is reported on those; Table 2 on every object.
   Simulated in a call of their own, they score what the sampling call scores with them."""
-  from ppdjax.infer import rows
   from ppdjax.infer.evaluator import Evaluator
   from ppdjax.sim.rollout_mjx import settings_for
   e = tiny.get_config().eval
@@ -639,11 +644,7 @@ def test_table4_is_reported_on_its_batches_only(tiny_run, tiny_dataset):
     np.testing.assert_allclose(both[0][key], both[1][key], rtol=1e-4, atol=1e-5)
   out = apart.batch(batch, None, jax.random.key(1), table4=False)
   assert out["mae"].shape[1] == apart.layout["baselines"].stop
-  b, k = out["logits"].shape[:2]
-  slot = np.zeros((b, k), np.int32)
-  rec = rows.batch_records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), samples=e.samples,
-                           prior_weight=0.0, prefixes=(1, 8), with_baselines=True,
-                           refine=False, layout=apart.layout, table4=False)
+  rec = _records_of(apart, out, e.samples, table4=False)
   assert ("prefix", "Sample Phys.", 8) not in rec and ("prefix", "PPD", 8) not in rec
   assert apart._simulate_table4._cache_size() == 1
 
