@@ -33,6 +33,7 @@ import sys
 
 import jax
 from absl import app, flags, logging
+from flax import nnx
 from ml_collections import config_flags
 
 jax.config.update("jax_compilation_cache_dir",
@@ -43,6 +44,7 @@ import blocks_report  # noqa: E402
 import pipeline_steps  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
 from ppdjax.infer import evaluation, markdown, partial  # noqa: E402
+from ppdjax.nn.model import PPD  # noqa: E402
 from ppdjax.training import checkpoints, loop  # noqa: E402
 from ppdjax.training.state import total_steps  # noqa: E402
 
@@ -131,6 +133,8 @@ class Pipeline:
       raise app.UsageError(f"--variants: unknown {sorted(unknown)}; choose from {ORDER}")
     chosen = tuple(v for v in ORDER if v in FLAGS.variants)
     variants = ((GEOMETRY,) if self.config.train.stream_steps else ()) + chosen
+    if "full" in chosen:  # its evaluation's programs, compiled while it trains
+      out.append(("compile:full", self.compiled_ahead, self.compile_ahead))
     for v in variants:  # each model is evaluated as soon as it is trained
       out.append((f"train:{v}", lambda v=v: loop.trained_steps(self.workdir(v))
                   >= total_steps(self.train_config(v).train), lambda v=v: self.train(v)))
@@ -159,7 +163,49 @@ class Pipeline:
       return (f"train:{variant}",)
     if kind == "export":
       return ("train:full",)
+    if kind == "compile":  # the test split's first batch gives the shapes
+      return ("generate",)
     return tuple(n for n, _, _ in self.steps() if n != "report")
+
+  def light(self, name: str) -> bool:
+    """Steps that leave the accelerator to the others (`--jobs` does not count them)."""
+    return name.startswith("compile:")
+
+  def compile_record(self) -> str:
+    return os.path.join(self.root, "compiled_ahead.json")
+
+  def compile_stamp(self) -> dict:
+    """What the compiled programs depend on: the evaluation's settings, the model's
+    configuration, JAX and the cache they went to."""
+    return {"settings": self.eval_settings("full"), "max_objects": self.max_objects("full"),
+            "subset": FLAGS.subset, "model": self.train_config("full").model.to_dict(),
+            "batch_size": self.config.eval.batch_size, "jax": jax.__version__,
+            "cache": os.path.abspath(jax.config.jax_compilation_cache_dir)}
+
+  def compiled_ahead(self) -> bool:
+    """Done once the programs are in the cache for these settings, or once the full
+    model's evaluation (which needs them no more) is."""
+    if self.evaluated("full"):
+      return True
+    if not os.path.exists(self.compile_record()):
+      return False
+    with open(self.compile_record()) as f:
+      return json.load(f).get("stamp") == json.loads(json.dumps(self.compile_stamp()))
+
+  def compile_ahead(self) -> None:
+    """The full model's evaluation compiled ahead of time into JAX's persistent cache
+    (`evaluate(ahead=True)`), from a model of its configuration with fresh weights (the
+    programs take the weights as arguments): evaluate:full then loads them instead of
+    spending 90 s compiling while the accelerator waits."""
+    config, e = self.train_config("full"), self.config.eval
+    model = PPD(config.model, rngs=nnx.Rngs(0))
+    r = evaluation.evaluate((model, config), self.data, refine_steps=e.refine_steps,
+                            batch_size=e.batch_size, max_objects=self.max_objects("full"),
+                            subset=FLAGS.subset, ahead=True, progress=False,
+                            **self.eval_settings("full"))
+    print(f"[full] evaluation compiled ahead in {r['compile_seconds']:.0f} s", flush=True)
+    common.write_json_atomically(self.compile_record(), {
+        "stamp": self.compile_stamp(), "compile_seconds": r["compile_seconds"]})
 
   def train(self, variant: str) -> None:
     loop.train_and_evaluate(self.train_config(variant), self.data, self.workdir(variant),

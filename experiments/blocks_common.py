@@ -111,6 +111,14 @@ def write(out_dir: str, name: str, payload: dict, markdown: str) -> None:
 EVALUATION_FILES = ("results.json", "results.md", "confusion.png")
 
 
+def write_json_atomically(path: str, payload: dict) -> None:
+  """`payload` as JSON at `path`, whole or not at all (a record a done-check reads)."""
+  tmp = path + ".tmp"
+  with open(tmp, "w") as f:
+    json.dump(payload, f, indent=1)
+  os.replace(tmp, path)
+
+
 def read_evaluation(folder: str) -> dict:
   """The results.json of an evaluation's output folder (`python -m ppdjax.evaluate
   --out=FOLDER`); a usage error naming the folder if it has none."""

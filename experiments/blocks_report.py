@@ -17,6 +17,7 @@ import shutil
 
 import numpy as np
 
+import blocks_common as common
 import pipeline_steps
 
 from ppdjax.dataset import storage
@@ -297,10 +298,7 @@ def export_example(pipe, results_dir: str, assets_dir: str, exported: bool = Fal
   record["path"] = "blocks_decomposition.png"
   if not exported:  # what `pipe.is_exported` checks: this model, these folders
     record["exported"] = pipe.export_stamp()
-    tmp = pipe.example_record() + ".tmp"
-    with open(tmp, "w") as f:
-      json.dump(record, f, indent=1)
-    os.replace(tmp, pipe.example_record())
+    common.write_json_atomically(pipe.example_record(), record)
   return record
 
 

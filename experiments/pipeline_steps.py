@@ -47,11 +47,14 @@ def _tail(path: str) -> str:
 
 
 def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]],
-        done: Callable[[str], bool], jobs: int, argv: Sequence[str], log_dir: str) -> int:
+        done: Callable[[str], bool], jobs: int, argv: Sequence[str], log_dir: str,
+        light: Callable[[str], bool] = lambda name: False) -> int:
   """Runs every step of `names` not yet done; returns 0 when all finished, else 1.
 
   needs(name): the steps `name` waits for; done(name): whether it is complete on disk;
-  argv: the pipeline script's own command line (script first), to which each child adds its step.
+  argv: the pipeline script's own command line (script first), to which each child adds its step;
+  light(name): a step that leaves the accelerator alone (compiling ahead of time on the
+  host): it starts whenever its needs are done, beside the `jobs` others.
   """
   if jobs < 1:
     raise ValueError(f"--jobs must be at least 1, got {jobs}")
@@ -76,7 +79,8 @@ def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]]
         failed.add(name)
         print(f"-- {name}: not started ({', '.join(d for d in needs(name) if d in failed)} "
               "failed)", flush=True)
-      elif len(running) < jobs and all(d in finished for d in needs(name)):
+      elif ((light(name) or sum(not light(r) for r in running) < jobs)
+            and all(d in finished for d in needs(name))):
         pending.remove(name)
         log = open(os.path.join(log_dir, name.replace(":", "_") + ".log"), "w")
         cmd = [sys.executable, *argv, f"--step={name}"]
@@ -194,7 +198,8 @@ def run_steps(pipe, step: str, jobs: int, argv: Sequence[str], list_only: bool =
     jax.config.update("jax_platforms", "cpu")  # the devices are the children's
     done = {name: d for name, d, _ in steps}
     return run_side_by_side(names, pipe.needs, lambda n: done[n](), jobs, argv,
-                            os.path.join(pipe.root, "logs"))
+                            os.path.join(pipe.root, "logs"),
+                            light=getattr(pipe, "light", lambda name: False))
   for name, done, action in steps:
     if step not in ("all", "next", name) or (done() and step != name):
       continue

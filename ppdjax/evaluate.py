@@ -61,12 +61,21 @@ _TABLE4_OBJECTS = flags.DEFINE_integer(
     "table4_objects", None, "Table 4's sampling baselines on whole batches spread over at "
     "least this many objects, and Table 4 on those (0: every object; default: "
     "eval.table4_objects).")
+_FACE_SPREAD = flags.DEFINE_float(
+    "face_spread", None, "With --fit, +Fit+Sample draws each candidate's faces too, uniform "
+    "within this many voxels of the fitted ones (0.5: wherever the voxels allow them; 0: the "
+    "fitted boxes only) (default: eval.face_spread).")
 _MAX_OBJECTS = flags.DEFINE_integer("max_objects", 0, "Evaluate only N objects (0: all).")
 _SUBSET = flags.DEFINE_enum("subset", "first", ["first", "spread"],
                             "With --max_objects: the first N objects, or N spread over the split.")
 _BASELINES = flags.DEFINE_bool("baselines", True, "Also run Frequent, Nearest, Oracle and "
                                "Table 4's.")
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.")
+_COMPILE_ONLY = flags.DEFINE_bool(
+    "compile_only", False, "Compile the evaluation's programs ahead of time into JAX's "
+    "persistent compilation cache (JAX_COMPILATION_CACHE_DIR, default ~/.cache/ppdjax/"
+    "jax_cache) and exit: nothing runs on the accelerator, and an evaluation with the same "
+    "flags of a model of the same configuration (any weights) then loads them.")
 _MAX_SECONDS = flags.DEFINE_float("max_seconds", 0, "Stop after the batch that passes this "
                                   "many seconds (exit status 3); run the same command again "
                                   "to go on. 0: no limit. Either way, every batch's records "
@@ -77,6 +86,10 @@ _MAX_SECONDS = flags.DEFINE_float("max_seconds", 0, "Stop after the batch that p
 def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
+  import jax
+  if not jax.config.jax_compilation_cache_dir:  # the compiled programs are kept between runs
+    jax.config.update("jax_compilation_cache_dir",
+                      os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   from ppdjax.dataset.storage import DatasetError
   from ppdjax.infer import evaluation, markdown, partial, tables
   if _SELECTION_HORIZON.value not in (None,) + tables.SELECTION_HORIZONS:
@@ -95,19 +108,25 @@ def main(argv):
                                         joint=_JOINT.value, true_shapes=_TRUE_SHAPES.value,
                                         selection_horizon=_SELECTION_HORIZON.value,
                                         refine_jacobian=_REFINE_JACOBIAN.value,
-                                        table4_objects=_TABLE4_OBJECTS.value)
+                                        table4_objects=_TABLE4_OBJECTS.value,
+                                        face_spread=_FACE_SPREAD.value)
     out = _OUT.value or os.path.join(_WORKDIR.value, "eval")
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,
                                   with_baselines=_BASELINES.value, seed=_SEED.value,
                                   horizon_sweep=_HORIZON_SWEEP.value,
                                   partial_dir=os.path.join(out, "partial"),
-                                  max_seconds=_MAX_SECONDS.value, **settings)
+                                  max_seconds=_MAX_SECONDS.value,
+                                  ahead=_COMPILE_ONLY.value, **settings)
   except (checkpoints.CheckpointError, DatasetError, partial.OtherEvaluation) as e:
     sys.exit(f"error: {e}")
   except partial.EvaluationPaused as e:
     print(f"paused: {e}")
     sys.exit(3)
+  if _COMPILE_ONLY.value:
+    print(f"compiled ahead in {results['compile_seconds']:.0f} s into "
+          f"{jax.config.jax_compilation_cache_dir}")
+    return
   results["workdir"] = _WORKDIR.value
   command = "python -m ppdjax.evaluate " + " ".join(sys.argv[1:])
   paths = markdown.write_results(results, out, command)

@@ -26,7 +26,8 @@ def test_list_shows_every_step_and_bad_steps_are_named(tmp_path):
   done = _blocks(*TINY, f"--root={tmp_path}", "--list")
   assert done.returncode == 0, done.stderr[-2000:]
   names = [line.split()[1] for line in done.stdout.splitlines() if line.startswith("todo")]
-  assert names == ["generate", "train:full", "evaluate:full", "export", "train:no_image",
+  assert names == ["generate", "compile:full", "train:full", "evaluate:full", "export",
+                   "train:no_image",
                    "evaluate:no_image", "train:no_trajectory", "evaluate:no_trajectory",
                    "train:no_voxels", "evaluate:no_voxels", "report"]
   streamed = _blocks(*TINY, "--config.train.stream_steps=5", f"--root={tmp_path}", "--list")
@@ -39,7 +40,7 @@ def test_list_shows_every_step_and_bad_steps_are_named(tmp_path):
 def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
   root, results, assets = (str(tmp_path / d) for d in ("root", "results", "assets"))
   args = [*TINY, f"--root={root}", f"--results={results}", f"--assets={assets}"]
-  for _ in range(12):  # one step per call, as an interrupted user would go on
+  for _ in range(13):  # one step per call, as an interrupted user would go on
     done = _blocks(*args, "--step=next", timeout=900)
     assert done.returncode == 0, done.stderr[-3000:]
     if os.path.exists(os.path.join(results, "blocks.json")):
@@ -60,7 +61,7 @@ def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
   assert logs == ["data_card.md", "full.metrics.jsonl", "no_image.metrics.jsonl",
                   "no_trajectory.metrics.jsonl", "no_voxels.metrics.jsonl", "steps.jsonl"]
   listed = _blocks(*args, "--list")
-  assert listed.stdout.count("done") == 10  # every step but the report (rerun each time)
+  assert listed.stdout.count("done") == 11  # every step but the report (rerun each time)
 
 
 _FAKE_STEP = """
@@ -103,6 +104,22 @@ def test_jobs_start_steps_when_their_inputs_are_done_and_stop_behind_a_failure(t
   assert again == 0 and started == [ln.split()[1] for ln in
                                     (tmp_path / "order").read_text().split("\n")
                                     if ln.startswith("start")]  # done steps are not rerun
+
+
+def test_light_steps_run_beside_the_jobs(tmp_path):
+  """A light step (compiling ahead, no accelerator) starts beside a full set of jobs."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import pipeline_steps
+  script = tmp_path / "step.py"
+  script.write_text(_FAKE_STEP)
+  needs = {"a": (), "b": (), "light": ()}
+  rc = pipeline_steps.run_side_by_side(list(needs), needs.__getitem__,
+                                       lambda n: os.path.exists(tmp_path / n), 1,
+                                       [str(script), str(tmp_path)], str(tmp_path / "logs"),
+                                       light=lambda n: n == "light")
+  lines = (tmp_path / "order").read_text().split("\n")
+  assert rc == 0 and lines.index("start light") < lines.index("end a")  # beside "a"
+  assert lines.index("end a") < lines.index("start b")  # one job at a time
 
 
 @pytest.mark.slow  # about 5 minutes on 2 cores

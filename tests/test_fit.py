@@ -181,3 +181,65 @@ def test_rejects_bad_input(tower_set):
     fit.fit_boxes(vox, jax.tree.map(lambda x: x[:3], tower_set[0]))
   assert fit.check_voxels(vox.astype(np.float32)) == (2,)  # 0/1 floats and bools are fine
   assert fit.check_voxels(vox.astype(bool)) == (2,)
+
+
+def test_fit_puts_the_longest_axis_on_the_grid_boundary(tower_set, reading):
+  """Objects are normalised to a 1 m largest extent: along the one axis that spans the
+  grid, the face that bounds the object lies on ±0.5 m, where the fit now puts it (the
+  reading, from the voxels alone, leaves it half a voxel in); no face moves farther from
+  the truth than half a voxel, and the boxes still voxelize as the input."""
+  true, vox = tower_set
+  snapped = jax.tree.map(np.asarray, fit.fit_boxes(vox))
+  spans = np.stack([vox.any((2, 3)).all(-1), vox.any((1, 3)).all(-1), vox.any((1, 2)).all(-1)], -1)
+  one = spans.sum(-1) == 1
+  assert one.mean() > 0.7  # most towers: only their height spans the grid
+  (lo_t, hi_t), (lo_s, hi_s), (lo_r, hi_r) = _faces(true), _faces(snapped), _faces(reading)
+  err_s = np.abs(np.stack([lo_t - lo_s, hi_t - hi_s]))[:, true.valid]
+  err_r = np.abs(np.stack([lo_t - lo_r, hi_t - hi_r]))[:, true.valid]
+  assert err_s.max() <= 0.5 + 1e-4 and err_s.mean() < err_r.mean() - 0.02
+  moved = 0
+  for n in np.flatnonzero(one):
+    a = int(np.argmax(spans[n]))
+    valid = true.valid[n]
+    for faces, sign in ((hi_s[n], 1), (lo_s[n], -1)):
+      at = np.isclose(faces[valid, a], 16 + 16 * sign, atol=1e-3)
+      truth = (hi_t if sign > 0 else lo_t)[n][valid, a]
+      reached = np.isclose(truth, 16 + 16 * sign, atol=1e-3)
+      if reached.sum() == 1 and np.isclose(faces[valid, a], (faces[valid, a].max() if sign > 0
+                                                           else faces[valid, a].min())).sum() == 1:
+        assert at.sum() == 1 and np.array_equal(at, reached), (n, a, sign)
+        moved += 1
+  assert moved >= one.sum()  # at least one bounding face per such tower went to the boundary
+  np.testing.assert_array_equal(_voxelize(snapped), vox)
+  plain = jax.tree.map(np.asarray, fit.fit_boxes(vox[:8], unit_extent=False))
+  for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(jax.tree.map(lambda x: x[:8], reading))):
+    np.testing.assert_allclose(a, b, atol=1e-6)  # without it: the reading
+
+
+def test_faces_drawn_within_the_voxels_tolerance(tower_set):
+  """+Fit+Sample's face draws (`faces.spread_faces`): every candidate voxelizes as the
+  input, candidate 0 is the fit, touching faces stay touching, faces on the grid boundary
+  stay, the rest spread over most of their half-voxel interval, and each candidate is
+  centred on its bounding box."""
+  from ppdjax.infer import faces
+  _, vox = tower_set
+  fitted = fit.fit_boxes(vox[:8])
+  cands = jax.tree.map(np.asarray, jax.jit(jax.vmap(lambda p, k: faces.spread_faces(p, k, 32)))(
+      fitted, jax.random.split(jax.random.key(3), 8)))
+  np.testing.assert_array_equal(_voxelize(cands), np.repeat(vox[:8, None], 32, 1))
+  for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[:, 0], cands)),
+                  jax.tree.leaves(jax.tree.map(np.asarray, fitted))):
+    np.testing.assert_allclose(a, b, atol=1e-6)
+  lo, hi = _faces(cands)
+  f_lo, f_hi = _faces(jax.tree.map(lambda x: np.asarray(x)[:, None], fitted))
+  valid = cands.valid
+  for n in range(8):
+    k = valid[n, 0].sum()
+    np.testing.assert_allclose(hi[n, :, :k - 1, 2], lo[n, :, 1:k, 2], atol=1e-4)  # stacked
+  move = np.abs(np.concatenate([lo - f_lo, hi - f_hi], -1))[valid]  # (.., 6) voxels
+  boundary = np.broadcast_to(np.isclose(np.abs(np.concatenate([f_lo, f_hi], -1) - 16), 16,
+                                        atol=1e-3), lo.shape[:3] + (6,))[valid]
+  assert move[boundary].max() < 1e-3 and move.max() < 0.5
+  assert np.percentile(move[~boundary], 90) > 0.3  # the draws cover the interval
+  bound = np.where(valid[..., None], np.stack([lo, hi]), np.nan)
+  np.testing.assert_allclose(np.nanmin(bound[0], 2) + np.nanmax(bound[1], 2), 32, atol=1e-3)

@@ -107,6 +107,31 @@ def test_sampling_finds_the_truth_when_the_prior_contains_it(tower):
   assert 7 <= len(distinct) == len({tuple(r) for r in distinct}) <= 9  # of the 9 in support
 
 
+@pytest.mark.slow  # compiles a second sampling call
+def test_faces_drawn_with_the_densities_are_returned_with_the_winner(tower):
+  """`face_spread`: every candidate's boxes come back (candidate 0 the given ones, the
+  others moved within the spread); the winner's densities and score are those of
+  candidate `best`, re-simulated."""
+  prims, observed = tower
+  true = np.asarray(jnp.rint(prims.density / 100.0) - 1).astype(int)
+  logits = jnp.full((5, 100), -1e9)
+  for k in range(2):
+    logits = logits.at[k, true[k] - 3].set(0.0).at[k, true[k]].set(0.5)
+  sel = jax.jit(lambda p, lg, o, key: sampling.select_densities(
+      p, lg, o, PUSHES, num_samples=8, key=key, face_spread=0.5))(prims, logits, observed,
+                                                                jax.random.key(1))
+  boxes = jax.tree.map(np.asarray, sel.boxes)
+  np.testing.assert_allclose(boxes.half_size[0], prims.half_size, atol=1e-6)
+  moved = np.abs(boxes.half_size[1:] - np.asarray(prims.half_size)).max((-1, -2))
+  assert np.all(moved > 0) and np.all(moved < 1 / 32)
+  best = int(sel.best)
+  np.testing.assert_allclose(sel.density, boxes.density[best])
+  again = _simulate(jax.tree.map(lambda x: jnp.asarray(x[best])[None], boxes))[0]
+  assert float(metrics.trajectory_distance(again, observed)) == pytest.approx(
+      float(sel.score), rel=1e-4, abs=1e-7)
+  assert float(sel.score) == pytest.approx(float(np.min(sel.scores)), abs=1e-9)
+
+
 def test_the_screen_refuses_bad_settings_and_knows_when_it_is_off():
   assert sampling.check_screen(32, 64, 512, 256)
   assert not sampling.check_screen(0, 64, 512, 256)  # off
@@ -307,6 +332,8 @@ def test_the_depth_fit_in_decompose_names_its_errors(tiny_run, tiny_dataset):
   obs = {k: sample[k] for k in OBS_KEYS}
   with pytest.raises(ValueError, match="needs fit=True"):
     ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, fit=False, camera=ds.camera)
+  with pytest.raises(ValueError, match="face_spread must be >= 0 and needs fit=True"):
+    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, fit=False, face_spread=0.5)
   with pytest.raises(ValueError, match="camera"):
     ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera={"height": 8})
   decompose = ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera=ds.camera)

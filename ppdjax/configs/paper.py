@@ -69,6 +69,10 @@ def get_config():
   # (4,800 objects, one H100) top-1 60.4 % / RMSE 3.56 slots in 328 s, against forward
   # mode's 59.1 % / 3.78 in 401 s (benchmarks.md, "The whole split in about five minutes")
   config.eval.refine_jacobian = "differences"
+  # +Fit+Sample on the fitted faces only: drawing the faces too (0.25 or 0.5 voxel) brought
+  # the trajectories closer and the densities further on the validation split of unseen
+  # towers (experiments/results/unit_extent_2026-11-26)
+  config.eval.face_spread = 0.0
   # The density estimator: 400k simulated towers (about a minute of MJX on an H100) and
   # 20k steps at batch 1,024 (51 epochs).
   config.estimator.pool_size = 400_000

@@ -111,4 +111,7 @@ def get_config() -> ml_collections.ConfigDict:
   # Table 4's sampling baselines on whole batches spread over about this many objects
   # (evaluation.evaluate; 0: every object)
   config.eval.table4_objects = 0
+  # +Fit+Sample also draws each candidate's faces within this many voxels of the fitted
+  # ones (infer.faces; 0: the fitted boxes only)
+  config.eval.face_spread = 0.0
   return config

@@ -7,8 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION,
-                                slot_to_density_jax)
+from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION
 from ppdjax.dataset.camera import check_camera
 from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.fit import fit_boxes
@@ -96,7 +95,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       camera: dict | None = None, refine: bool = False,
                       refine_steps: int = 12, prior_weight: float = 0.0,
                       mass_match: bool = False, screen_steps: int | None = None,
-                      screen_keep: int = 64,
+                      screen_keep: int = 64, face_spread: float = 0.0,
                       refine_prior: float = 0.0, refine_jacobian: str = "forward",
                       estimator=None,
                       estimator_weight: float = 1.0, pushes: Pushes | None = None,
@@ -128,6 +127,10 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
       3.8× the objects/s in batches of 64), else 0 (on coarser boxes it keeps it less
       often: docs/inference.md, "Screened selection").
     screen_keep: survivors of the screen per object.
+    face_spread: > 0 (voxels; needs `fit`) draws each candidate's faces too, within this of
+      the fitted ones (`faces.spread_faces`; 0.5: wherever the voxels allow them), and
+      returns the winner's boxes: its trajectories come closer, its densities do not
+      (docs/inference.md, "Faces drawn with the densities"). 0: the fitted boxes.
     refine_prior: > 0 makes refinement a MAP step under the network's density scores
       (`refine.refine_densities`'s prior_weight; 1e-5: a one-σ move costs about 3 mm of
       trajectory residual); 0 is plain least squares.
@@ -160,6 +163,9 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   sampling.check_screen(screen_steps, screen_keep, num_samples, 0)  # its errors, now
   if camera is not None and not fit:
     raise ValueError("camera is for the depth fit: it needs fit=True")
+  if face_spread < 0 or (face_spread > 0 and not fit):
+    raise ValueError(f"face_spread must be >= 0 and needs fit=True (it moves fitted faces), "
+                     f"got {face_spread} with fit={fit}")
   if camera is not None:
     camera = check_camera(camera)
   keys = OBS_KEYS + (("depth",) if camera is not None else ())
@@ -196,20 +202,22 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     sel = jax.vmap(lambda p, l, o, kk: sampling.select_densities(
         p, l, o, pushes, num_samples=num_samples, key=kk, prior_weight=prior_weight,
         mass_match=mass_match, screen_steps=screen_steps, screen_keep=screen_keep,
-        settings=settings))(prims, logits, traj, keys)
-    prims = prims.replace(density=sel.density)
+        face_spread=face_spread, settings=settings))(prims, logits, traj, keys)
+    pick = lambda index: jax.tree.map(  # each object's candidate `index` (B,)
+        lambda x: jnp.take_along_axis(x, index.reshape((-1,) + (1,) * (x.ndim - 1)), 1)[:, 0],
+        sel.boxes)
+    prims = pick(sel.best).replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
     if refine:  # from the closest candidate whatever τ chose, as the evaluation's +Refine
-      closest = jnp.argmin(sel.scores, -1)[:, None, None]
-      start = prims.replace(density=slot_to_density_jax(
-          jnp.take_along_axis(sel.slots, closest, 1)[:, 0]))
+      start = pick(jnp.argmin(sel.scores, -1))
       ref = jax.vmap(lambda p, lg, o, d: refine_if_closer(
           p, o, d, pushes, steps=refine_steps,
           prior=density_prior(lg) if refine_prior > 0 else None, prior_weight=refine_prior,
           jacobian=refine_jacobian, settings=settings))(start, logits, traj, sel.scores.min(-1))
       # kept where it is closer than every candidate; else the +Sample answer stays
-      prims = prims.replace(density=jnp.where(ref.closer[:, None], ref.primitives.density,
-                                              prims.density))
+      prims = jax.tree.map(  # the refined boxes (the closest candidate's) with their densities
+          lambda r, p: jnp.where(ref.closer.reshape((-1,) + (1,) * (p.ndim - 1)), r, p),
+          ref.primitives, prims)
       score = jnp.where(ref.closer, ref.distance, score)
       sim = jnp.where(ref.closer[:, None, None, None], ref.trajectories, sim)
     return Decomposition(prims, logits, score, sel.scores, sim)

@@ -68,7 +68,8 @@ def _weights_hash(model) -> str:
 
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
                  "depth", "refine_prior", "estimator", "estimator_weight", "joint",
-                 "true_shapes", "selection_horizon", "refine_jacobian", "table4_objects")
+                 "true_shapes", "selection_horizon", "refine_jacobian", "table4_objects",
+                 "face_spread")
 
 
 def eval_settings(config, **overrides) -> dict:
@@ -76,7 +77,8 @@ def eval_settings(config, **overrides) -> dict:
   defaults = {"fit": False, "depth": False, "refine_prior": 0.0, "estimator": "",
               "estimator_weight": 1.0, "joint": False,
               "true_shapes": False, "selection_horizon": 0,
-              "refine_jacobian": "forward", "table4_objects": 0}  # older presets lack them
+              "refine_jacobian": "forward", "table4_objects": 0,
+              "face_spread": 0.0}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -93,9 +95,9 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              estimator_weight: float = 1.0, joint: bool = False, true_shapes: bool = False,
              selection_horizon: int = 0, horizon_sweep: bool = False,
              refine_jacobian: str = "forward", table4_objects: int = 0,
-             progress: bool = True,
+             face_spread: float = 0.0, progress: bool = True,
              partial_dir: str = "", max_seconds: float = 0.0, prefetch: bool = True,
-             devices=None) -> dict:
+             devices=None, ahead: bool = False) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
 
   +Sample selects by `sampling.selection_objective` with τ = prior_weight;
@@ -121,6 +123,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   40 % of a batch's rollouts at 512 samples with both fits) are simulated on whole batches
   spread over the objects, at least this many objects, and Table 4 is reported on those
   (`results["table4_evaluated"]` objects); 0: on every object.
+  `face_spread` (voxels) > 0: the +Fit+Sample candidates' faces are drawn too, within this
+  of the fitted ones (`faces.spread_faces`; where the voxels allow them at 0.5).
   `true_shapes` adds the oracle rows "PPD+True boxes" (+Sample, +Sample+Refine): the
   network's k-th density scores on the k-th true box, sampled and refined alike.
   `partial_dir` saves each batch's records as it is made and reuses those a previous call
@@ -128,6 +132,11 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   stops after the batch that passes it and raises `partial.EvaluationPaused`. `prefetch`
   reads the next batch in a background thread while the current one computes. `devices`:
   the local devices each batch splits over (None: all; the batch is padded to a multiple).
+  `ahead`: compile the stages ahead of time on the first batch's shapes and return (no
+  batch runs, no accelerator memory taken): with JAX's persistent compilation cache on,
+  the evaluation with these settings of a model of the same configuration (any weights)
+  then loads its programs instead of compiling them (`Evaluator.compile(execute=False)`);
+  returns the settings and "compile_seconds".
 
   Raises:
     CheckpointError for a workdir without a checkpoint, DatasetError for a dataset
@@ -151,7 +160,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "joint": joint, "true_shapes": true_shapes, "selection_horizon": selection_horizon,
               "horizon_sweep": horizon_sweep,
               "refine_jacobian": refine_jacobian if refine else "forward",
-              "table4_objects": table4_objects if with_baselines else 0}
+              "table4_objects": table4_objects if with_baselines else 0,
+              "face_spread": face_spread if fit else 0.0}
   check_jacobian(refine_jacobian)
   starts = range(0, n, batch_size)
   table4_starts = {starts[i] for i in table4_batches(
@@ -231,7 +241,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       if rec is None:
         if ev is None:  # the training split (Nearest's) is read while the stages compile
           reading = behind.submit(baselines.TrainingSet, storage.open_dataset(data_dir, "train"),
-                                  progress=False) if with_baselines else None
+                                  progress=False) if with_baselines and not ahead else None
           ev = Evaluator(model, config, samples=samples, refine=refine,
                          refine_steps=refine_steps, baselines_on=with_baselines, fit=fit,
                          depth=depth, camera=test.camera if depth else None,
@@ -240,8 +250,15 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                          estimator_weight=estimator_weight, joint=joint,
                          true_shapes=true_shapes, pushes=test.pushes,
                          settings=settings_for(test.engine), refine_jacobian=refine_jacobian,
-                         table4_every_batch=table4_starts == set(starts), devices=devices)
+                         table4_every_batch=table4_starts == set(starts),
+                         face_spread=face_spread, devices=devices)
           t = clock()  # the first batch's device time includes compiling every stage
+          if ahead:  # compiled ahead of time into JAX's persistent cache, and no more
+            ev.compile(batch, jax.random.fold_in(key, start), pool, execute=False)
+            bar.close()
+            return {"compiled_ahead": True, **settings,
+                    "seconds": round(time.perf_counter() - t_start, 1),
+                    "compile_seconds": round(ev.seconds["compile"], 1)}
           if not ev.compiled:  # every stage at once (on an accelerator)
             ev.compile(batch, jax.random.fold_in(key, start), pool)
           parts["device"] += clock() - t

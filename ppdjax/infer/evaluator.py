@@ -19,7 +19,7 @@ from flax import nnx
 
 from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
                                 slot_to_density_jax)
-from ppdjax.infer import baselines, sampling
+from ppdjax.infer import baselines, faces, sampling
 from ppdjax.infer.groups import candidate_layout, decode_groups, fit_groups
 from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
@@ -49,22 +49,27 @@ def _table4_candidates(t, pool, kk, samples: int):
 
 
 def _simulate(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys, pool=None,
-              *, samples, with_baselines, chunk, pushes, settings):
+              *, samples, with_baselines, chunk, pushes, settings, face_spreads=None):
   """Per object: (distance (C, H) over each of SELECTION_HORIZONS, MAE (C,)) of every
   candidate (`candidate_layout`; Table 4's too when `pool`, its random tower shapes, is
   given), the network's candidate slots on its boxes, and a tuple of them on each of
   `fitted` (a tuple of the fit groups' boxes, in layout order, scored by `fit_logits`, a
   tuple alike). `keys` (B, 4): each object's own, so that a batch split over devices draws
-  the same."""
+  the same. `face_spreads`: per fit group, > 0 draws its candidates' faces too
+  (`faces.spread_faces`, from one key for every such group)."""
   def one(args):
     p, fs, lg, flg, t, bs, traj, kk = args
     slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
     cands = [sampling.with_slots(p, slots)]
     fit_slots = []
-    for f, fl in zip(fs, flg):  # one key for every fit group: rows with the same scores
-      # differ by the boxes alone
+    spreads = face_spreads or (0.0,) * len(fs)
+    for f, fl, spread in zip(fs, flg, spreads):  # one key for every fit group: rows with
+      # the same scores differ by the boxes alone
       fit_slots.append(sampling.candidate_slots(fl, f.valid, samples, kk[3])[0])
       cands.append(sampling.with_slots(f, fit_slots[-1]))
+      if spread > 0:
+        moved = faces.spread_faces(f, jax.random.fold_in(kk[3], 1), samples, spread)
+        cands[-1] = moved.replace(density=cands[-1].density)
     if with_baselines:
       cands.append(sampling.with_slots(t, bs))
     if pool is not None:
@@ -113,11 +118,14 @@ class Evaluator:
                estimator=None, estimator_weight: float = 1.0, joint: bool = False,
                true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS,
                refine_jacobian: str = "forward", table4_every_batch: bool = False,
-               devices=None):
+               face_spread: float = 0.0, devices=None):
     """`devices`: the local devices each batch splits over (None: all of them).
     `table4_every_batch`: Table 4's sampling baselines run on every batch, inside the
     sampling call (one program to compile: on a CPU that is a minute less); otherwise in a
-    call of their own on the batches `batch` is asked to (`table4=True`)."""
+    call of their own on the batches `batch` is asked to (`table4=True`).
+    `face_spread` (voxels): > 0 draws the faces of the "fit" group's candidates too, within
+    this of the fitted ones (`faces.spread_faces`; the voxels place a face within half a
+    voxel)."""
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:
@@ -165,7 +173,9 @@ class Evaluator:
         replicated=(0, 3))
     self._simulate = per_device(functools.partial(
         _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
-        settings=settings), replicated=(8,) if self.table4_fused else ())
+        settings=settings, face_spreads=tuple(face_spread if g == "fit" else 0.0
+                                              for g in self.groups)),
+        replicated=(8,) if self.table4_fused else ())
     self._simulate_table4 = per_device(functools.partial(
         _simulate_table4, samples=samples, pushes=pushes, settings=settings,
         chunk=max(1, simultaneous_candidates() // (2 * samples))), replicated=(1,))
@@ -203,7 +213,7 @@ class Evaluator:
             jnp.asarray(base_slots), obs["trajectories"], keys) + (
                 (jax.tree.map(jnp.asarray, pool),) if self.table4_fused else ())
 
-  def compile(self, batch: dict, key, pool=None) -> None:
+  def compile(self, batch: dict, key, pool=None, execute: bool = True) -> None:
     """Compiles every stage for batches shaped like `batch`, all at once: each stage runs
     in its own thread on stand-ins of the shapes it will get (zeros where an earlier stage
     makes its input), and XLA compiles outside the GIL, so this takes about as long as
@@ -212,10 +222,17 @@ class Evaluator:
     and each stage compiles when first called). Each stage also runs once
     on its stand-ins, all at the same time: the accelerator's memory must hold every
     stage's batch at once (the paper preset's 64 objects ran within an H100's 80 GB).
-    `batch` calls it first if it has not run."""
+    `batch` calls it first if it has not run.
+
+    `execute=False` compiles ahead of time instead (`lower(...).compile()` on the stages'
+    shapes): nothing runs and no accelerator memory is taken, and with JAX's persistent
+    compilation cache on, another process whose Evaluator has the same model
+    configuration, batch and settings then loads the programs instead of compiling them
+    (`experiments/blocks.py` compiles the full model's evaluation while it trains)."""
     obs, true = self._inputs(batch)
     b, k = true.density.shape
-    decoded = self._decode_zeros(self.state, obs, true, self.est_state)
+    decoded = (self._decode_zeros(self.state, obs, true, self.est_state) if execute else
+               jax.eval_shape(self._decode, self.state, obs, true, self.est_state))
     keys = jax.random.split(key, (b, 4))
     pool = shape_pool(key, self.samples, k) if pool is None and self.baselines_on else pool
     tasks = [(self._decode, (self.state, obs, true, self.est_state)),
@@ -236,11 +253,13 @@ class Evaluator:
         depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((b,))
         tasks.append((self._joint, (prims, prior, obs["trajectories"], depth, true)))
     t = time.perf_counter()
+    run = ((lambda fn, *args: jax.block_until_ready(fn(*args))) if execute else
+           (lambda fn, *args: fn.lower(*args).compile()))
     with concurrent.futures.ThreadPoolExecutor(len(tasks)) as threads:
-      for future in [threads.submit(fn, *args) for fn, args in tasks]:
-        jax.block_until_ready(future.result())
+      for future in [threads.submit(run, fn, *args) for fn, args in tasks]:
+        future.result()
     self.seconds["compile"] += time.perf_counter() - t
-    self.compiled = True
+    self.compiled = execute
 
   def batch(self, batch: dict, base_scores: np.ndarray | None, key, pool=None,
             table4: bool = True) -> dict:

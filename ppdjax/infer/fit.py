@@ -18,7 +18,7 @@ import optax
 
 from ppdjax.conventions import NUM_SLOTS, VOXEL_RESOLUTION as R
 from ppdjax.dataset import voxels as voxelizer
-from ppdjax.infer import depth_fit
+from ppdjax.infer import depth_fit, faces
 from ppdjax.infer.tower_reading import (IDENTITY, VOXEL, as_bool, check_voxels, finish_boxes,
                                         read_one, read_tower)
 from ppdjax.primitives import Primitives, flatten, mat_to_quat, quat_to_mat, unflatten
@@ -254,11 +254,14 @@ def _fit_batch(vox_NxRxRxR, init: Primitives | None, seed, **options) -> Primiti
     return jax.lax.cond(jnp.all(exact), lambda: jax.vmap(_as_selected)(readings), search)
 
 
+_snap_batch = jax.jit(jax.vmap(faces.snap_unit_extent))
+
+
 def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, points: int = 256,
               lr: float = 0.1, jitter_starts: int = 0, jitter: float = 1.0,
               jitter_angle: float = 0.1, loose: float = 0.25, box_cost: float = 0.01,
               seed: int = 0, depth=None, camera: dict | None = None,
-              depth_iterations: int = 15) -> Primitives:
+              depth_iterations: int = 15, unit_extent: bool = True) -> Primitives:
   """Fits up to K = 5 oriented boxes to voxel grids; jittable, batched over leading axes.
 
   When the exact tower reading explains every grid of the batch voxel for voxel, it is the
@@ -272,6 +275,9 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
   soft loss), so a tower's exact reading is never replaced. With a `depth` image and its
   `camera`, the winner's faces are then refined against the depth (`depth_fit`): faces
   the camera sees become sub-voxel, the others stay within half a voxel of the voxel fit.
+  With `unit_extent` (objects normalised to a largest extent of 1 m, the project's
+  convention), the faces that bound the object along the one axis that spans the grid go
+  to ±0.5 m (`faces.snap_unit_extent`), before and after the depth refinement.
   Value checks run on concrete arrays only (under jit an empty grid gives no valid box).
   Under `jax.jit`, bind options (and the camera) with `functools.partial`.
 
@@ -292,6 +298,8 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
       objects at rest, as the dataset stores them.
     camera: the depth images' camera (`storage.Dataset.camera`); required with `depth`.
     depth_iterations: Levenberg-Marquardt steps of the depth refinement.
+    unit_extent: use the normalisation: the object's largest extent is 1 m (False: the
+      voxels alone, for objects scaled otherwise).
 
   Returns:
     Primitives (B..., K): boxes bottom to top, canonical unit quats, density 1000
@@ -305,11 +313,14 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
     depth_fit.check_depth(depth, camera, batch)
   elif camera is not None:
     raise ValueError("camera was given without a depth image")
-  out = _fit_batch(jnp.asarray(voxels).reshape(-1, R, R, R), flat, seed, steps=steps,
-                   points=points, lr=lr, jitter_starts=jitter_starts, jitter=jitter,
-                   jitter_angle=jitter_angle, loose=loose, box_cost=box_cost)
+  grids = jnp.asarray(voxels).reshape(-1, R, R, R)
+  out = _fit_batch(grids, flat, seed, steps=steps, points=points, lr=lr,
+                   jitter_starts=jitter_starts, jitter=jitter, jitter_angle=jitter_angle,
+                   loose=loose, box_cost=box_cost)
+  snap = _snap_batch if unit_extent else lambda p, v: p
+  out = snap(out, grids)
   if depth is not None:
     d = jnp.asarray(depth, jnp.float32)
-    out = depth_fit.refine_batch(out, d.reshape((-1,) + d.shape[-2:]), camera,
-                                 iterations=depth_iterations)
+    out = snap(depth_fit.refine_batch(out, d.reshape((-1,) + d.shape[-2:]), camera,
+                                      iterations=depth_iterations), grids)
   return unflatten(out, batch)

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from ppdjax import metrics
+from ppdjax.infer import faces
 from ppdjax.conventions import (MAX_DENSITY, MIN_DENSITY, NUM_DENSITY_SLOTS,
                                 density_to_slot_jax, slot_to_density_jax)
 from ppdjax.primitives import Primitives
@@ -49,6 +50,9 @@ class Selection:
     mae: (S,) every candidate's trajectory MAE (mm, `metrics.trajectory_mae`; inf where
       screened out).
     trajectories: (P, T, 7) the best candidate simulated under the pushes.
+    best: index of the best candidate.
+    boxes: (S, K) every candidate's boxes (the given boxes unless faces were drawn,
+      `face_spread`) with its slots' densities.
   """
 
   density: jax.Array
@@ -58,6 +62,8 @@ class Selection:
   distinct: jax.Array
   mae: jax.Array
   trajectories: jax.Array
+  best: jax.Array
+  boxes: Primitives
 
 
 def candidate_slots(logits_Kx100: jax.Array, valid_K: jax.Array, num_samples: int,
@@ -174,7 +180,7 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
                      pushes: Pushes | None = None, *, num_samples: int, key: jax.Array,
                      include_mode: bool = True, prior_weight: float = 0.0,
                      mass_match: bool = False, screen_steps: int = 0,
-                     screen_keep: int = 64,
+                     screen_keep: int = 64, face_spread: float = 0.0,
                      settings: Settings = DEFAULT_SETTINGS) -> Selection:
   """Samples joint density assignments and keeps the one that best explains the motion.
 
@@ -196,6 +202,9 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
       (`screen_survivors`); the winner is chosen among them (0: every candidate whole, the
       paper's). With `mass_match`, the second pass runs on the survivors.
     screen_keep: survivors of the screen.
+    face_spread: > 0 draws each candidate's faces too, uniform within this many voxels of
+      the given ones (`faces.spread_faces`; candidate 0 keeps them): for boxes fitted to
+      voxels, which place a face only within half a voxel (`faces.VOXEL_TOLERANCE`).
     settings: the engine's settings (those the dataset was simulated with: MJX or box-plane).
 
   Returns:
@@ -205,6 +214,9 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   slots, distinct = candidate_slots(density_logits[:, :NUM_DENSITY_SLOTS], prims.valid,
                                     num_samples, key, include_mode=include_mode)
   candidates = with_slots(prims, slots)
+  if face_spread > 0:
+    moved = faces.spread_faces(prims, jax.random.fold_in(key, 1), num_samples, face_spread)
+    candidates = moved.replace(density=candidates.density)
   logp = log_prior(density_logits, slots, prims.valid)
   screened = check_screen(screen_steps, screen_keep, num_samples, observed.shape[-2])
   survivors = (screen_survivors(candidates, observed, pushes, settings, steps=screen_steps,
@@ -222,4 +234,4 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
                         if screened else x)
   return Selection(density=kept.density[best], score=dist[best], scores=everyone(dist),
                    slots=slots, distinct=distinct, mae=everyone(err),
-                   trajectories=sims[best])
+                   trajectories=sims[best], best=survivors[best], boxes=candidates)

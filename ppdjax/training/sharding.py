@@ -46,39 +46,68 @@ def check_batch_size(batch_size: int, devices: int | None = None) -> int:
   return batch_size // processes
 
 
+def _place(tree, sharding):
+  """Arrays put on `sharding`; abstract leaves (`jax.ShapeDtypeStruct`) given it."""
+  def one(x):
+    if isinstance(x, jax.ShapeDtypeStruct):
+      return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
+    return jax.device_put(x, sharding)
+  return jax.tree.map(one, tree)
+
+
+class _OverDevices:
+  """`jit_over_local_devices`' function on a device or a mesh; `lower` takes arrays or
+  `jax.ShapeDtypeStruct`s, as `jax.jit`'s does (ahead-of-time compilation)."""
+
+  def __init__(self, fn, replicated: tuple[int, ...], devices: list):
+    self.fn, self.replicated, self.devices, self.compiled = fn, replicated, devices, None
+    self.mesh = Mesh(np.array(devices), (DATA_AXIS,)) if len(devices) > 1 else None
+
+  def _placed(self, args) -> list:
+    if self.mesh is None:
+      return _place(list(args), jax.sharding.SingleDeviceSharding(self.devices[0]))
+    specs = tuple(PartitionSpec() if i in self.replicated else PartitionSpec(DATA_AXIS)
+                  for i in range(len(args)))
+    if any(np.shape(x)[0] % len(self.devices) for a, p in zip(args, specs)
+           if p != PartitionSpec() for x in jax.tree.leaves(a)):
+      raise ValueError(f"a batch split over {len(self.devices)} devices must be a multiple of "
+                       f"{len(self.devices)} long")
+    if self.compiled is None:  # check_vma off: `fn` uses no collectives, and its scans'
+      # carries (MJX's solver) mix per-device and replicated values the check would have
+      # us mark
+      self.compiled = jax.jit(jax.shard_map(self.fn, mesh=self.mesh, in_specs=specs,
+                                            out_specs=PartitionSpec(DATA_AXIS),
+                                            check_vma=False))
+    # arguments committed to one device (the model's weights) move onto the mesh first
+    return [_place(a, NamedSharding(self.mesh, p)) for a, p in zip(args, specs)]
+
+  def _jitted(self):
+    if self.compiled is None:
+      self.compiled = jax.jit(self.fn)
+    return self.compiled
+
+  def __call__(self, *args):
+    placed = self._placed(args)
+    return (self.compiled if self.mesh is not None else self._jitted())(*placed)
+
+  def lower(self, *args):
+    placed = self._placed(args)
+    return (self.compiled if self.mesh is not None else self._jitted()).lower(*placed)
+
+
 def jit_over_local_devices(fn, replicated: tuple[int, ...] = (), devices=None):
   """`jax.jit(fn)`, each local device running `fn` on its share of a batch (`jax.shard_map`):
   every argument is split along its leading axis except those at the positions in
   `replicated`, which each device gets whole; every output keeps the batch axis. On one
   device, plain `jax.jit(fn)` placed on it. `devices`: the local devices to use (None: all).
+  Either way the result has `lower` (arrays or `jax.ShapeDtypeStruct`s), for compiling
+  ahead of time.
 
   For per-object work (the evaluation): the batch must split evenly over the devices.
   """
-  if devices is not None and len(devices) == 1:  # that device, whichever it is
-    one, compiled_one = jax.sharding.SingleDeviceSharding(devices[0]), jax.jit(fn)
-    return lambda *args: compiled_one(*jax.device_put(args, one))
-  devices = jax.local_devices() if devices is None else list(devices)
-  if len(devices) == 1:
+  if devices is None and len(jax.local_devices()) == 1:
     return jax.jit(fn)
-  mesh = Mesh(np.array(devices), (DATA_AXIS,))
-  compiled = None
-
-  def run(*args):
-    nonlocal compiled
-    specs = tuple(PartitionSpec() if i in replicated else PartitionSpec(DATA_AXIS)
-                  for i in range(len(args)))
-    if any(np.shape(x)[0] % len(devices) for a, p in zip(args, specs) if p != PartitionSpec()
-           for x in jax.tree.leaves(a)):
-      raise ValueError(f"a batch split over {len(devices)} devices must be a multiple of "
-                       f"{len(devices)} long")
-    if compiled is None:  # check_vma off: `fn` uses no collectives, and its scans' carries
-      # (MJX's solver) mix per-device and replicated values the check would have us mark
-      compiled = jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=specs,
-                                       out_specs=PartitionSpec(DATA_AXIS), check_vma=False))
-    # arguments committed to one device (the model's weights) move onto the mesh first
-    return compiled(*[jax.device_put(a, NamedSharding(mesh, p)) for a, p in zip(args, specs)])
-
-  return run
+  return _OverDevices(fn, replicated, jax.local_devices() if devices is None else list(devices))
 
 
 def global_batch(local_tree, sharding: NamedSharding):
