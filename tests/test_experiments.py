@@ -31,7 +31,8 @@ def test_list_shows_every_step_and_bad_steps_are_named(tmp_path):
                    "evaluate:no_image", "train:no_trajectory", "evaluate:no_trajectory",
                    "train:no_voxels", "evaluate:no_voxels", "report"]
   streamed = _blocks(*TINY, "--config.train.stream_steps=5", f"--root={tmp_path}", "--list")
-  assert "train:geometry" in streamed.stdout.splitlines()[1], streamed.stdout
+  assert [line.split()[1] for line in streamed.stdout.splitlines()[:3]] == [
+      "generate", "compile:full", "train:geometry"], streamed.stdout
   bad = _blocks(*TINY, f"--root={tmp_path}", "--step=train")
   assert bad.returncode != 0 and "--step must be" in bad.stderr
 

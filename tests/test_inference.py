@@ -646,6 +646,42 @@ def test_stages_compile_once_side_by_side(tiny_run, tiny_dataset):
     ev.batch(batch, None, jax.random.key(2), table4=False)
 
 
+@pytest.mark.slow  # compiles the stages twice into an empty cache: about two minutes
+def test_stages_compiled_ahead_are_loaded_from_the_persistent_cache(tiny_run, tiny_dataset,
+                                                                    tmp_path):
+  """`Evaluator.compile(execute=False)`, from a model with other weights, runs nothing and
+  puts the stages' programs in the persistent cache, where another Evaluator's `compile`
+  loads them (what `experiments/blocks.py`'s compile:full step relies on)."""
+  from flax import nnx
+  from jax._src import compilation_cache
+  from ppdjax.infer.evaluator import Evaluator
+  from ppdjax.nn.model import PPD
+  from ppdjax.sim.rollout_mjx import settings_for
+  e = tiny.get_config().eval
+  model, config = checkpoints.load(tiny_run[0])
+  test = storage.open_dataset(tiny_dataset, "test")
+  batch = test.take(np.arange(e.batch_size), keys=OBS_KEYS + ("primitives",))
+  make = lambda m: Evaluator(m, config, samples=e.samples, refine=False, pushes=test.pushes,
+                             settings=settings_for(test.engine), table4_every_batch=True)
+  suite_cache = jax.config.jax_compilation_cache_dir
+  jax.config.update("jax_compilation_cache_dir", str(tmp_path))  # empty
+  compilation_cache.reset_cache()
+  try:
+    ahead = make(PPD(config.model, rngs=nnx.Rngs(7)))
+    ahead.compile(batch, jax.random.key(0), execute=False)
+    assert not ahead.compiled and ahead._simulate._cache_size() == 0
+    hits = []
+    jax.monitoring.register_event_listener(
+        lambda name, **kw: hits.append(name) if name.endswith("/cache_hits") else None)
+    ev = make(model)
+    ev.compile(batch, jax.random.key(0))
+    assert len(hits) >= 2  # decode and sample at least: loaded, not compiled
+    assert ev.compiled and ev._simulate._cache_size() == 1
+  finally:
+    jax.config.update("jax_compilation_cache_dir", suite_cache)
+    compilation_cache.reset_cache()
+
+
 @pytest.mark.slow  # three more compiled programs on a CPU: about two minutes
 def test_table4_is_reported_on_its_batches_only(tiny_run, tiny_dataset):
   """With `table4_objects`, Table 4's sampling baselines run on whole batches covering at

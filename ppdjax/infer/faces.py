@@ -1,15 +1,22 @@
-"""Box faces drawn where the voxels allow them: the geometry half of +Fit+Sample.
+"""Where the voxels put box faces: the fit's unit-extent prior, and faces drawn within the
+voxels' tolerance (the geometry half of +Fit+Sample, an option).
 
 The voxelizer fills every voxel a box shares volume with, so a face lies within half a
 voxel (16 mm) of the centre of its last filled voxel, where the voxel fit puts it: the
-voxels cannot say where in that interval. Half a voxel of face error is enough for the
-densities to compensate (DESIGN.md, measured facts), so +Fit+Sample draws each candidate's
-faces too: every face moves by an offset uniform in [-spread, spread] along its box's
-axis, faces that touch in the fit (a block's top and the bottom of the block it carries)
-move together, and the object is re-centred on its bounding box (the object frame's
-convention, which the observed trajectories follow) with every face kept within the
-spread (`centred_move`): every candidate then voxelizes as the fitted boxes do. Candidate
-0 keeps the fitted faces.
+voxels cannot say where in that interval. Two things narrow or use that:
+
+- `snap_unit_extent`: objects are normalised to a largest extent of exactly 1 m, so the
+  faces that bound the object along its longest axis lie on the grid's boundary
+  (`fit.fit_boxes(unit_extent=True)`).
+- `spread_faces`: half a voxel of face error is enough for the densities to compensate
+  (DESIGN.md, measured facts), so +Fit+Sample can draw each candidate's faces too: every
+  face moves by an offset uniform in [-spread, spread] along its box's axis, faces that
+  touch in the fit (a block's top and the bottom of the block it carries) move together,
+  and the object is re-centred on its bounding box (the object frame's convention, which
+  the observed trajectories follow) with every face kept within the spread
+  (`centred_move`): every candidate then voxelizes as the fitted boxes do. Candidate 0
+  keeps the fitted faces. Measured: closer trajectories, worse densities (off by default;
+  docs/inference.md).
 """
 
 from __future__ import annotations

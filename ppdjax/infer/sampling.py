@@ -27,9 +27,9 @@ import jax.numpy as jnp
 from flax import struct
 
 from ppdjax import metrics
-from ppdjax.infer import faces
 from ppdjax.conventions import (MAX_DENSITY, MIN_DENSITY, NUM_DENSITY_SLOTS,
                                 density_to_slot_jax, slot_to_density_jax)
+from ppdjax.infer import faces
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
