@@ -180,7 +180,8 @@ def test_eight_fake_devices_match_one(straight_run, tiny_dataset, tmp_path):
 
 def test_a_subset_of_the_devices_takes_the_work():
   """`devices=` keeps training and per-object work on the devices named (the peer of
-  experiments/bench_devices.py), and all local devices are the default."""
+  experiments/bench_devices.py), and all local devices are the default; either compiles
+  ahead of time from shapes alone."""
   code = f"""
 import jax, jax.numpy as jnp, numpy as np, pytest
 from ppdjax.training import sharding
@@ -192,6 +193,12 @@ assert one.devices() == {{d1}}, one.devices()
 both = sharding.jit_over_local_devices(f, replicated=(1,))(jnp.arange(4.0), jnp.ones(3))
 assert both.devices() == {{d0, d1}}, both.devices()
 np.testing.assert_array_equal(one, both)
+# ahead of time, from shapes alone (Evaluator.compile(execute=False)), on a device and on both
+shapes = (jax.ShapeDtypeStruct((4,), jnp.float32), jax.ShapeDtypeStruct((3,), jnp.float32))
+for devices in ([d1], None):
+  compiled = sharding.jit_over_local_devices(f, replicated=(1,), devices=devices).lower(
+      *shapes).compile()
+  np.testing.assert_array_equal(compiled(jnp.arange(4.0), jnp.ones(3)), one)
 with pytest.raises(ValueError, match="multiple of 2"):
   sharding.jit_over_local_devices(f, replicated=(1,))(jnp.arange(3.0), jnp.ones(3))
 assert sharding.check_batch_size(3, devices=1) == 3
