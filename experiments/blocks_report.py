@@ -193,8 +193,10 @@ def report_md(r: dict, command: str) -> str:
             for w, o, rel, t, ok in targets(r)]
   if ws:
     lines += whole_split_md(ws)
+  studies = any("Joint" in k or "True boxes" in k for k in r["table2"])
   lines += ["", "## Table 2: density and trajectory"
-            + (f" ({r['objects']} objects, with +Joint and the true boxes)" if ws else ""), ""]
+            + (f" (the pipeline's own evaluation, {r['objects']} objects"
+               + (", with +Joint and the true boxes)" if studies else ")") if ws else ""), ""]
   lines += table2_lines(r["table2"], r["objects"])
   lines += ["", "Objects evaluated in parentheses; 95 % bootstrap intervals over objects in "
             "brackets.", "",
