@@ -168,7 +168,7 @@ class Pipeline:
     return tuple(n for n, _, _ in self.steps() if n != "report")
 
   def light(self, name: str) -> bool:
-    """Steps that leave the accelerator to the others (`--jobs` does not count them)."""
+    """Steps that barely use the accelerator (`--jobs` does not count them)."""
     return name.startswith("compile:")
 
   def compile_record(self) -> str:

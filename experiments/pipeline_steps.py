@@ -53,8 +53,9 @@ def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]]
 
   needs(name): the steps `name` waits for; done(name): whether it is complete on disk;
   argv: the pipeline script's own command line (script first), to which each child adds its step;
-  light(name): a step that leaves the accelerator alone (compiling ahead of time on the
-  host): it starts whenever its needs are done, beside the `jobs` others.
+  light(name): a step that barely uses the accelerator (compiling ahead of time: host
+  cores, and the kernels XLA runs to tune them): it starts whenever its needs are done,
+  beside the `jobs` others.
   """
   if jobs < 1:
     raise ValueError(f"--jobs must be at least 1, got {jobs}")

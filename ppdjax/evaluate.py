@@ -91,7 +91,7 @@ def main(argv):
     jax.config.update("jax_compilation_cache_dir",
                       os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   from ppdjax.dataset.storage import DatasetError
-  from ppdjax.infer import evaluation, markdown, partial, tables
+  from ppdjax.infer import evaluation, faces, markdown, partial, tables
   if _SELECTION_HORIZON.value not in (None,) + tables.SELECTION_HORIZONS:
     sys.exit(f"error: --selection_horizon must be one of {tables.SELECTION_HORIZONS} "
              f"(0: all steps), got {_SELECTION_HORIZON.value}")
@@ -110,12 +110,19 @@ def main(argv):
                                         refine_jacobian=_REFINE_JACOBIAN.value,
                                         table4_objects=_TABLE4_OBJECTS.value,
                                         face_spread=_FACE_SPREAD.value)
+    try:
+      faces.check_spread(settings["face_spread"])
+    except ValueError as e:
+      sys.exit(f"error: {e}")
+    if settings["face_spread"] > 0 and not settings["fit"]:
+      sys.exit("error: --face_spread moves the +Fit rows' faces: it needs --fit")
     out = _OUT.value or os.path.join(_WORKDIR.value, "eval")
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,
                                   with_baselines=_BASELINES.value, seed=_SEED.value,
                                   horizon_sweep=_HORIZON_SWEEP.value,
-                                  partial_dir=os.path.join(out, "partial"),
+                                  partial_dir=("" if _COMPILE_ONLY.value
+                                               else os.path.join(out, "partial")),
                                   max_seconds=_MAX_SECONDS.value,
                                   ahead=_COMPILE_ONLY.value, **settings)
   except (checkpoints.CheckpointError, DatasetError, partial.OtherEvaluation) as e:

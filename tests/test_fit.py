@@ -243,3 +243,36 @@ def test_faces_drawn_within_the_voxels_tolerance(tower_set):
   assert np.percentile(move[~boundary], 90) > 0.3  # the draws cover the interval
   bound = np.where(valid[..., None], np.stack([lo, hi]), np.nan)
   np.testing.assert_allclose(np.nanmin(bound[0], 2) + np.nanmax(bound[1], 2), 32, atol=1e-3)
+
+
+def test_unit_extent_snap_on_turned_boxes_and_draws_keep_an_off_centre_fit():
+  """The snap moves the right face of a box whose axes point against the world's (turned
+  180° about z and 90° about x); face draws keep an object's bounding-box centre where it
+  is (a fit snapped at one end only is off the origin), candidate 0 being the input."""
+  from ppdjax.infer import faces
+  # one box 0.4 x 1.0 x 0.6 m along its own axes, turned so that they point along -x, -z
+  # and -y; z spans the grid, and its z faces were read half a voxel in
+  half = np.array([[0.2, 0.5 - VOXEL / 2, 0.3]], np.float32)
+  turned = np.array([[0.0, 0.0, -np.sqrt(0.5), np.sqrt(0.5)]], np.float32)  # (w, x, y, z)
+  box = primitives.make(half, np.zeros((1, 3), np.float32), turned)
+  rot = np.asarray(primitives.quat_to_mat(box.quat))[0]
+  assert np.isclose(rot[2, 1], -1.0)  # its second axis points down
+  vox = np.zeros((32, 32, 32), np.uint8)
+  vox[10:22, 6:26, :] = 1  # a full column along z only
+  snapped = faces.snap_unit_extent(box, jnp.asarray(vox))
+  np.testing.assert_allclose(snapped.half_size[0], [0.2, 0.5, 0.3], atol=1e-6)
+  np.testing.assert_allclose(snapped.pos[0], 0.0, atol=1e-6)  # both z ends moved out
+  # off the origin: a tower whose top face was not snapped (two boxes reach it alike)
+  tower = primitives.make(np.array([[0.2, 0.2, 0.25], [0.1, 0.1, 0.234375],
+                                    [0.05, 0.05, 0.234375]], np.float32),
+                          np.array([[0, 0, -0.25], [-0.1, 0, 0.234375], [0.15, 0, 0.234375]],
+                                   np.float32))
+  centre = np.asarray(faces.bounds_centre(tower))
+  assert abs(centre[2]) > 1e-3
+  cands = faces.spread_faces(tower, jax.random.key(0), 16)
+  for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[0], cands)), jax.tree.leaves(tower)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  centres = np.asarray(jax.vmap(faces.bounds_centre)(cands))
+  np.testing.assert_allclose(centres, np.broadcast_to(centre, centres.shape), atol=1e-6)
+  with pytest.raises(ValueError, match=r"face_spread must be in \[0, 0.5\]"):
+    faces.spread_faces(tower, jax.random.key(0), 4, spread=0.8)

@@ -575,6 +575,14 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
   empty.mkdir()
   with pytest.raises(storage.DatasetError, match="no dataset|manifest"):
     evaluation.evaluate(tiny_run[0], str(empty))
+  with pytest.raises(ValueError, match="face_spread must be in"):
+    evaluation.evaluate(tiny_run[0], tiny_dataset, fit=True, face_spread=-0.1)
+  with pytest.raises(ValueError, match="it needs fit"):
+    evaluation.evaluate(tiny_run[0], tiny_dataset, face_spread=0.5)
+  from ppdjax.infer.evaluator import Evaluator
+  with pytest.raises(ValueError, match="refine from the depth fit"):
+    Evaluator(*checkpoints.load(tiny_run[0]), samples=2, refine=True, fit=True,
+              face_spread=0.5)
   done = subprocess.run([sys.executable, "-m", "ppdjax.evaluate", f"--workdir={tmp_path}",
                          f"--data={tiny_dataset}"], cwd=ROOT, capture_output=True, text=True,
                         env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)

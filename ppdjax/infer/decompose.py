@@ -12,7 +12,7 @@ from ppdjax.dataset.camera import check_camera
 from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import check_jacobian, density_prior, refine_if_closer
-from ppdjax.infer import sampling
+from ppdjax.infer import faces, sampling
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
@@ -163,9 +163,9 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   sampling.check_screen(screen_steps, screen_keep, num_samples, 0)  # its errors, now
   if camera is not None and not fit:
     raise ValueError("camera is for the depth fit: it needs fit=True")
-  if face_spread < 0 or (face_spread > 0 and not fit):
-    raise ValueError(f"face_spread must be >= 0 and needs fit=True (it moves fitted faces), "
-                     f"got {face_spread} with fit={fit}")
+  faces.check_spread(face_spread)
+  if face_spread > 0 and not fit:
+    raise ValueError("face_spread moves fitted faces: it needs fit=True")
   if camera is not None:
     camera = check_camera(camera)
   keys = OBS_KEYS + (("depth",) if camera is not None else ())

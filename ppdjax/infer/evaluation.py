@@ -42,7 +42,7 @@ from tqdm.auto import tqdm
 
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage
-from ppdjax.infer import baselines, partial, rows
+from ppdjax.infer import baselines, faces, partial, rows
 from ppdjax.infer.batches import evaluation_objects, read_ahead, table4_batches
 from ppdjax.infer.evaluator import REFINE_FROM_TAU, Evaluator, shape_pool
 from ppdjax.infer.refine import check_jacobian
@@ -133,7 +133,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   reads the next batch in a background thread while the current one computes. `devices`:
   the local devices each batch splits over (None: all; the batch is padded to a multiple).
   `ahead`: compile the stages ahead of time on the first batch's shapes and return (no
-  batch runs, no accelerator memory taken): with JAX's persistent compilation cache on,
+  batch is evaluated; the weights and a batch are placed on the device, and XLA may run
+  kernels there to tune them); with JAX's persistent compilation cache on,
   the evaluation with these settings of a model of the same configuration (any weights)
   then loads its programs instead of compiling them (`Evaluator.compile(execute=False)`);
   returns the settings and "compile_seconds".
@@ -163,8 +164,9 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "table4_objects": table4_objects if with_baselines else 0,
               "face_spread": face_spread if fit else 0.0}
   check_jacobian(refine_jacobian)
-  if face_spread < 0:
-    raise ValueError(f"face_spread must be >= 0 voxels (0: the fitted faces), got {face_spread}")
+  faces.check_spread(face_spread)
+  if face_spread > 0 and not fit:
+    raise ValueError("face_spread moves the +Fit rows' faces: it needs fit")
   starts = range(0, n, batch_size)
   table4_starts = {starts[i] for i in table4_batches(
       [min(batch_size, n - x) for x in starts], table4_objects)}

@@ -141,6 +141,11 @@ class Evaluator:
     # every group sampled and scored; "true" (the oracle boxes) after the fits
     self.groups = self.fits + (("true",) if true_shapes else ())
     self.refine_group = self.fits[-1] if self.fits else "ppd"  # +Refine's and +Joint's boxes
+    faces.check_spread(face_spread)
+    if face_spread > 0 and (refine or joint) and self.refine_group == "fit":
+      raise ValueError("face_spread draws the +Fit candidates' faces, and +Refine and +Joint "
+                       "would start from the fitted ones: with face_spread, refine from the "
+                       "depth fit (depth=True) or not at all")
     self.layout = candidate_layout(samples, self.groups, baselines_on)
     self.table4_fused = baselines_on and table4_every_batch
     table4 = [self.layout[g] for g in ("uniform", "shapes") if g in self.layout]
@@ -225,7 +230,8 @@ class Evaluator:
     `batch` calls it first if it has not run.
 
     `execute=False` compiles ahead of time instead (`lower(...).compile()` on the stages'
-    shapes): nothing runs and no accelerator memory is taken, and with JAX's persistent
+    shapes): no stage runs (XLA may still run kernels on the device to tune them), and
+    with JAX's persistent
     compilation cache on, another process whose Evaluator has the same model
     configuration, batch and settings then loads the programs instead of compiling them
     (`experiments/blocks.py` compiles the full model's evaluation while it trains)."""

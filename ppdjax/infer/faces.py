@@ -12,10 +12,10 @@ voxels cannot say where in that interval. Two things narrow or use that:
   (DESIGN.md, measured facts), so +Fit+Sample can draw each candidate's faces too: every
   face moves by an offset uniform in [-spread, spread] along its box's axis, faces that
   touch in the fit (a block's top and the bottom of the block it carries) move together,
-  and the object is re-centred on its bounding box (the object frame's convention, which
-  the observed trajectories follow) with every face kept within the spread
+  and the bounding box's centre stays where the fit has it (the object frame's origin,
+  which the observed trajectories follow) with every face kept within the spread
   (`centred_move`): every candidate then voxelizes as the fitted boxes do. Candidate 0
-  keeps the fitted faces. Measured: closer trajectories, worse densities (off by default;
+  is the fitted boxes. Measured: closer trajectories, worse densities (off by default;
   docs/inference.md).
 """
 
@@ -31,16 +31,21 @@ VOXEL_TOLERANCE = 0.5  # voxels: how far a face may be from where the voxel fit 
 CLIP_INSIDE = 0.99  # a re-centred face clipped back to its interval stops this far in
 
 
-def recentre(prims: Primitives) -> Primitives:
-  """`prims` (K) shifted so that the valid boxes' axis-aligned bounding box is centred on
-  the origin."""
+def bounds_centre(prims: Primitives) -> jax.Array:
+  """(3,) the centre of the valid boxes' axis-aligned bounding box (0 without boxes)."""
   rot = quat_to_mat(prims.quat)
   reach = jnp.einsum("kij,kj->ki", jnp.abs(rot), prims.half_size)  # half extents, world axes
   valid = prims.valid[:, None]
   lo = jnp.where(valid, prims.pos - reach, jnp.inf).min(0)
   hi = jnp.where(valid, prims.pos + reach, -jnp.inf).max(0)
-  shift = jnp.where(jnp.isfinite(lo) & jnp.isfinite(hi), 0.5 * (lo + hi), 0.0)
-  return prims.replace(pos=jnp.where(valid, prims.pos - shift, prims.pos))
+  return jnp.where(jnp.isfinite(lo) & jnp.isfinite(hi), 0.5 * (lo + hi), 0.0)
+
+
+def recentre(prims: Primitives, centre=0.0) -> Primitives:
+  """`prims` (K) shifted so that the valid boxes' axis-aligned bounding box is centred on
+  `centre` (3,) (default: the origin)."""
+  shift = bounds_centre(prims) - centre
+  return prims.replace(pos=jnp.where(prims.valid[:, None], prims.pos - shift, prims.pos))
 
 
 def move_faces(prims: Primitives, offsets_Kx6: jax.Array) -> Primitives:
@@ -109,15 +114,24 @@ def snap_unit_extent(prims: Primitives, vox_XYZ: jax.Array) -> Primitives:
 
 
 def centred_move(prims: Primitives, offsets_Kx6: jax.Array, limit) -> Primitives:
-  """`move_faces`, re-centred: the moved boxes' bounding-box centre is taken off every face
-  (along each box's axes), each offset clipped to [-limit, limit] (m, scalar or (K, 6))
-  again, and the result `recentre`d (the clip moves no face that bounds the object)."""
-  moved = move_faces(prims, offsets_Kx6)
-  shift = moved.pos - recentre(moved).pos  # (K, 3) world; equal for every valid box
-  along = jnp.einsum("kji,kj->ki", quat_to_mat(prims.quat), shift)  # along each box's axes
+  """`move_faces`, keeping the bounding box's centre where `prims` has it (the object
+  frame's origin): the moved boxes' shift of that centre is taken off every face (along
+  each box's axes), each offset clipped to [-limit, limit] (m, scalar or (K, 6)) again,
+  and the result re-centred there (the clip moves no face that bounds the object)."""
+  centre = bounds_centre(prims)
+  shift = bounds_centre(move_faces(prims, offsets_Kx6)) - centre  # (3,) world
+  along = jnp.einsum("kji,j->ki", quat_to_mat(prims.quat), shift)  # along each box's axes
   inside = CLIP_INSIDE * jnp.asarray(limit)  # the interval's ends are open: stay inside it
   offsets = jnp.clip(offsets_Kx6 - jnp.concatenate([along, along], -1), -inside, inside)
-  return recentre(move_faces(prims, offsets))
+  return recentre(move_faces(prims, offsets), centre)
+
+
+def check_spread(spread: float) -> None:
+  """ValueError unless 0 <= spread <= VOXEL_TOLERANCE (voxels): beyond it faces would
+  leave the interval the voxels allow."""
+  if not 0 <= spread <= VOXEL_TOLERANCE:
+    raise ValueError(f"face_spread must be in [0, {VOXEL_TOLERANCE}] voxels (how far the "
+                     f"voxels allow a face to be), got {spread}")
 
 
 def tie_offsets(offsets_SxKx6: jax.Array, ties_KxKx3: jax.Array) -> jax.Array:
@@ -134,8 +148,9 @@ def tie_offsets(offsets_SxKx6: jax.Array, ties_KxKx3: jax.Array) -> jax.Array:
 def spread_faces(prims: Primitives, key: jax.Array, num: int,
                  spread: float = VOXEL_TOLERANCE) -> Primitives:
   """`num` copies (S, K) of one object's boxes `prims` (K) with their faces drawn uniform
-  within `spread` voxels of where they are, touching faces together (candidate 0: faces
-  unmoved)."""
+  within `spread` voxels of where they are (0 < spread <= VOXEL_TOLERANCE), touching faces
+  together (candidate 0: `prims` itself)."""
+  check_spread(spread)
   k = prims.num_slots
   # faces on the grid's boundary stay (`snap_unit_extent` put them there: they are known)
   where, _ = face_positions(prims)

@@ -211,6 +211,7 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
     Selection: best densities, its score and every candidate's score and MAE.
   """
   pushes = default_pushes() if pushes is None else pushes
+  faces.check_spread(face_spread)
   slots, distinct = candidate_slots(density_logits[:, :NUM_DENSITY_SLOTS], prims.valid,
                                     num_samples, key, include_mode=include_mode)
   candidates = with_slots(prims, slots)

@@ -50,7 +50,7 @@ def _place(tree, sharding):
   """Arrays put on `sharding`; abstract leaves (`jax.ShapeDtypeStruct`) given it."""
   def one(x):
     if isinstance(x, jax.ShapeDtypeStruct):
-      return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
+      return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding, weak_type=x.weak_type)
     return jax.device_put(x, sharding)
   return jax.tree.map(one, tree)
 
