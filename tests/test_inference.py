@@ -332,8 +332,10 @@ def test_the_depth_fit_in_decompose_names_its_errors(tiny_run, tiny_dataset):
   obs = {k: sample[k] for k in OBS_KEYS}
   with pytest.raises(ValueError, match="needs fit=True"):
     ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, fit=False, camera=ds.camera)
-  with pytest.raises(ValueError, match="face_spread must be >= 0 and needs fit=True"):
+  with pytest.raises(ValueError, match="face_spread moves fitted faces: it needs fit=True"):
     ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, fit=False, face_spread=0.5)
+  with pytest.raises(ValueError, match=r"face_spread must be in \[0, 0.5\]"):
+    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, face_spread=1.0)
   with pytest.raises(ValueError, match="camera"):
     ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera={"height": 8})
   decompose = ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera=ds.camera)
