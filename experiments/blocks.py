@@ -102,6 +102,14 @@ class Pipeline:
             "fit": False, "depth": False, "refine_prior": 0.0, "joint": False,
             "true_shapes": False, "table4_objects": 0, "refine_jacobian": "forward"}
 
+  def evaluation_args(self, variant: str) -> dict:
+    """`evaluation.evaluate`'s settings for a variant's test-split evaluation (and for
+    compiling it ahead: the same arguments compile the same programs)."""
+    e = self.config.eval
+    return {"refine_steps": e.refine_steps, "batch_size": e.batch_size,
+            "max_objects": self.max_objects(variant), "subset": FLAGS.subset,
+            **self.eval_settings(variant)}
+
   def max_objects(self, variant: str) -> int:
     """The full model's evaluation (sampling, baselines, fit, refinement) covers
     --max_objects test objects; the ablations' (the network alone) the whole split."""
@@ -175,11 +183,10 @@ class Pipeline:
     return os.path.join(self.root, "compiled_ahead.json")
 
   def compile_stamp(self) -> dict:
-    """What the compiled programs depend on: the evaluation's settings, the model's
+    """What the compiled programs depend on: the evaluation's arguments, the model's
     configuration, JAX and the cache they went to."""
-    return {"settings": self.eval_settings("full"), "max_objects": self.max_objects("full"),
-            "subset": FLAGS.subset, "model": self.train_config("full").model.to_dict(),
-            "batch_size": self.config.eval.batch_size, "jax": jax.__version__,
+    return {"evaluation": self.evaluation_args("full"),
+            "model": self.train_config("full").model.to_dict(), "jax": jax.__version__,
             "cache": os.path.abspath(jax.config.jax_compilation_cache_dir)}
 
   def compiled_ahead(self) -> bool:
@@ -197,13 +204,11 @@ class Pipeline:
     (`evaluate(ahead=True)`), from a model of its configuration with fresh weights (the
     programs take the weights as arguments): evaluate:full then loads them instead of
     spending 90 s compiling while the accelerator waits."""
-    config, e = self.train_config("full"), self.config.eval
+    config = self.train_config("full")
     model = PPD(config.model, rngs=nnx.Rngs(0))
     try:
-      r = evaluation.evaluate((model, config), self.data, refine_steps=e.refine_steps,
-                              batch_size=e.batch_size, max_objects=self.max_objects("full"),
-                              subset=FLAGS.subset, ahead=True, progress=False,
-                              **self.eval_settings("full"))
+      r = evaluation.evaluate((model, config), self.data, ahead=True, progress=False,
+                              **self.evaluation_args("full"))
       record = {"compile_seconds": r["compile_seconds"]}
       print(f"[full] evaluation compiled ahead in {r['compile_seconds']:.0f} s", flush=True)
     except Exception as error:  # pylint: disable=broad-except
@@ -295,13 +300,11 @@ class Pipeline:
   def evaluate(self, variant: str) -> None:
     """One call of an evaluation step: batches are saved as they are made (eval_partial/),
     and the call stops after --step_seconds; the next call goes on from there."""
-    s, e = self.eval_settings(variant), self.config.eval
-    n = self.max_objects(variant)
+    s, n = self.eval_settings(variant), self.max_objects(variant)
     saved = os.path.join(self.workdir(variant), "eval_partial")
-    run = lambda: evaluation.evaluate(self.workdir(variant), self.data,
-                                      refine_steps=e.refine_steps, batch_size=e.batch_size,
-                                      max_objects=n, subset=FLAGS.subset, partial_dir=saved,
-                                      max_seconds=FLAGS.step_seconds, **s)
+    run = lambda: evaluation.evaluate(self.workdir(variant), self.data, partial_dir=saved,
+                                      max_seconds=FLAGS.step_seconds,
+                                      **self.evaluation_args(variant))
     try:
       try:
         results = run()

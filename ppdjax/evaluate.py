@@ -111,11 +111,9 @@ def main(argv):
                                         table4_objects=_TABLE4_OBJECTS.value,
                                         face_spread=_FACE_SPREAD.value)
     try:
-      faces.check_spread(settings["face_spread"])
+      faces.check_spread(settings["face_spread"], settings["fit"])
     except ValueError as e:
-      sys.exit(f"error: {e}")
-    if settings["face_spread"] > 0 and not settings["fit"]:
-      sys.exit("error: --face_spread moves the +Fit rows' faces: it needs --fit")
+      sys.exit(f"error: {e} (--face_spread, --fit)")
     out = _OUT.value or os.path.join(_WORKDIR.value, "eval")
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,

@@ -629,27 +629,34 @@ def _records_of(ev, out, samples, table4):
                             refine=False, layout=ev.layout, table4=table4)
 
 
+def _tiny_evaluator(config, tiny_dataset):
+  """(model -> an Evaluator of the tiny preset's evaluation with Table 4 on every batch,
+  the evaluate command's first test batch: the CLI test's, whose programs are on disk)."""
+  from ppdjax.infer.evaluator import Evaluator
+  from ppdjax.sim.rollout_mjx import settings_for
+  e = tiny.get_config().eval
+  test = storage.open_dataset(tiny_dataset, "test")
+  batch = test.take(np.arange(e.batch_size), keys=OBS_KEYS + ("primitives",))
+  return (lambda model: Evaluator(model, config, samples=e.samples, refine=False,
+                                  pushes=test.pushes, settings=settings_for(test.engine),
+                                  table4_every_batch=True)), batch
+
+
 def test_stages_compile_once_side_by_side(tiny_run, tiny_dataset):
   """`Evaluator.compile` compiles every stage before the first batch, each in its own
   thread, on stand-ins shaped and placed as the batches' inputs: the batches then add no
   compiled signature. With Table 4 on every batch its candidates are simulated in the
   sampling call, and a batch cannot skip them."""
-  from ppdjax.infer.evaluator import Evaluator
-  from ppdjax.sim.rollout_mjx import settings_for
-  e = tiny.get_config().eval
   model, config = checkpoints.load(tiny_run[0])
-  test = storage.open_dataset(tiny_dataset, "test")
-  ev = Evaluator(model, config, samples=e.samples, refine=False, pushes=test.pushes,
-                 settings=settings_for(test.engine), table4_every_batch=True)
-  # the evaluate command's batch (the CLI test's): its compiled programs are on disk
-  batch = test.take(np.arange(e.batch_size), keys=OBS_KEYS + ("primitives",))
+  make, batch = _tiny_evaluator(config, tiny_dataset)
+  ev = make(model)
   ev.compile(batch, jax.random.key(0))
   stages = {"decode": ev._decode, "sample": ev._simulate}
   assert {k: f._cache_size() for k, f in stages.items()} == dict.fromkeys(stages, 1)
   assert ev._simulate_table4._cache_size() == 0  # not needed: one program fewer to compile
   out = ev.batch(batch, None, jax.random.key(1))
   assert out["mae"].shape[1] == ev.layout["shapes"].stop
-  rec = _records_of(ev, out, e.samples, table4=True)
+  rec = _records_of(ev, out, ev.samples, table4=True)
   assert ("prefix", "Sample Phys.", 8) in rec and ("prefix", "PPD", 8) in rec
   assert {k: f._cache_size() for k, f in stages.items()} == dict.fromkeys(stages, 1)
   with pytest.raises(ValueError, match="table4_every_batch"):
@@ -664,15 +671,9 @@ def test_stages_compiled_ahead_are_loaded_from_the_persistent_cache(tiny_run, ti
   loads them (what `experiments/blocks.py`'s compile:full step relies on)."""
   from flax import nnx
   from jax._src import compilation_cache
-  from ppdjax.infer.evaluator import Evaluator
   from ppdjax.nn.model import PPD
-  from ppdjax.sim.rollout_mjx import settings_for
-  e = tiny.get_config().eval
   model, config = checkpoints.load(tiny_run[0])
-  test = storage.open_dataset(tiny_dataset, "test")
-  batch = test.take(np.arange(e.batch_size), keys=OBS_KEYS + ("primitives",))
-  make = lambda m: Evaluator(m, config, samples=e.samples, refine=False, pushes=test.pushes,
-                             settings=settings_for(test.engine), table4_every_batch=True)
+  make, batch = _tiny_evaluator(config, tiny_dataset)
   suite_cache = jax.config.jax_compilation_cache_dir
   jax.config.update("jax_compilation_cache_dir", str(tmp_path))  # empty
   compilation_cache.reset_cache()

@@ -163,9 +163,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   sampling.check_screen(screen_steps, screen_keep, num_samples, 0)  # its errors, now
   if camera is not None and not fit:
     raise ValueError("camera is for the depth fit: it needs fit=True")
-  faces.check_spread(face_spread)
-  if face_spread > 0 and not fit:
-    raise ValueError("face_spread moves fitted faces: it needs fit=True")
+  faces.check_spread(face_spread, fit)
   if camera is not None:
     camera = check_camera(camera)
   keys = OBS_KEYS + (("depth",) if camera is not None else ())

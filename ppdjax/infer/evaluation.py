@@ -164,9 +164,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "table4_objects": table4_objects if with_baselines else 0,
               "face_spread": face_spread if fit else 0.0}
   check_jacobian(refine_jacobian)
-  faces.check_spread(face_spread)
-  if face_spread > 0 and not fit:
-    raise ValueError("face_spread moves the +Fit rows' faces: it needs fit")
+  faces.check_spread(face_spread, fit)
   starts = range(0, n, batch_size)
   table4_starts = {starts[i] for i in table4_batches(
       [min(batch_size, n - x) for x in starts], table4_objects)}

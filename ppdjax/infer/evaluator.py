@@ -66,10 +66,8 @@ def _simulate(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys
     for f, fl, spread in zip(fs, flg, spreads):  # one key for every fit group: rows with
       # the same scores differ by the boxes alone
       fit_slots.append(sampling.candidate_slots(fl, f.valid, samples, kk[3])[0])
-      cands.append(sampling.with_slots(f, fit_slots[-1]))
-      if spread > 0:
-        moved = faces.spread_faces(f, jax.random.fold_in(kk[3], 1), samples, spread)
-        cands[-1] = moved.replace(density=cands[-1].density)
+      cands.append(sampling.candidate_boxes(f, fit_slots[-1], jax.random.fold_in(kk[3], 1),
+                                            spread))
     if with_baselines:
       cands.append(sampling.with_slots(t, bs))
     if pool is not None:
@@ -141,7 +139,7 @@ class Evaluator:
     # every group sampled and scored; "true" (the oracle boxes) after the fits
     self.groups = self.fits + (("true",) if true_shapes else ())
     self.refine_group = self.fits[-1] if self.fits else "ppd"  # +Refine's and +Joint's boxes
-    faces.check_spread(face_spread)
+    faces.check_spread(face_spread, "fit" in self.fits)
     if face_spread > 0 and (refine or joint) and self.refine_group == "fit":
       raise ValueError("face_spread draws the +Fit candidates' faces, and +Refine and +Joint "
                        "would start from the fitted ones: with face_spread, refine from the "
@@ -231,10 +229,10 @@ class Evaluator:
 
     `execute=False` compiles ahead of time instead (`lower(...).compile()` on the stages'
     shapes): no stage runs (XLA may still run kernels on the device to tune them), and
-    with JAX's persistent
-    compilation cache on, another process whose Evaluator has the same model
-    configuration, batch and settings then loads the programs instead of compiling them
-    (`experiments/blocks.py` compiles the full model's evaluation while it trains)."""
+    with JAX's persistent compilation cache on, another process whose Evaluator has the
+    same model configuration, batch and settings then loads the programs instead of
+    compiling them (`experiments/blocks.py` compiles the full model's evaluation while it
+    trains)."""
     obs, true = self._inputs(batch)
     b, k = true.density.shape
     decoded = (self._decode_zeros(self.state, obs, true, self.est_state) if execute else

@@ -126,12 +126,14 @@ def centred_move(prims: Primitives, offsets_Kx6: jax.Array, limit) -> Primitives
   return recentre(move_faces(prims, offsets), centre)
 
 
-def check_spread(spread: float) -> None:
-  """ValueError unless 0 <= spread <= VOXEL_TOLERANCE (voxels): beyond it faces would
-  leave the interval the voxels allow."""
+def check_spread(spread: float, fit: bool = True) -> None:
+  """ValueError unless 0 <= spread <= VOXEL_TOLERANCE (voxels: beyond it faces would leave
+  the interval the voxels allow), and unless there is a fit to move (`fit`) where > 0."""
   if not 0 <= spread <= VOXEL_TOLERANCE:
     raise ValueError(f"face_spread must be in [0, {VOXEL_TOLERANCE}] voxels (how far the "
                      f"voxels allow a face to be), got {spread}")
+  if spread > 0 and not fit:
+    raise ValueError("face_spread moves fitted faces: it needs fit=True")
 
 
 def tie_offsets(offsets_SxKx6: jax.Array, ties_KxKx3: jax.Array) -> jax.Array:

@@ -98,6 +98,17 @@ def candidate_slots(logits_Kx100: jax.Array, valid_K: jax.Array, num_samples: in
   return draws[take], ~duplicate[take]
 
 
+def candidate_boxes(prims: Primitives, slots_SxK: jax.Array, key: jax.Array,
+                    face_spread: float = 0.0) -> Primitives:
+  """Candidates (S, K): `prims` (K) with each row of slots' densities; with `face_spread`
+  > 0 (voxels) each candidate's faces drawn too (`faces.spread_faces`, from `key`)."""
+  out = with_slots(prims, slots_SxK)
+  if face_spread > 0:
+    moved = faces.spread_faces(prims, key, slots_SxK.shape[0], face_spread)
+    out = moved.replace(density=out.density)
+  return out
+
+
 def log_prior(logits_Kx100: jax.Array, slots_SxK: jax.Array, valid_K: jax.Array) -> jax.Array:
   """(S,) log-probability of each joint assignment under the per-box categoricals."""
   lp = jax.nn.log_softmax(logits_Kx100[:, :NUM_DENSITY_SLOTS], -1)
@@ -214,10 +225,7 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   faces.check_spread(face_spread)
   slots, distinct = candidate_slots(density_logits[:, :NUM_DENSITY_SLOTS], prims.valid,
                                     num_samples, key, include_mode=include_mode)
-  candidates = with_slots(prims, slots)
-  if face_spread > 0:
-    moved = faces.spread_faces(prims, jax.random.fold_in(key, 1), num_samples, face_spread)
-    candidates = moved.replace(density=candidates.density)
+  candidates = candidate_boxes(prims, slots, jax.random.fold_in(key, 1), face_spread)
   logp = log_prior(density_logits, slots, prims.valid)
   screened = check_screen(screen_steps, screen_keep, num_samples, observed.shape[-2])
   survivors = (screen_survivors(candidates, observed, pushes, settings, steps=screen_steps,

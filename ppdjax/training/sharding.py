@@ -60,39 +60,35 @@ class _OverDevices:
   `jax.ShapeDtypeStruct`s, as `jax.jit`'s does (ahead-of-time compilation)."""
 
   def __init__(self, fn, replicated: tuple[int, ...], devices: list):
-    self.fn, self.replicated, self.devices, self.compiled = fn, replicated, devices, None
+    self.fn, self.replicated, self.devices, self.jitted = fn, replicated, devices, None
     self.mesh = Mesh(np.array(devices), (DATA_AXIS,)) if len(devices) > 1 else None
 
-  def _placed(self, args) -> list:
+  def _prepare(self, args) -> tuple:
+    """(the jitted function, the arguments placed for it), built on the first call."""
     if self.mesh is None:
-      return _place(list(args), jax.sharding.SingleDeviceSharding(self.devices[0]))
+      self.jitted = self.jitted or jax.jit(self.fn)
+      return self.jitted, _place(list(args), jax.sharding.SingleDeviceSharding(self.devices[0]))
     specs = tuple(PartitionSpec() if i in self.replicated else PartitionSpec(DATA_AXIS)
                   for i in range(len(args)))
     if any(np.shape(x)[0] % len(self.devices) for a, p in zip(args, specs)
            if p != PartitionSpec() for x in jax.tree.leaves(a)):
       raise ValueError(f"a batch split over {len(self.devices)} devices must be a multiple of "
                        f"{len(self.devices)} long")
-    if self.compiled is None:  # check_vma off: `fn` uses no collectives, and its scans'
+    if self.jitted is None:  # check_vma off: `fn` uses no collectives, and its scans'
       # carries (MJX's solver) mix per-device and replicated values the check would have
       # us mark
-      self.compiled = jax.jit(jax.shard_map(self.fn, mesh=self.mesh, in_specs=specs,
-                                            out_specs=PartitionSpec(DATA_AXIS),
-                                            check_vma=False))
+      self.jitted = jax.jit(jax.shard_map(self.fn, mesh=self.mesh, in_specs=specs,
+                                          out_specs=PartitionSpec(DATA_AXIS), check_vma=False))
     # arguments committed to one device (the model's weights) move onto the mesh first
-    return [_place(a, NamedSharding(self.mesh, p)) for a, p in zip(args, specs)]
-
-  def _jitted(self):
-    if self.compiled is None:
-      self.compiled = jax.jit(self.fn)
-    return self.compiled
+    return self.jitted, [_place(a, NamedSharding(self.mesh, p)) for a, p in zip(args, specs)]
 
   def __call__(self, *args):
-    placed = self._placed(args)
-    return (self.compiled if self.mesh is not None else self._jitted())(*placed)
+    jitted, placed = self._prepare(args)
+    return jitted(*placed)
 
   def lower(self, *args):
-    placed = self._placed(args)
-    return (self.compiled if self.mesh is not None else self._jitted()).lower(*placed)
+    jitted, placed = self._prepare(args)
+    return jitted.lower(*placed)
 
 
 def jit_over_local_devices(fn, replicated: tuple[int, ...] = (), devices=None):
