@@ -97,10 +97,12 @@ class Pipeline:
               "prior_weight": e.prior_weight, "fit": e.fit, "depth": e.get("depth", False),
               "refine_prior": e.refine_prior, "joint": FLAGS.joint,
               "true_shapes": FLAGS.true_shapes, "table4_objects": e.get("table4_objects", 0),
-              "refine_jacobian": e.get("refine_jacobian", "forward")}
+              "refine_jacobian": e.get("refine_jacobian", "forward"),
+              "image_fit": e.get("image_fit", False) and e.fit}
     return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0,
             "fit": False, "depth": False, "refine_prior": 0.0, "joint": False,
-            "true_shapes": False, "table4_objects": 0, "refine_jacobian": "forward"}
+            "true_shapes": False, "table4_objects": 0, "refine_jacobian": "forward",
+            "image_fit": False}
 
   def evaluation_args(self, variant: str) -> dict:
     """`evaluation.evaluate`'s settings for a variant's test-split evaluation (and for
@@ -261,11 +263,12 @@ class Pipeline:
     return ((r["samples"], r["refine"], r.get("max_objects", 0), r.get("prior_weight", 0.0),
              r.get("subset", "first"), r.get("fit", False), r.get("depth", False),
              r.get("refine_prior", 0.0), r.get("joint", False), r.get("true_shapes", False),
-             r.get("table4_objects", 0), r.get("refine_jacobian", "forward")) ==
+             r.get("table4_objects", 0), r.get("refine_jacobian", "forward"),
+             r.get("image_fit", False)) ==
             (s["samples"], s["refine"], self.max_objects(variant), s["prior_weight"],
              FLAGS.subset, s["fit"], s["depth"], refine_prior, s["joint"], s["true_shapes"],
              s["table4_objects"] if s["with_baselines"] else 0,
-             s["refine_jacobian"] if s["refine"] else "forward"))
+             s["refine_jacobian"] if s["refine"] else "forward", s["image_fit"]))
 
   def val_path(self) -> str:
     return os.path.join(self.workdir("full"), "eval_val", "results.json")
@@ -277,8 +280,9 @@ class Pipeline:
     with open(self.val_path()) as f:
       r = json.load(f)
     s = self.eval_settings("full")
-    return ((r["samples"], r.get("max_objects"), r.get("fit"), r.get("depth"))
-            == (s["samples"], FLAGS.val_objects, s["fit"], s["depth"]))
+    return ((r["samples"], r.get("max_objects"), r.get("fit"), r.get("depth"),
+             r.get("image_fit", False))
+            == (s["samples"], FLAGS.val_objects, s["fit"], s["depth"], s["image_fit"]))
 
   def validate(self) -> None:
     """The full model on --val_objects validation objects: the +Sample rows' τ sweep
@@ -288,13 +292,15 @@ class Pipeline:
     results = evaluation.evaluate(
         self.workdir("full"), self.data, split="val", samples=s["samples"], refine=False,
         batch_size=e.batch_size, max_objects=FLAGS.val_objects, subset="spread",
-        with_baselines=False, prior_weight=s["prior_weight"], fit=s["fit"], depth=s["depth"])
+        with_baselines=False, prior_weight=s["prior_weight"], fit=s["fit"], depth=s["depth"],
+        image_fit=s["image_fit"])
     results["max_objects"] = FLAGS.val_objects
     markdown.write_results(
         results, os.path.dirname(self.val_path()),
         f"python -m ppdjax.evaluate --workdir=full --data=data --split=val "
         f"--samples={s['samples']} --norefine --nobaselines --prior_weight={s['prior_weight']}"
-        + (" --fit" if s["fit"] else "") + (" --depth" if s["depth"] else "")
+        + (" --fit" if s["fit"] else "") + (" --image_fit" if s["image_fit"] else "")
+        + (" --depth" if s["depth"] else "")
         + f" --max_objects={FLAGS.val_objects} --subset=spread")
 
   def evaluate(self, variant: str) -> None:
@@ -321,7 +327,8 @@ class Pipeline:
         f"python -m ppdjax.evaluate --workdir={variant} --data=data --samples={s['samples']}"
         + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"
         + ("" if s["with_baselines"] else " --nobaselines")
-        + (" --fit" if s["fit"] else "") + (" --depth" if s["depth"] else "")
+        + (" --fit" if s["fit"] else "") + (" --image_fit" if s["image_fit"] else "")
+        + (" --depth" if s["depth"] else "")
         + f" --refine_prior={s['refine_prior']}" + (" --joint" if s["joint"] else "")
         + (" --true_shapes" if s["true_shapes"] else "")
         + (f" --table4_objects={s['table4_objects']}" if s["table4_objects"] else "")

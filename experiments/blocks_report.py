@@ -80,7 +80,7 @@ def collect(pipe) -> dict:
   return {
       "table2": table2, "f1": full["f1"], "shape": full.get("shape"),
       "shape_fit": full.get("shape_fit"), "shape_fit_depth": full.get("shape_fit_depth"),
-      "face_error_mm": full.get("face_error_mm"),
+      "face_error_mm": full.get("face_error_mm"), "image_fit": full.get("image_fit", False),
       "f1_ablations": {name: res[v]["f1"] for v, name in ablations.items()},
       "table4": full["table4"], "table4_evaluated": full.get("table4_evaluated"), "table5": table5, "table5_ci95": table5_ci95,
       "mae_units": full["mae_units"], "objects": full["objects"], "split": full["split"],
@@ -113,7 +113,7 @@ def whole_split(r: dict, full: dict, command: str) -> dict:
                  if v == "full" and row in full["table5"]})
   table5_ci95 = {name: full.get("table5_ci95", {}).get(row) for name, v, row in TABLE5_ROWS
                  if v == "full" and row in full["table5"]}
-  keep = ("f1", "shape", "shape_fit", "shape_fit_depth", "face_error_mm", "table4",
+  keep = ("f1", "shape", "shape_fit", "shape_fit_depth", "face_error_mm", "image_fit", "table4",
           "table4_evaluated",
           "oracle_pick", "prior_sweeps", "refine_stats", "objects", "split", "samples",
           "refine", "prior_weight", "seconds", "seconds_by_part", "mae_units")
@@ -208,7 +208,7 @@ def report_md(r: dict, command: str) -> str:
   lines += markdown.table4_md(r["table4"])
   if r.get("face_error_mm"):
     lines += ["", "## Face error (mm) against the true boxes, k-th box from the bottom", ""]
-    lines += markdown.face_md(r["face_error_mm"])
+    lines += markdown.face_md(r["face_error_mm"], r.get("image_fit", False))
   lines += ["", "Paper (1×/8×/64×/512×): " + markdown.paper_line(tables.PAPER_TABLE4) + ".", "",
             "## Table 5: density RMSE (slots) by number of blocks", ""]
   lines += markdown.table5_md(r["table5"])

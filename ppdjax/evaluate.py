@@ -61,6 +61,9 @@ _TABLE4_OBJECTS = flags.DEFINE_integer(
     "table4_objects", None, "Table 4's sampling baselines on whole batches spread over at "
     "least this many objects, and Table 4 on those (0: every object; default: "
     "eval.table4_objects).")
+_IMAGE_FIT = flags.DEFINE_bool(
+    "image_fit", None, "With --fit, the +Fit rows' boxes are then refined against the edges "
+    "of the dataset's images (the paper's inputs: voxels and image) (default: eval.image_fit).")
 _FACE_SPREAD = flags.DEFINE_float(
     "face_spread", None, "With --fit, +Fit+Sample draws each candidate's faces too, uniform "
     "within this many voxels of the fitted ones (0.5: wherever the voxels allow them; 0: the "
@@ -109,7 +112,8 @@ def main(argv):
                                         selection_horizon=_SELECTION_HORIZON.value,
                                         refine_jacobian=_REFINE_JACOBIAN.value,
                                         table4_objects=_TABLE4_OBJECTS.value,
-                                        face_spread=_FACE_SPREAD.value)
+                                        face_spread=_FACE_SPREAD.value,
+                                        image_fit=_IMAGE_FIT.value)
     try:
       faces.check_spread(settings["face_spread"], settings["fit"])
     except ValueError as e:

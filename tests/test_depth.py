@@ -82,7 +82,7 @@ def test_depth_input_errors_are_named(towers):
   _, vox, deps, cam = towers
   with pytest.raises(ValueError, match="without its camera"):
     ppdjax.fit_boxes(vox, depth=deps)
-  with pytest.raises(ValueError, match="without a depth"):
+  with pytest.raises(ValueError, match="without an image or a depth"):
     ppdjax.fit_boxes(vox, camera=cam)
   with pytest.raises(ValueError, match="32x32 images"):
     ppdjax.fit_boxes(vox, depth=deps, camera=camera_lib.camera_dict(32, 32))

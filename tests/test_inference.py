@@ -338,6 +338,14 @@ def test_the_depth_fit_in_decompose_names_its_errors(tiny_run, tiny_dataset):
     ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, face_spread=1.0)
   with pytest.raises(ValueError, match="camera"):
     ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera={"height": 8})
+  with pytest.raises(ValueError, match="fit_with: expected any of"):
+    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera=ds.camera, fit_with=("rgb",))
+  with pytest.raises(ValueError, match="needs the images' camera"):
+    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, fit_with=("image",))
+  by_image = ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera=ds.camera,
+                                      fit_with=("image",))
+  with pytest.raises(ValueError, match="image: expected shape"):
+    by_image({**obs, "image": sample["image"][:-1]}, jax.random.key(0))
   decompose = ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera=ds.camera)
   key = jax.random.key(0)
   with pytest.raises(ValueError, match="lacks 'depth'"):
@@ -400,7 +408,7 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
 @pytest.mark.slow  # the fits compile inside the evaluation: about a minute more on 2 cores
 def test_evaluate_cli_with_the_fit_rows(tiny_run, tiny_dataset, tmp_path):
   results, _ = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--fit", "--depth",
-                             "--true_shapes")
+                             "--true_shapes", "--image_fit")
   rows = results["table2"]
   assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample", "PPD+Fit",
                        "PPD+Fit+Sample", "PPD+Fit(depth)", "PPD+Fit(depth)+Sample",
@@ -416,10 +424,11 @@ def test_evaluate_cli_with_the_fit_rows(tiny_run, tiny_dataset, tmp_path):
   assert set(results["table4"]) == {"PPD", "PPD+Fit", "PPD+Fit(depth)", "PPD+True boxes",
                                     "Sample Phys.", "Sample Phys.+Shape"}
   assert results["table4"]["PPD+Fit"]["1"] == pytest.approx(rows["PPD+Fit"]["mae"])
-  assert results["depth"] and results["fit"] and results["true_shapes"]
-  faces = results["face_error_mm"]  # the fits' faces lie within half a voxel (15.6 mm)
-  assert set(faces) == {"ppd", "fit", "fit_depth"} and faces["fit"]["max"] <= 15.7
-  assert faces["fit_depth"]["max"] <= 31.3  # and the depth moves them by half a voxel at most
+  assert results["depth"] and results["fit"] and results["true_shapes"] and results["image_fit"]
+  faces = results["face_error_mm"]  # the voxel fit's faces lie within half a voxel (15.6 mm)
+  assert set(faces) == {"ppd", "fit", "fit_depth"}
+  # and the image or the depth moves them by half a voxel at most
+  assert faces["fit"]["max"] <= 31.3 and faces["fit_depth"]["max"] <= 31.3
 
 
 def test_the_oracle_pick_takes_the_sample_closest_to_the_truth():

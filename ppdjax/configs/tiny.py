@@ -114,4 +114,5 @@ def get_config() -> ml_collections.ConfigDict:
   # +Fit+Sample also draws each candidate's faces within this many voxels of the fitted
   # ones (infer.faces; 0: the fitted boxes only)
   config.eval.face_spread = 0.0
+  config.eval.image_fit = False  # +Fit then refined against the image's edges (image_fit)
   return config

@@ -10,6 +10,7 @@ from flax import nnx, struct
 from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION
 from ppdjax.dataset.camera import check_camera
 from ppdjax.infer.depth_fit import check_depth
+from ppdjax.infer.image_fit import check_image
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import check_jacobian, density_prior, refine_if_closer
 from ppdjax.infer import faces, sampling
@@ -92,7 +93,8 @@ def is_paper_pushes(pushes: Pushes) -> bool:
 
 
 def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
-                      camera: dict | None = None, refine: bool = False,
+                      camera: dict | None = None, fit_with: tuple[str, ...] | None = None,
+                      refine: bool = False,
                       refine_steps: int = 12, prior_weight: float = 0.0,
                       mass_match: bool = False, screen_steps: int | None = None,
                       screen_keep: int = 64, face_spread: float = 0.0,
@@ -108,9 +110,13 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     fit: replace the network's boxes by boxes fitted to the voxels (`ppdjax.fit_boxes`,
       started from the network's); the network's k-th density scores go to the k-th
       fitted box from the bottom. False: the network's boxes, as the paper.
-    camera: the depth images' camera (`open_dataset(DIR).camera`): the fitted boxes are
-      then refined against observation["depth"] (`fit_boxes(..., depth=, camera=)`):
-      faces the camera sees become sub-voxel. Needs `fit`.
+    camera: the images' camera (`open_dataset(DIR).camera`), for the observations the
+      fit reads beside the voxels (`fit_with`). Needs `fit`.
+    fit_with: which observations the fit reads beside the voxels: any of "image" (faces
+      moved within half a voxel onto the image's edges: the paper's inputs) and "depth"
+      (then refined against observation["depth"]: faces the camera sees become
+      sub-voxel), through `fit_boxes(..., image=, depth=, camera=)`. None: ("depth",)
+      with a camera, () without. Needs the camera.
     refine: fit the densities by Levenberg–Marquardt through MJX, from the candidate
       closest in trajectory (whatever `prior_weight` selects: that start refines best,
       docs/inference.md); the fit replaces the selection only where its trajectory
@@ -158,15 +164,22 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   model, config = trained
   if num_samples < 1:
     raise ValueError(f"num_samples must be >= 1, got {num_samples}")
+  if fit_with is None:
+    fit_with = ("depth",) if camera is not None else ()
+  fit_with = tuple(fit_with)
+  if set(fit_with) - {"image", "depth"}:
+    raise ValueError(f"fit_with: expected any of ('image', 'depth'), got {fit_with}")
+  if fit_with and camera is None:
+    raise ValueError(f"fit_with={fit_with} needs the images' camera (camera=)")
   if screen_steps is None:
-    screen_steps = SCREEN_STEPS_WITH_DEPTH if camera is not None else 0
+    screen_steps = SCREEN_STEPS_WITH_DEPTH if "depth" in fit_with else 0
   sampling.check_screen(screen_steps, screen_keep, num_samples, 0)  # its errors, now
   if camera is not None and not fit:
-    raise ValueError("camera is for the depth fit: it needs fit=True")
+    raise ValueError("camera is for the image and depth fits: it needs fit=True")
   faces.check_spread(face_spread, fit)
   if camera is not None:
     camera = check_camera(camera)
-  keys = OBS_KEYS + (("depth",) if camera is not None else ())
+  keys = OBS_KEYS + (("depth",) if "depth" in fit_with else ())
   if estimator is not None and not fit:
     raise ValueError("the estimator reads fitted boxes: it needs fit=True")
   if pushes is None:
@@ -191,8 +204,10 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     logits = raw.density_logits[:, :k, :NUM_DENSITY_SLOTS]
     traj = obs["trajectories"].astype(jnp.float32)
     if fit:
-      prims = fit_boxes(obs["voxels"], init=prims, depth=obs.get("depth"),
-                        camera=camera).replace(density=prims.density)
+      prims = fit_boxes(obs["voxels"], init=prims,
+                        image=obs["image"] if "image" in fit_with else None,
+                        depth=obs.get("depth"),
+                        camera=camera if fit_with else None).replace(density=prims.density)
     if est_graphdef is not None:
       logits = combine_logits(logits, nnx.merge(est_graphdef, est_state)(prims, traj),
                               estimator_weight)
@@ -222,12 +237,13 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
 
   def decompose(observation: dict, key: jax.Array) -> Decomposition:
     batched = check_observation(observation, config)
-    if camera is not None:
+    lead = np.shape(observation["voxels"])[:1] if batched else ()
+    if "depth" in fit_with:
       if "depth" not in observation:
-        raise ValueError("observation lacks 'depth', which the camera given to "
-                         "make_decompose_fn asks for")
-      lead = np.shape(observation["voxels"])[:1] if batched else ()
+        raise ValueError("observation lacks 'depth', which the fit asks for (fit_with)")
       check_depth(observation["depth"], camera, lead)  # shape, finite, > 0
+    if "image" in fit_with:
+      check_image(observation["image"], camera, lead)  # shape and the camera's size
     obs = {k: jnp.asarray(observation[k]) for k in keys}
     if not batched:
       obs = jax.tree.map(lambda x: x[None], obs)

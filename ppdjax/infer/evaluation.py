@@ -69,7 +69,7 @@ def _weights_hash(model) -> str:
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
                  "depth", "refine_prior", "estimator", "estimator_weight", "joint",
                  "true_shapes", "selection_horizon", "refine_jacobian", "table4_objects",
-                 "face_spread")
+                 "face_spread", "image_fit")
 
 
 def eval_settings(config, **overrides) -> dict:
@@ -78,7 +78,7 @@ def eval_settings(config, **overrides) -> dict:
               "estimator_weight": 1.0, "joint": False,
               "true_shapes": False, "selection_horizon": 0,
               "refine_jacobian": "forward", "table4_objects": 0,
-              "face_spread": 0.0}  # older presets lack them
+              "face_spread": 0.0, "image_fit": False}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -95,7 +95,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              estimator_weight: float = 1.0, joint: bool = False, true_shapes: bool = False,
              selection_horizon: int = 0, horizon_sweep: bool = False,
              refine_jacobian: str = "forward", table4_objects: int = 0,
-             face_spread: float = 0.0, progress: bool = True,
+             face_spread: float = 0.0, image_fit: bool = False, progress: bool = True,
              partial_dir: str = "", max_seconds: float = 0.0, prefetch: bool = True,
              devices=None, ahead: bool = False) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
@@ -113,8 +113,9 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   the next batch computes, and the time waited for them). With
   `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
   split ("spread": many towers, since a tower's 8 configurations are stored together).
-  `fit` adds the +Fit rows (boxes fitted to the voxels), `depth` the +Fit(depth) rows
-  (then refined against the dataset's depth images, through its camera). `estimator` (a
+  `fit` adds the +Fit rows (boxes fitted to the voxels, and with `image_fit` then to the
+  edges of the dataset's images, through its camera: `image_fit`), `depth` the +Fit(depth)
+  rows (the voxel fit refined against the dataset's depth images instead). `estimator` (a
   folder `ppdjax.train_estimator` wrote) adds the +Est rows on the most precise fitted
   boxes, its log-probabilities weighted by `estimator_weight` beside the network's.
   `refine_jacobian` is how +Refine takes its Jacobian (`refine.check_jacobian`: forward
@@ -162,7 +163,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "horizon_sweep": horizon_sweep,
               "refine_jacobian": refine_jacobian if refine else "forward",
               "table4_objects": table4_objects if with_baselines else 0,
-              "face_spread": face_spread if fit else 0.0}
+              "face_spread": face_spread if fit else 0.0, "image_fit": image_fit and fit}
   check_jacobian(refine_jacobian)
   faces.check_spread(face_spread, fit)
   starts = range(0, n, batch_size)
@@ -246,14 +247,15 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                                   progress=False) if with_baselines and not ahead else None
           ev = Evaluator(model, config, samples=samples, refine=refine,
                          refine_steps=refine_steps, baselines_on=with_baselines, fit=fit,
-                         depth=depth, camera=test.camera if depth else None,
+                         depth=depth, camera=test.camera if depth or image_fit else None,
                          refine_prior=refine_prior,
                          estimator=estimator_module.load(estimator)[0] if estimator else None,
                          estimator_weight=estimator_weight, joint=joint,
                          true_shapes=true_shapes, pushes=test.pushes,
                          settings=settings_for(test.engine), refine_jacobian=refine_jacobian,
                          table4_every_batch=table4_starts == set(starts),
-                         face_spread=face_spread, devices=devices)
+                         face_spread=face_spread, image_fit=image_fit and fit,
+                         devices=devices)
           t = clock()  # the first batch's device time includes compiling every stage
           if ahead:  # compiled ahead of time into JAX's persistent cache, and no more
             ev.compile(batch, jax.random.fold_in(key, start), pool, execute=False)

@@ -116,20 +116,25 @@ class Evaluator:
                estimator=None, estimator_weight: float = 1.0, joint: bool = False,
                true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS,
                refine_jacobian: str = "forward", table4_every_batch: bool = False,
-               face_spread: float = 0.0, devices=None):
+               face_spread: float = 0.0, image_fit: bool = False, devices=None):
     """`devices`: the local devices each batch splits over (None: all of them).
     `table4_every_batch`: Table 4's sampling baselines run on every batch, inside the
     sampling call (one program to compile: on a CPU that is a minute less); otherwise in a
     call of their own on the batches `batch` is asked to (`table4=True`).
     `face_spread` (voxels): > 0 draws the faces of the "fit" group's candidates too, within
     this of the fitted ones (`faces.spread_faces`; the voxels place a face within half a
-    voxel)."""
+    voxel). `image_fit`: the "fit" group's boxes are then refined against the images'
+    edges (`infer.image_fit`; needs fit and the images' camera)."""
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:
       raise ValueError("the +Fit(depth) rows need the depth images' camera "
                        "(storage.Dataset.camera)")
     self.config, self.samples, self.refine, self.joint = config, samples, refine, joint
+    if image_fit and not fit:
+      raise ValueError("image_fit refines the +Fit rows' boxes: it needs fit")
+    if image_fit and camera is None:
+      raise ValueError("image_fit needs the images' camera (storage.Dataset.camera)")
     self.fits = fit_groups(fit, depth, estimator is not None)
     if joint and not self.fits:
       raise ValueError("+Joint moves fitted boxes' faces: it needs fit or depth")
@@ -167,7 +172,8 @@ class Evaluator:
     per_device = functools.partial(sharding.jit_over_local_devices, devices=devices)
     decode = functools.partial(
         decode_groups, self.graphdef, groups=self.fits, camera=camera,
-        est_graphdef=est_graphdef, est_weight=estimator_weight, true_shapes=true_shapes)
+        est_graphdef=est_graphdef, est_weight=estimator_weight, true_shapes=true_shapes,
+        image_fit=image_fit)
     self._decode = per_device(decode, replicated=(0, 3))
     # zeros shaped, typed and placed as the decode's outputs (XLA drops the network), for
     # `compile`'s stand-ins: any difference would make the batches compile again

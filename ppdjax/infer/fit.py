@@ -18,7 +18,7 @@ import optax
 
 from ppdjax.conventions import NUM_SLOTS, VOXEL_RESOLUTION as R
 from ppdjax.dataset import voxels as voxelizer
-from ppdjax.infer import depth_fit, faces
+from ppdjax.infer import depth_fit, faces, image_fit
 from ppdjax.infer.tower_reading import (IDENTITY, VOXEL, as_bool, check_voxels, finish_boxes,
                                         read_one, read_tower)
 from ppdjax.primitives import Primitives, flatten, mat_to_quat, quat_to_mat, unflatten
@@ -257,10 +257,28 @@ def _fit_batch(vox_NxRxRxR, init: Primitives | None, seed, **options) -> Primiti
 _snap_batch = jax.jit(jax.vmap(faces.snap_unit_extent))
 
 
+def refine_fitted(boxes: Primitives, grids_NxRxRxR, *, image=None, depth=None,
+                  camera: dict | None = None, depth_iterations: int = 15,
+                  unit_extent: bool = True) -> Primitives:
+  """A voxel fit's boxes (N, K) refined against the objects' images (N, H, W, 3), then
+  their depth images (N, H, W), each where given (`fit_boxes` documents the steps; inputs
+  unchecked: `fit_boxes` checks them), the unit-extent snap after each."""
+  snap = _snap_batch if unit_extent else lambda p, v: p
+  if image is not None:
+    im = jnp.asarray(image)
+    boxes = snap(image_fit.refine_batch(boxes, im.reshape((-1,) + im.shape[-3:]), camera),
+                 grids_NxRxRxR)
+  if depth is not None:
+    d = jnp.asarray(depth, jnp.float32)
+    boxes = snap(depth_fit.refine_batch(boxes, d.reshape((-1,) + d.shape[-2:]), camera,
+                                        iterations=depth_iterations), grids_NxRxRxR)
+  return boxes
+
+
 def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, points: int = 256,
               lr: float = 0.1, jitter_starts: int = 0, jitter: float = 1.0,
               jitter_angle: float = 0.1, loose: float = 0.25, box_cost: float = 0.01,
-              seed: int = 0, depth=None, camera: dict | None = None,
+              seed: int = 0, image=None, depth=None, camera: dict | None = None,
               depth_iterations: int = 15, unit_extent: bool = True) -> Primitives:
   """Fits up to K = 5 oriented boxes to voxel grids; jittable, batched over leading axes.
 
@@ -272,12 +290,14 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
   refined starts, each also less any one or two boxes. The winner has the fewest voxels
   where its exact voxelization and the input disagree, plus `box_cost` x (filled voxels)
   per box; an exact explanation wins outright (ties: the exact reading, then the lower
-  soft loss), so a tower's exact reading is never replaced. With a `depth` image and its
-  `camera`, the winner's faces are then refined against the depth (`depth_fit`): faces
-  the camera sees become sub-voxel, the others stay within half a voxel of the voxel fit.
+  soft loss), so a tower's exact reading is never replaced. With an RGB `image` and its
+  `camera`, the winner's faces are then moved within half a voxel to where their outline
+  lies on the image's edges (`image_fit`). With a `depth` image and its `camera`, the
+  faces are then refined against the depth (`depth_fit`): faces the camera sees become
+  sub-voxel. Faces the camera does not see stay within half a voxel of the voxel fit.
   With `unit_extent` (objects normalised to a largest extent of 1 m, the project's
   convention), the faces that bound the object along the one axis that spans the grid go
-  to ±0.5 m (`faces.snap_unit_extent`), before and after the depth refinement.
+  to ±0.5 m (`faces.snap_unit_extent`), before and after the image and depth refinements.
   Value checks run on concrete arrays only (under jit an empty grid gives no valid box).
   Under `jax.jit`, bind options (and the camera) with `functools.partial`.
 
@@ -294,9 +314,11 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
     loose: IoU tolerance of the loose reading that seeds the refinement.
     box_cost: price of a box, as a fraction of the filled voxels (inexact candidates).
     seed: random seed (points drawn, jitter).
+    image: optional (B..., H, W, 3) RGB images (uint8, or floats in [0, 1]) of the same
+      objects at rest, as the dataset stores them (the network's input).
     depth: optional (B..., H, W) depth images (metres along the optical axis) of the same
       objects at rest, as the dataset stores them.
-    camera: the depth images' camera (`storage.Dataset.camera`); required with `depth`.
+    camera: the images' camera (`storage.Dataset.camera`); required with `image` or `depth`.
     depth_iterations: Levenberg-Marquardt steps of the depth refinement.
     unit_extent: use the normalisation: the object's largest extent is 1 m (False: the
       voxels alone, for objects scaled otherwise).
@@ -309,18 +331,17 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
   flat = None if init is None else flatten(jax.tree.map(jnp.asarray, init))[0]
   if flat is not None and flat.num_slots != NUM_SLOTS:
     raise ValueError(f"init: expected {NUM_SLOTS} slots, got {flat.num_slots}")
+  if image is not None:
+    image_fit.check_image(image, camera, batch)
   if depth is not None:
     depth_fit.check_depth(depth, camera, batch)
-  elif camera is not None:
-    raise ValueError("camera was given without a depth image")
+  if camera is not None and image is None and depth is None:
+    raise ValueError("camera was given without an image or a depth image")
   grids = jnp.asarray(voxels).reshape(-1, R, R, R)
   out = _fit_batch(grids, flat, seed, steps=steps, points=points, lr=lr,
                    jitter_starts=jitter_starts, jitter=jitter, jitter_angle=jitter_angle,
                    loose=loose, box_cost=box_cost)
   snap = _snap_batch if unit_extent else lambda p, v: p
-  out = snap(out, grids)
-  if depth is not None:
-    d = jnp.asarray(depth, jnp.float32)
-    out = snap(depth_fit.refine_batch(out, d.reshape((-1,) + d.shape[-2:]), camera,
-                                      iterations=depth_iterations), grids)
+  out = refine_fitted(snap(out, grids), grids, image=image, depth=depth, camera=camera,
+                      depth_iterations=depth_iterations, unit_extent=unit_extent)
   return unflatten(out, batch)

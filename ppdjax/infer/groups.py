@@ -1,7 +1,8 @@
 """The groups of boxes an evaluation samples densities on: which there are, where their
 candidates sit along an object's candidate axis, and how each group's boxes are made.
 
-Groups: "ppd" (the network's boxes), "fit" (fitted to the voxels, `fit.fit_boxes`),
+Groups: "ppd" (the network's boxes), "fit" (fitted to the voxels, `fit.fit_boxes`, and
+with `image_fit` to the image's edges, `image_fit`),
 "fit_depth" (then to the depth image, `depth_fit`), "..._est" (the most precise fit,
 scored with the density estimator too) and "true" (the oracle column: the true boxes).
 `evaluator.Evaluator` decodes them once per batch (`decode_groups`) and simulates every
@@ -16,7 +17,7 @@ from flax import nnx
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
 from ppdjax.infer import depth_fit
-from ppdjax.infer.fit import fit_boxes
+from ppdjax.infer.fit import fit_boxes, refine_fitted
 from ppdjax.infer.tables import BASELINES
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import bottom_to_top
@@ -53,10 +54,11 @@ def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) 
 
 
 def decode_groups(graphdef, state, obs, true, est_state=None, *, groups, camera,
-                  est_graphdef=None, est_weight=1.0, true_shapes=False, depth_iterations=15):
+                  est_graphdef=None, est_weight=1.0, true_shapes=False, depth_iterations=15,
+                  image_fit=False):
   """The network's boxes and slot logits, and per fit group the fitted boxes
-  (`fit.fit_boxes` from the network's; with depth, then refined against the depth image,
-  `depth_fit`; the k-th logits go to the k-th fitted box from the bottom) and their logits
+  (`fit.fit_boxes` from the network's; "fit" with `image_fit` then refined against the
+  image, "fit_depth" against the depth image, `depth_fit`; the k-th logits go to the k-th fitted box from the bottom) and their logits
   ("group_logits": the network's, or with the estimator combined with its); shape counts
   of each ("shape", "shape_fit", "shape_fit_depth"). With `true_shapes`, the true boxes
   too, as group "true" with the network's logits."""
@@ -72,7 +74,8 @@ def decode_groups(graphdef, state, obs, true, est_state=None, *, groups, camera,
       out["fitted"]["fit_depth"] = depth_fit.refine_batch(
           fitted, obs["depth"].astype(jnp.float32), camera, iterations=depth_iterations)
     if "fit" in groups:
-      out["fitted"]["fit"] = fitted
+      out["fitted"]["fit"] = (refine_fitted(fitted, obs["voxels"], image=obs["image"],
+                                            camera=camera) if image_fit else fitted)
   for g, boxes in list(out["fitted"].items()):
     out["fitted"][g] = boxes.replace(density=pred.density)
     out["shape_" + g] = metrics.shape_counts(boxes, true)

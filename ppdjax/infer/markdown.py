@@ -12,9 +12,11 @@ from ppdjax.infer.tables import (FIT_ROWS, PAPER_SHAPE_F1, PAPER_TABLE2_ONE_MODE
 from ppdjax.plots import plot_confusion
 
 
-def face_md(face_error_mm: dict) -> list[str]:
+def face_md(face_error_mm: dict, image_fit: bool = False) -> list[str]:
   """Markdown lines: the face-error table (mm) of the network's and the fitted boxes."""
-  names = {"ppd": "network's boxes", "fit": "+Fit (voxels)", "fit_depth": "+Fit(depth)",
+  names = {"ppd": "network's boxes",
+           "fit": "+Fit (voxels and image)" if image_fit else "+Fit (voxels)",
+           "fit_depth": "+Fit(depth)",
            "joint": "+Joint (faces and densities)"}
   lines = ["| boxes | faces | median | p90 | max | median by face: "
            + " / ".join(metrics.FACE_NAMES) + " |", "|---|--:|--:|--:|--:|---|"]
@@ -158,7 +160,7 @@ def results_md(results: dict, command: str = "") -> str:
     lines += ["", "Paper (1×/8×/64×/512×): " + paper_line(PAPER_TABLE4) + ".", ""]
   if results.get("face_error_mm"):
     lines += ["## Face error (mm) against the true boxes, k-th box from the bottom", ""]
-    lines += face_md(results["face_error_mm"])
+    lines += face_md(results["face_error_mm"], results.get("image_fit", False))
     lines += [""]
   lines += ["## Table 5: density RMSE by number of blocks", ""]
   lines += table5_md(results["table5"])
@@ -227,7 +229,8 @@ def shape_line(results: dict) -> str:
     lo, hi = results["shape"]["f1_ci95"]
     out += f", 95 % interval [{lo:.1f}, {hi:.1f}], box count exact on " \
            f"{results['shape']['count_exact']:.1f} % of objects"
-  for key, what in (("shape_fit", "the voxels (+Fit)"),
+  fit = "the voxels and the image (+Fit)" if results.get("image_fit") else "the voxels (+Fit)"
+  for key, what in (("shape_fit", fit),
                     ("shape_fit_depth", "voxels and depth (+Fit(depth))")):
     if results.get(key):
       s = results[key]
