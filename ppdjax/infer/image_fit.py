@@ -74,8 +74,23 @@ def edge_score(labels_HW, across_HW, down_HW) -> jax.Array:
            + jnp.sum(jnp.where(cut_down, down_HW, 0.0)))
 
 
+def object_window(camera: dict, margin: int = 2) -> tuple[int, int, int, int]:
+  """Rows [r0, r1) and columns [c0, c1) of the camera's image where an object can appear:
+  the projection of the space objects occupy (the unit cube on the ground, centred over
+  the origin: the dataset's convention), `margin` pixels wider, clipped to the image."""
+  cam = check_camera(camera)
+  corners = np.stack(np.meshgrid([-0.5, 0.5], [-0.5, 0.5], [0.0, 1.0]), -1).reshape(-1, 3)
+  t = np.asarray(cam["camera_from_world"], np.float64)
+  p = (corners @ t[:3, :3].T + t[:3, 3]) @ np.asarray(cam["intrinsics"], np.float64).T
+  u, v = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]  # pixel coordinates (edges at integers)
+  h, w = cam["height"], cam["width"]
+  return (max(0, int(np.floor(v.min())) - margin), min(h, int(np.ceil(v.max())) + margin),
+          max(0, int(np.floor(u.min())) - margin), min(w, int(np.ceil(u.max())) + margin))
+
+
 def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_world, *,
-                      bound: float = VOXEL / 2, passes: int = PASSES) -> Primitives:
+                      bound: float = VOXEL / 2, passes: int = PASSES,
+                      window: tuple[int, int, int, int] | None = None) -> Primitives:
   """One object's boxes (K, object frame) refined against its image (H, W, 3).
 
   Args:
@@ -84,11 +99,15 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
     intrinsics, camera_from_world: the image's camera (`storage.Dataset.camera`).
     bound: how far (m) a face may move from the start.
     passes: sweeps over every face.
+    window: (r0, r1, c0, c1), the only pixels scored (`object_window`: where an object
+      can appear; the score is the same, in a fraction of the time); None: all.
   """
   h, w = image_HW3.shape[:2]
+  r0, r1, c0, c1 = window or (0, h, 0, w)
   origin, dirs = camera_rays(intrinsics, camera_from_world, h, w)
-  dirs = dirs.reshape(-1, 3)
-  across, down = edge_strength(image_HW3)
+  dirs = dirs[r0:r1, c0:c1].reshape(-1, 3)
+  h, w = r1 - r0, c1 - c0
+  across, down = edge_strength(image_HW3[r0:r1, c0:c1])
   score = lambda f: edge_score(face_labels(_boxes(prims, f), origin, dirs).reshape(h, w),
                                across, down)
   ties = _ties(prims)
@@ -110,13 +129,13 @@ def refine_batch(prims: Primitives, images_BxHxWx3, camera: dict, *,
   return _refine_batch(prims, jnp.asarray(images_BxHxWx3),
                        jnp.asarray(cam["intrinsics"], jnp.float32),
                        jnp.asarray(cam["camera_from_world"], jnp.float32),
-                       passes=passes, bound=float(bound))
+                       passes=passes, bound=float(bound), window=object_window(cam))
 
 
-@functools.partial(jax.jit, static_argnames=("passes", "bound"))
-def _refine_batch(prims, images, intrinsics, camera_from_world, passes, bound):
+@functools.partial(jax.jit, static_argnames=("passes", "bound", "window"))
+def _refine_batch(prims, images, intrinsics, camera_from_world, passes, bound, window):
   one = lambda p, im: refine_with_image(p, im, intrinsics, camera_from_world, bound=bound,
-                                        passes=passes)
+                                        passes=passes, window=window)
   with jax.default_matmul_precision("highest"):  # GPUs' TF32 default: mm at 2.6 m
     return jax.lax.map(lambda a: one(*a), (prims, images), batch_size=CHUNK)
 
