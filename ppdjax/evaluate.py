@@ -118,6 +118,8 @@ def main(argv):
       faces.check_spread(settings["face_spread"], settings["fit"])
     except ValueError as e:
       sys.exit(f"error: {e} (--face_spread, --fit)")
+    if settings["image_fit"] and not settings["fit"]:
+      sys.exit("error: --image_fit refines the +Fit rows' boxes: it needs --fit")
     out = _OUT.value or os.path.join(_WORKDIR.value, "eval")
     results = evaluation.evaluate((model, config), _DATA.value, split=_SPLIT.value,
                                   max_objects=_MAX_OBJECTS.value, subset=_SUBSET.value,

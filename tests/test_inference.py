@@ -590,6 +590,8 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
     evaluation.evaluate(tiny_run[0], tiny_dataset, fit=True, face_spread=-0.1)
   with pytest.raises(ValueError, match="it needs fit"):
     evaluation.evaluate(tiny_run[0], tiny_dataset, face_spread=0.5)
+  with pytest.raises(ValueError, match=r"image_fit refines the \+Fit rows' boxes: it needs fit"):
+    evaluation.evaluate(tiny_run[0], tiny_dataset, image_fit=True)
   from ppdjax.infer.evaluator import Evaluator
   with pytest.raises(ValueError, match="refine from the depth fit"):
     Evaluator(*checkpoints.load(tiny_run[0]), samples=2, refine=True, fit=True,

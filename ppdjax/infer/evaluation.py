@@ -163,9 +163,11 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "horizon_sweep": horizon_sweep,
               "refine_jacobian": refine_jacobian if refine else "forward",
               "table4_objects": table4_objects if with_baselines else 0,
-              "face_spread": face_spread if fit else 0.0, "image_fit": image_fit and fit}
+              "face_spread": face_spread if fit else 0.0, "image_fit": image_fit}
   check_jacobian(refine_jacobian)
   faces.check_spread(face_spread, fit)
+  if image_fit and not fit:
+    raise ValueError("image_fit refines the +Fit rows' boxes: it needs fit")
   starts = range(0, n, batch_size)
   table4_starts = {starts[i] for i in table4_batches(
       [min(batch_size, n - x) for x in starts], table4_objects)}
@@ -254,8 +256,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                          true_shapes=true_shapes, pushes=test.pushes,
                          settings=settings_for(test.engine), refine_jacobian=refine_jacobian,
                          table4_every_batch=table4_starts == set(starts),
-                         face_spread=face_spread, image_fit=image_fit and fit,
-                         devices=devices)
+                         face_spread=face_spread, image_fit=image_fit, devices=devices)
           t = clock()  # the first batch's device time includes compiling every stage
           if ahead:  # compiled ahead of time into JAX's persistent cache, and no more
             ev.compile(batch, jax.random.fold_in(key, start), pool, execute=False)

@@ -58,7 +58,8 @@ def decode_groups(graphdef, state, obs, true, est_state=None, *, groups, camera,
                   image_fit=False):
   """The network's boxes and slot logits, and per fit group the fitted boxes
   (`fit.fit_boxes` from the network's; "fit" with `image_fit` then refined against the
-  image, "fit_depth" against the depth image, `depth_fit`; the k-th logits go to the k-th fitted box from the bottom) and their logits
+  image, "fit_depth" against the depth image, `depth_fit`; the k-th logits go to the k-th
+  fitted box from the bottom) and their logits
   ("group_logits": the network's, or with the estimator combined with its); shape counts
   of each ("shape", "shape_fit", "shape_fit_depth"). With `true_shapes`, the true boxes
   too, as group "true" with the network's logits."""
