@@ -35,7 +35,7 @@ SWEEP_COARSE = 33  # offsets over a face's whole interval, then
 SWEEP_FINE = 9  # offsets across each end of its agreeing run (`sweep_faces`)
 
 
-def _boxes(prims: Primitives, faces_Kx6) -> Primitives:
+def boxes_from_faces(prims: Primitives, faces_Kx6) -> Primitives:
   """Boxes with their faces (lo, hi offsets from the start's centre along box axes),
   shifted along z so that the object's bounding box is centred (the object frame's
   convention: depth sees where the object stands, not where its frame's origin is)."""
@@ -49,7 +49,7 @@ def _boxes(prims: Primitives, faces_Kx6) -> Primitives:
   return prims.replace(half_size=half, pos=pos.at[:, 2].add(-0.5 * (bottom + top)))
 
 
-def _ties(prims: Primitives):
+def touching_faces(prims: Primitives):
   """(K, K, 3) bool: box i's hi face touches box j's lo face along axis a (same rotation,
   overlapping across the other two axes), in the starting boxes."""
   rot = quat_to_mat(prims.quat)
@@ -114,7 +114,7 @@ def refine_with_depth(prims: Primitives, depth_HW, intrinsics, camera_from_world
   obs = jnp.asarray(depth_HW, jnp.float32).reshape(-1)
   mask = depth_lib.mask_from_rays(obs, origin, dirs, camera_from_world)
   dirs = dirs.reshape(-1, 3)
-  ties = _ties(prims)
+  ties = touching_faces(prims)
   rot = quat_to_mat(prims.quat)
   centre_axes = jnp.einsum("kji,kj->ki", rot, prims.pos)
   start = jnp.concatenate([-prims.half_size, prims.half_size], -1)  # (K, 6)
@@ -122,7 +122,7 @@ def refine_with_depth(prims: Primitives, depth_HW, intrinsics, camera_from_world
 
   def residual(x):
     faces = x.reshape(k, 6)
-    boxes = _boxes(prims, faces)
+    boxes = boxes_from_faces(prims, faces)
     pix = depth_lib.residuals(boxes, obs, mask, origin, dirs)
     pix = ROBUST * jnp.arctan(pix / ROBUST)
     hi, lo = centre_axes + faces[:, 3:], centre_axes + faces[:, :3]
@@ -150,10 +150,10 @@ def refine_with_depth(prims: Primitives, depth_HW, intrinsics, camera_from_world
                               length=iterations)
   faces = x.reshape(k, 6)
   if sweep:
-    mismatch = lambda f: jnp.sum(jnp.abs(depth_lib.residuals(_boxes(prims, f), obs, mask,
+    mismatch = lambda f: jnp.sum(jnp.abs(depth_lib.residuals(boxes_from_faces(prims, f), obs, mask,
                                                              origin, dirs)) > MISMATCH)
     faces = sweep_faces(faces, start - bound, start + bound, ties, prims.valid, mismatch)
-  out = _boxes(prims, faces)
+  out = boxes_from_faces(prims, faces)
   keep = prims.valid[:, None]
   return out.replace(half_size=jnp.where(keep, out.half_size, prims.half_size),
                      pos=jnp.where(keep, out.pos, prims.pos))

@@ -24,7 +24,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ppdjax.infer.depth_fit import MIN_HALF, VOXEL, _ties
+from ppdjax.infer.depth_fit import MIN_HALF, VOXEL, touching_faces
 from ppdjax.primitives import Primitives, quat_to_mat
 
 VOXEL_TOLERANCE = 0.5  # voxels: how far a face may be from where the voxel fit put it
@@ -137,7 +137,7 @@ def check_spread(spread: float, fit: bool = True) -> None:
 
 
 def tie_offsets(offsets_SxKx6: jax.Array, ties_KxKx3: jax.Array) -> jax.Array:
-  """Offsets with each lo face that touches a box's hi face (`depth_fit._ties`: i's hi
+  """Offsets with each lo face that touches a box's hi face (`depth_fit.touching_faces`: i's hi
   touches j's lo along axis a) set to that hi face's offset (the first such box), so
   touching faces stay touching."""
   lo, hi = offsets_SxKx6[..., :3], offsets_SxKx6[..., 3:]
@@ -158,5 +158,5 @@ def spread_faces(prims: Primitives, key: jax.Array, num: int,
   where, _ = face_positions(prims)
   limit = jnp.where(jnp.abs(where) > 0.5 - 1e-5, 0.0, spread * VOXEL)
   offsets = limit * jax.random.uniform(key, (num, k, 6), minval=-1.0, maxval=1.0)
-  offsets = tie_offsets(offsets.at[0].set(0.0), _ties(prims))
+  offsets = tie_offsets(offsets.at[0].set(0.0), touching_faces(prims))
   return jax.vmap(centred_move, in_axes=(None, 0, None))(prims, offsets, limit)

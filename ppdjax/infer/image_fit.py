@@ -26,7 +26,7 @@ import numpy as np
 
 from ppdjax.dataset.camera import check_camera
 from ppdjax.dataset.depth import camera_rays, to_world
-from ppdjax.infer.depth_fit import VOXEL, _boxes, _ties, sweep_faces
+from ppdjax.infer.depth_fit import VOXEL, boxes_from_faces, sweep_faces, touching_faces
 from ppdjax.primitives import Primitives, quat_to_mat
 
 PASSES = 2  # sweeps over every face (the second places faces whose neighbours moved)
@@ -108,14 +108,14 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
   dirs = dirs[r0:r1, c0:c1].reshape(-1, 3)
   h, w = r1 - r0, c1 - c0
   across, down = edge_strength(image_HW3[r0:r1, c0:c1])
-  score = lambda f: edge_score(face_labels(_boxes(prims, f), origin, dirs).reshape(h, w),
+  score = lambda f: edge_score(face_labels(boxes_from_faces(prims, f), origin, dirs).reshape(h, w),
                                across, down)
-  ties = _ties(prims)
+  ties = touching_faces(prims)
   start = jnp.concatenate([-prims.half_size, prims.half_size], -1)  # (K, 6)
   faces = start
   for _ in range(passes):
     faces = sweep_faces(faces, start - bound, start + bound, ties, prims.valid, score)
-  out = _boxes(prims, faces)
+  out = boxes_from_faces(prims, faces)
   keep = prims.valid[:, None]
   return out.replace(half_size=jnp.where(keep, out.half_size, prims.half_size),
                      pos=jnp.where(keep, out.pos, prims.pos))

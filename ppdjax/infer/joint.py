@@ -36,7 +36,8 @@ from ppdjax import metrics
 from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY
 from ppdjax.dataset.depth import camera_rays
 from ppdjax.infer import depth as depth_lib
-from ppdjax.infer.depth_fit import MIN_HALF, ROBUST, TIE_WEIGHT, VOXEL, _boxes, _ties
+from ppdjax.infer.depth_fit import (MIN_HALF, ROBUST, TIE_WEIGHT, VOXEL, boxes_from_faces,
+                                    touching_faces)
 from ppdjax.infer.refine import density_prior, horizon_schedule
 from ppdjax.primitives import Primitives, bottom_to_top, quat_to_mat
 from ppdjax.sim.pushes import Pushes, default_pushes
@@ -91,7 +92,7 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
   t = observed.shape[-2]
   k = prims.valid.shape[0]
   valid = prims.valid
-  ties = _ties(prims)
+  ties = touching_faces(prims)
   rot = quat_to_mat(prims.quat)
   centre_axes = jnp.einsum("kji,kj->ki", rot, prims.pos)
   faces0 = jnp.concatenate([-prims.half_size, prims.half_size], -1)
@@ -108,7 +109,7 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
 
   def unpack(x):
     faces, u = x[:6 * k].reshape(k, 6), x[6 * k:]
-    boxes = _boxes(prims, faces)
+    boxes = boxes_from_faces(prims, faces)
     keep = valid[:, None]
     boxes = boxes.replace(half_size=jnp.where(keep, boxes.half_size, prims.half_size),
                           pos=jnp.where(keep, boxes.pos, prims.pos),
