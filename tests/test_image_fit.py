@@ -66,12 +66,18 @@ def test_the_edge_score_is_best_at_the_true_outline():
     return whole
 
   best = score(prims)
+  assert best < 0
   for k in np.flatnonzero(np.asarray(prims.valid)):
     for axis in range(3):
       for sign in (-1, 1):
-        moved = prims.replace(half_size=prims.half_size.at[k, axis].add(0.004),
-                              pos=prims.pos.at[k, axis].add(sign * 0.004))
-        assert score(moved) >= best
+        for grow in (0.004, -0.004):  # the face on the `sign` side out, then in, by 4 mm
+          moved = prims.replace(half_size=prims.half_size.at[k, axis].add(grow / 2),
+                                pos=prims.pos.at[k, axis].add(sign * grow / 2))
+          assert score(moved) >= best
+  # the tower's top face moved up by more than a pixel's footprint (about 25 mm at 96²)
+  top = int(np.argmax(np.where(prims.valid, prims.pos[:, 2] + prims.half_size[:, 2], -1)))
+  assert score(prims.replace(half_size=prims.half_size.at[top, 2].add(0.02),
+                             pos=prims.pos.at[top, 2].add(0.02))) > best
 
 
 def test_image_input_errors_are_named():

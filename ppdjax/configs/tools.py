@@ -57,6 +57,7 @@ def get_config(size: str = "paper"):
   # the depth fit's error model was measured on) and no refinement by default.
   config.eval.fit = True
   config.eval.depth = False
+  config.eval.image_fit = False  # measured on towers only (infer.image_fit)
   config.eval.refine = False
   # +Sample's τ for tools, chosen on 200 tools of a seed never trained on (7), by density
   # RMSE: 0.05 gives 18.8 slots against 31.2 at τ = 0, where the closest trajectory needs

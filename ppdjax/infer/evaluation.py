@@ -84,6 +84,8 @@ def eval_settings(config, **overrides) -> dict:
   if unknown:
     raise ValueError(f"unknown evaluation settings {unknown}; expected {EVAL_SETTINGS}")
   out.update({k: v for k, v in overrides.items() if v is not None})
+  if overrides.get("image_fit") is None:  # the preset's image fit goes with its fit
+    out["image_fit"] = bool(out["image_fit"] and out["fit"])
   return out
 
 

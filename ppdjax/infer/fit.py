@@ -294,7 +294,7 @@ def fit_boxes(voxels, init: Primitives | None = None, *, steps: int = 200, point
   `camera`, the winner's faces are then moved within half a voxel to where their outline
   lies on the image's edges (`image_fit`). With a `depth` image and its `camera`, the
   faces are then refined against the depth (`depth_fit`): faces the camera sees become
-  sub-voxel. Faces the camera does not see stay within half a voxel of the voxel fit.
+  sub-voxel (with both, within half a voxel of the image fit's faces). Faces the camera does not see stay within half a voxel of the voxel fit.
   With `unit_extent` (objects normalised to a largest extent of 1 m, the project's
   convention), the faces that bound the object along the one axis that spans the grid go
   to ±0.5 m (`faces.snap_unit_extent`), before and after the image and depth refinements.

@@ -26,7 +26,7 @@ import numpy as np
 
 from ppdjax.dataset.camera import check_camera
 from ppdjax.dataset.depth import camera_rays, to_world
-from ppdjax.infer.depth_fit import VOXEL, boxes_from_faces, sweep_faces, touching_faces
+from ppdjax.infer.depth_fit import MIN_HALF, VOXEL, boxes_from_faces, sweep_faces, touching_faces
 from ppdjax.primitives import Primitives, quat_to_mat
 
 PASSES = 2  # sweeps over every face (the second places faces whose neighbours moved)
@@ -112,9 +112,14 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
                                across, down)
   ties = touching_faces(prims)
   start = jnp.concatenate([-prims.half_size, prims.half_size], -1)  # (K, 6)
+  # within `bound` of the start, and no box thinner than 2·MIN_HALF
+  lo = jnp.concatenate([-prims.half_size - bound, jnp.maximum(prims.half_size - bound,
+                                                              MIN_HALF)], -1)
+  hi = jnp.concatenate([jnp.minimum(-prims.half_size + bound, -MIN_HALF),
+                        prims.half_size + bound], -1)
   faces = start
   for _ in range(passes):
-    faces = sweep_faces(faces, start - bound, start + bound, ties, prims.valid, score)
+    faces = sweep_faces(faces, lo, hi, ties, prims.valid, score)
   out = boxes_from_faces(prims, faces)
   keep = prims.valid[:, None]
   return out.replace(half_size=jnp.where(keep, out.half_size, prims.half_size),
