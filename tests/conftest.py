@@ -18,6 +18,14 @@ def index(tree, i):
   return jax.tree.map(lambda x: x[i], tree)
 
 
+def face_errors(fit, truth):
+  """(boxes, 6) metres: |face - true face| of each true box, both taken bottom to top."""
+  from ppdjax.primitives import bottom_to_top  # pylint: disable=import-outside-toplevel
+  faces = lambda p: (lambda q: np.concatenate([q.pos - q.half_size, q.pos + q.half_size], -1))(
+      jax.tree.map(np.asarray, bottom_to_top(jax.tree.map(jax.numpy.asarray, p))))
+  return np.abs(faces(fit) - faces(truth))[np.asarray(truth.valid)]
+
+
 @pytest.fixture(scope="session")
 def rng():
   return np.random.default_rng(1234)

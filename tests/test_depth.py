@@ -12,9 +12,8 @@ from ppdjax import open_dataset
 from ppdjax.dataset import camera as camera_lib
 from ppdjax.dataset.depth import render_depth, render_depths
 from ppdjax.infer import depth
-from ppdjax.primitives import bottom_to_top
 
-from conftest import index
+from conftest import face_errors, index
 
 SIZE = 64
 
@@ -56,12 +55,6 @@ def test_the_datasets_camera_explains_its_depth(tiny_dataset):
   assert np.abs(ours - sample["depth"])[seen].max() < 1e-4
 
 
-def _face_errors(fit, truth):
-  faces = lambda p: (lambda q: np.concatenate([q.pos - q.half_size, q.pos + q.half_size], -1))(
-      jax.tree.map(np.asarray, bottom_to_top(jax.tree.map(jnp.asarray, p))))
-  return np.abs(faces(fit) - faces(truth))[np.asarray(truth.valid)]  # (boxes, 6) metres
-
-
 @pytest.mark.slow  # about 20 s on 2 cores; `make test-all` (the fast suite stays under 10 minutes)
 def test_depth_makes_the_faces_the_camera_sees_sub_voxel(towers):
   """Also under jax.jit (options and camera bound with functools.partial)."""
@@ -69,7 +62,7 @@ def test_depth_makes_the_faces_the_camera_sees_sub_voxel(towers):
   plain = ppdjax.fit_boxes(vox)
   fitted = jax.jit(functools.partial(ppdjax.fit_boxes, camera=cam))(
       jnp.asarray(vox), depth=jnp.asarray(deps))
-  before, after = _face_errors(plain, prims), _face_errors(fitted, prims)
+  before, after = face_errors(plain, prims), face_errors(fitted, prims)
   # faces move at most half a voxel from the voxel fit's, which is within half a voxel
   assert np.all(after <= 1 / 32 + 1e-4)
   # the camera looks from +x, -y, above: faces x-hi and y-lo face it

@@ -12,9 +12,8 @@ import ppdjax
 from ppdjax.dataset import camera as camera_lib
 from ppdjax.dataset.depth import nearest_hits, rays, to_world
 from ppdjax.infer import image_fit
-from ppdjax.primitives import bottom_to_top
 
-from conftest import index
+from conftest import face_errors, index
 
 SIZE = 96
 
@@ -110,12 +109,6 @@ def rendered():
   return prims, ppdjax.voxelize(prims), images, camera_lib.camera_dict(SIZE, SIZE)
 
 
-def _face_errors(fit, truth):
-  faces = lambda p: (lambda q: np.concatenate([q.pos - q.half_size, q.pos + q.half_size], -1))(
-      jax.tree.map(np.asarray, bottom_to_top(jax.tree.map(jnp.asarray, p))))
-  return np.abs(faces(fit) - faces(truth))[np.asarray(truth.valid)]  # (boxes, 6) metres
-
-
 @pytest.mark.slow  # about 30 s on 2 cores; `make test-all`
 def test_the_image_brings_the_faces_closer_than_the_voxels(rendered):
   """Also under jax.jit (the camera bound with functools.partial)."""
@@ -123,7 +116,7 @@ def test_the_image_brings_the_faces_closer_than_the_voxels(rendered):
   plain = ppdjax.fit_boxes(vox)
   fitted = jax.jit(functools.partial(ppdjax.fit_boxes, camera=cam))(
       jnp.asarray(vox), image=jnp.asarray(images))
-  before, after = _face_errors(plain, prims), _face_errors(fitted, prims)
+  before, after = face_errors(plain, prims), face_errors(fitted, prims)
   # faces move at most half a voxel from the voxel fit's, which is within half a voxel
   assert np.all(after <= 1 / 32 + 1e-4)
   assert np.median(after) < 0.6 * np.median(before)
