@@ -16,6 +16,10 @@ import numpy as np
 CAMERA_POS = np.array([1.55, -1.9, 1.35])
 CAMERA_TARGET = np.array([0.0, 0.0, 0.45])
 FOVY = 40.0  # degrees, vertical
+# The scene's one directional light (the renderer's), the direction its light travels: the
+# objects' shadows fall on the floor behind them (-x, +y), where the camera sees the back
+# faces in silhouette.
+LIGHT_DIR = np.array([-0.4, 0.2, -1.0])
 
 
 def camera_axes() -> np.ndarray:
@@ -44,15 +48,21 @@ def camera_from_world() -> np.ndarray:
 
 
 def camera_dict(height: int, width: int) -> dict:
-  """The camera as stored in a dataset's manifest (JSON-ready)."""
+  """The camera as stored in a dataset's manifest (JSON-ready), with the scene's light."""
   return {"height": int(height), "width": int(width),
           "intrinsics": intrinsics(height, width).tolist(),
-          "camera_from_world": camera_from_world().tolist()}
+          "camera_from_world": camera_from_world().tolist(),
+          "light_dir": LIGHT_DIR.tolist()}
 
 
 def check_camera(camera: dict, depth_shape: tuple[int, ...] | None = None) -> dict:
   """`camera` as float arrays; ValueError naming the problem if a key, shape or value is bad,
-  or if it does not match a depth image of `depth_shape` (..., H, W)."""
+  or if it does not match a depth image of `depth_shape` (..., H, W).
+
+  The optional "light_dir" (3,) is the direction the scene's directional light travels
+  (the image fit predicts shadows from it); None: unknown. A camera without the key gets
+  LIGHT_DIR: every dataset written before the key existed was rendered under that light.
+  """
   if not isinstance(camera, dict):
     raise ValueError(f"camera: expected a dict with height, width, intrinsics and "
                      f"camera_from_world, got {type(camera).__name__}")
@@ -75,4 +85,11 @@ def check_camera(camera: dict, depth_shape: tuple[int, ...] | None = None) -> di
   if depth_shape is not None and tuple(depth_shape[-2:]) != (h, w):
     raise ValueError(f"camera is for {h}x{w} images but the depth image is "
                      f"{depth_shape[-2]}x{depth_shape[-1]}")
-  return {"height": h, "width": w, "intrinsics": k, "camera_from_world": pose}
+  light = camera.get("light_dir", LIGHT_DIR)
+  if light is not None:
+    light = np.asarray(light, np.float64)
+    if light.shape != (3,) or not np.all(np.isfinite(light)) or light[2] >= 0:
+      raise ValueError(f"camera: light_dir must be 3 finite numbers pointing down (z < 0), "
+                       f"or None; got {light.tolist()}")
+  return {"height": h, "width": w, "intrinsics": k, "camera_from_world": pose,
+          "light_dir": light}

@@ -64,6 +64,7 @@ def write_texture(model, tex: int, material: str, seed: int) -> None:
 def stage_xml(assets: str, object_geoms: str, extra_assets: str = "") -> str:
   """The rendered scene (floor, sky, light, the camera `view`) around an object body."""
   pos = " ".join(f"{v}" for v in camera.CAMERA_POS)
+  light = " ".join(f"{v}" for v in camera.LIGHT_DIR)
   return f"""<mujoco model="ppdjax_render">
   <visual><global offwidth="1024" offheight="1024"/><quality shadowsize="2048"/></visual>
   <asset>
@@ -76,7 +77,7 @@ def stage_xml(assets: str, object_geoms: str, extra_assets: str = "") -> str:
 {extra_assets}
   </asset>
   <worldbody>
-    <light pos="2 -1 4" dir="-0.4 0.2 -1" directional="true" diffuse="0.8 0.8 0.8"/>
+    <light pos="2 -1 4" dir="{light}" directional="true" diffuse="0.8 0.8 0.8"/>
     <camera name="view" pos="{pos}" xyaxes="{_camera_xyaxes()}" fovy="{camera.FOVY}"/>
     <geom name="ground" type="plane" size="5 5 0.1" material="floor"/>
     <body name="object" pos="0 0 0.5">

@@ -31,38 +31,85 @@ from ppdjax.primitives import Primitives, quat_to_mat
 
 PASSES = 2  # sweeps over every face (the second places faces whose neighbours moved)
 CHUNK = 8  # objects refined together (224² pixels x 33 positions x K boxes per face)
+EDGE_LEVELS = 1024  # integer steps per unit of colour difference
+SHADOW_EPS = 1e-4  # m: how far a shadow ray must run inside a box to be blocked
 
 
 def edge_strength(image_HW3) -> tuple[jax.Array, jax.Array]:
-  """Colour differences (Euclidean, RGB in [0, 1]) between each pixel and its left
-  neighbour (H, W) and its upper neighbour (H, W); 0 on the first column / row."""
+  """Colour differences between each pixel and its left neighbour (H, W) and its upper
+  neighbour (H, W), 0 on the first column / row: the Euclidean distance of RGB in [0, 1],
+  in integer steps of 1 / EDGE_LEVELS (integer sums compare exactly: `sweep_faces` looks
+  for runs of equal scores)."""
   img = jnp.asarray(image_HW3)
   scale = 1.0 / 255.0 if jnp.issubdtype(img.dtype, jnp.integer) else 1.0
   img = img.astype(jnp.float32) * scale
-  across = jnp.linalg.norm(img[:, 1:] - img[:, :-1], axis=-1)
-  down = jnp.linalg.norm(img[1:] - img[:-1], axis=-1)
+  steps = lambda diff: jnp.round(jnp.linalg.norm(diff, axis=-1) * EDGE_LEVELS).astype(jnp.int32)
+  across, down = steps(img[:, 1:] - img[:, :-1]), steps(img[1:] - img[:-1])
   return jnp.pad(across, ((0, 0), (1, 0))), jnp.pad(down, ((1, 0), (0, 0)))
 
 
-def face_labels(prims: Primitives, origin, dirs_Nx3) -> jax.Array:
+def face_labels(prims: Primitives, origin, dirs_Nx3, light=None) -> jax.Array:
   """(N,) int: per ray, 6·k + f for the face f (`metrics.FACE_NAMES` order: x, y, z lo,
   then hi, along box k's own axes) of the valid box k it meets first; 6·K where it meets
-  none. Boxes of one object (object frame) at rest, as the dataset renders them."""
-  world = to_world(prims)
-  rot = quat_to_mat(world.quat)
-  o = jnp.einsum("kji,kj->ki", rot, origin[None] - world.pos)  # (K, 3) in the box frames
-  d = jnp.einsum("kji,nj->nki", rot, dirs_Nx3)  # (N, K, 3)
-  d = jnp.where(jnp.abs(d) < 1e-9, 1e-9, d)
-  t1, t2 = (-world.half_size - o) / d, (world.half_size - o) / d
-  near = jnp.minimum(t1, t2)
-  t_in, t_out = near.max(-1), jnp.maximum(t1, t2).min(-1)
-  hit = (t_in <= t_out) & (t_out > 0) & world.valid[None]
-  box = jnp.argmin(jnp.where(hit, t_in, jnp.inf), -1)  # (N,)
-  axis = jnp.take_along_axis(near.argmax(-1), box[:, None], -1)[:, 0]
-  d_box = jnp.take_along_axis(d, box[:, None, None], 1)[:, 0]  # (N, 3)
-  enters_lo = jnp.take_along_axis(d_box, axis[:, None], -1)[:, 0] > 0  # moving up the axis
-  face = axis + jnp.where(enters_lo, 0, 3)
-  return jnp.where(hit.any(-1), box * 6 + face, 6 * prims.valid.shape[-1])
+  none. Boxes of one object (object frame) at rest, as the dataset renders them.
+
+  With `light` (3,), the direction a directional light's rays travel (`camera.LIGHT_DIR`),
+  each label is doubled and 1 is added where the point the ray meets (a face, or the floor
+  z = 0) lies in a box's shadow: shadow outlines then count as edges of the labels.
+  """
+  return labeller(prims, origin, dirs_Nx3, light)(prims)
+
+
+def labeller(prims: Primitives, origin, dirs_Nx3, light=None):
+  """`face_labels` as a function of boxes with the rotations of `prims` (the sweep moves
+  faces only): the rays' directions in each box's frame are computed once."""
+  rot = quat_to_mat(prims.quat)  # (K, 3, 3); at rest the object is only lifted
+  d = _nonzero(jnp.einsum("kji,nj->nki", rot, dirs_Nx3))  # (N, K, 3) in the box frames
+  inv_d = 1.0 / d
+  if light is not None:  # from each point toward the light, in the box frames
+    toward = -jnp.asarray(light, jnp.float32) / jnp.linalg.norm(jnp.asarray(light, jnp.float32))
+    inv_light = 1.0 / _nonzero(jnp.einsum("kji,j->ki", rot, toward))  # (K, 3)
+  down = dirs_Nx3[:, 2] < -1e-9  # rays that meet the floor unless a box is in the way
+  t_floor = jnp.where(down, -origin[2] / jnp.where(down, dirs_Nx3[:, 2], -1.0), 0.0)
+  empty = 6 * prims.valid.shape[-1]
+
+  def labels(boxes: Primitives) -> jax.Array:
+    world = to_world(boxes)
+    o = jnp.einsum("kji,kj->ki", rot, origin[None] - world.pos)  # (K, 3) camera, box frames
+    near, far = _slabs(o[None], inv_d, world.half_size)
+    t_in, t_out = near.max(-1), far.min(-1)
+    hit = (t_in <= t_out) & (t_out > 0) & world.valid[None]
+    t_hit = jnp.where(hit, t_in, jnp.inf)
+    box = jnp.argmin(t_hit, -1)  # (N,)
+    axis = jnp.take_along_axis(near.argmax(-1), box[:, None], -1)[:, 0]
+    d_box = jnp.take_along_axis(d, box[:, None, None], 1)[:, 0]  # (N, 3)
+    enters_lo = jnp.take_along_axis(d_box, axis[:, None], -1)[:, 0] > 0  # up the axis
+    any_hit = hit.any(-1)
+    out = jnp.where(any_hit, box * 6 + axis + jnp.where(enters_lo, 0, 3), empty)
+    if light is None:
+      return out
+    seen = any_hit | down  # rays into the sky meet nothing
+    t = jnp.where(any_hit, t_hit.min(-1), jnp.where(seen, t_floor, 0.0))
+    points = o[None] + t[:, None, None] * d  # (N, K, 3): where each ray ends, box frames
+    near_l, far_l = _slabs(points, inv_light[None], world.half_size)
+    t_out_l = far_l.min(-1)
+    # a point on a lit face leaves its own box at once (exit 0): SHADOW_EPS keeps it lit
+    shadow = ((near_l.max(-1) <= t_out_l) & (t_out_l > SHADOW_EPS)
+              & world.valid[None]).any(-1) & seen
+    return 2 * out + shadow
+
+  return labels
+
+
+def _nonzero(d):
+  return jnp.where(jnp.abs(d) < 1e-9, 1e-9, d)
+
+
+def _slabs(o, inv_d, half_size):
+  """Per axis, the ray parameters where rays (origins `o`, inverse directions `inv_d`, in
+  box frames) cross the boxes' lower and upper slab planes: (near, far), each (..., 3)."""
+  t1, t2 = (-half_size - o) * inv_d, (half_size - o) * inv_d
+  return jnp.minimum(t1, t2), jnp.maximum(t1, t2)
 
 
 def edge_score(labels_HW, across_HW, down_HW) -> jax.Array:
@@ -70,16 +117,20 @@ def edge_score(labels_HW, across_HW, down_HW) -> jax.Array:
   (lower is better: the outline lies on the image's edges)."""
   cut_across = jnp.pad(labels_HW[:, 1:] != labels_HW[:, :-1], ((0, 0), (1, 0)))
   cut_down = jnp.pad(labels_HW[1:] != labels_HW[:-1], ((1, 0), (0, 0)))
-  return -(jnp.sum(jnp.where(cut_across, across_HW, 0.0))
-           + jnp.sum(jnp.where(cut_down, down_HW, 0.0)))
+  return -(jnp.sum(jnp.where(cut_across, across_HW, 0))
+           + jnp.sum(jnp.where(cut_down, down_HW, 0)))
 
 
-def object_window(camera: dict, margin: int = 2) -> tuple[int, int, int, int]:
+def object_window(camera: dict, margin: int = 2, light=None) -> tuple[int, int, int, int]:
   """Rows [r0, r1) and columns [c0, c1) of the camera's image where an object can appear:
   the projection of the space objects occupy (the unit cube on the ground, centred over
-  the origin: the dataset's convention), `margin` pixels wider, clipped to the image."""
+  the origin: the dataset's convention), and with `light` (its direction) the cube's
+  shadow on the floor, `margin` pixels wider, clipped to the image."""
   cam = check_camera(camera)
   corners = np.stack(np.meshgrid([-0.5, 0.5], [-0.5, 0.5], [0.0, 1.0]), -1).reshape(-1, 3)
+  if light is not None:  # where the light's rays through the corners meet the floor
+    light = np.asarray(light, np.float64)
+    corners = np.concatenate([corners, corners - corners[:, 2:] / light[2] * light])
   t = np.asarray(cam["camera_from_world"], np.float64)
   p = (corners @ t[:3, :3].T + t[:3, 3]) @ np.asarray(cam["intrinsics"], np.float64).T
   u, v = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]  # pixel coordinates (edges at integers)
@@ -90,7 +141,8 @@ def object_window(camera: dict, margin: int = 2) -> tuple[int, int, int, int]:
 
 def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_world, *,
                       bound: float = VOXEL / 2, passes: int = PASSES,
-                      window: tuple[int, int, int, int] | None = None) -> Primitives:
+                      window: tuple[int, int, int, int] | None = None,
+                      light: tuple[float, float, float] | None = None) -> Primitives:
   """One object's boxes (K, object frame) refined against its image (H, W, 3).
 
   Args:
@@ -100,7 +152,10 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
     bound: how far (m) a face may move from the start.
     passes: sweeps over every face.
     window: (r0, r1, c0, c1), the only pixels scored (`object_window`: where an object
-      can appear; the score is the same, in a fraction of the time); None: all.
+      or its shadow can appear; the score is the same, in a fraction of the time); None: all.
+    light: the direction the scene's directional light travels (`camera.LIGHT_DIR`, the
+      dataset's): the labels then hold the boxes' shadows too (`face_labels`); None: the
+      outline of the boxes alone.
   """
   h, w = image_HW3.shape[:2]
   r0, r1, c0, c1 = window or (0, h, 0, w)
@@ -108,8 +163,8 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
   dirs = dirs[r0:r1, c0:c1].reshape(-1, 3)
   h, w = r1 - r0, c1 - c0
   across, down = edge_strength(image_HW3[r0:r1, c0:c1])
-  score = lambda f: edge_score(face_labels(boxes_from_faces(prims, f), origin, dirs).reshape(h, w),
-                               across, down)
+  labels = labeller(prims, origin, dirs, light)
+  score = lambda f: edge_score(labels(boxes_from_faces(prims, f)).reshape(h, w), across, down)
   ties = touching_faces(prims)
   start = jnp.concatenate([-prims.half_size, prims.half_size], -1)  # (K, 6)
   # within `bound` of the start, and no box thinner than 2·MIN_HALF
@@ -129,18 +184,22 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
 def refine_batch(prims: Primitives, images_BxHxWx3, camera: dict, *,
                  passes: int = PASSES, bound: float = VOXEL / 2) -> Primitives:
   """`refine_with_image` over a batch (B, K) of objects seen by one camera (jitted once per
-  image size and option; CHUNK objects at a time)."""
+  image size and option; CHUNK objects at a time). The camera's "light_dir" (the
+  dataset's light unless set to None, `camera.check_camera`) adds the boxes' shadows to
+  the outline."""
   cam = check_camera(camera)
+  light = None if cam["light_dir"] is None else tuple(map(float, cam["light_dir"]))
   return _refine_batch(prims, jnp.asarray(images_BxHxWx3),
                        jnp.asarray(cam["intrinsics"], jnp.float32),
                        jnp.asarray(cam["camera_from_world"], jnp.float32),
-                       passes=passes, bound=float(bound), window=object_window(cam))
+                       passes=passes, bound=float(bound), window=object_window(cam, light=light),
+                       light=light)
 
 
-@functools.partial(jax.jit, static_argnames=("passes", "bound", "window"))
-def _refine_batch(prims, images, intrinsics, camera_from_world, passes, bound, window):
+@functools.partial(jax.jit, static_argnames=("passes", "bound", "window", "light"))
+def _refine_batch(prims, images, intrinsics, camera_from_world, passes, bound, window, light):
   one = lambda p, im: refine_with_image(p, im, intrinsics, camera_from_world, bound=bound,
-                                        passes=passes, window=window)
+                                        passes=passes, window=window, light=light)
   with jax.default_matmul_precision("highest"):  # GPUs' TF32 default: mm at 2.6 m
     return jax.lax.map(lambda a: one(*a), (prims, images), batch_size=CHUNK)
 
