@@ -37,31 +37,65 @@ def test_face_labels_name_the_nearest_box_and_the_faces_the_camera_sees():
   assert seen <= {1, 3, 5} and {3, 5} <= seen
 
 
-def test_the_edge_score_is_best_at_the_true_outline():
-  """An image painted from the true face labels (a colour per label, noise on top): the
-  true boxes outscore any face moved by 4 mm; scored in the window where objects can
-  appear, every score is the same."""
+def test_shadow_labels_on_the_floor_match_the_boxes_projected_along_the_light():
+  """Independently: a floor point is in shadow where it lies inside the convex hull of
+  some box's corners projected along the light onto the floor."""
+  from scipy.spatial import Delaunay  # pylint: disable=import-outside-toplevel
   prims = _one_tower()
   cam = camera_lib.camera_dict(SIZE, SIZE)
   origin, dirs = rays(cam)
   dirs = dirs.reshape(-1, 3)
-  labels = image_fit.face_labels(prims, origin, dirs)
+  light = camera_lib.LIGHT_DIR
+  labels = np.asarray(image_fit.face_labels(prims, origin, dirs, light))
+  plain = np.asarray(image_fit.face_labels(prims, origin, dirs))
+  k = prims.valid.shape[0]
+  assert np.array_equal(labels // 2, plain)  # the faces are the same, the bit is the shadow
+  floor = (plain == 6 * k) & (np.asarray(dirs)[:, 2] < 0)
+  t = -float(origin[2]) / np.asarray(dirs)[floor, 2]
+  points = (np.asarray(origin) + t[:, None] * np.asarray(dirs)[floor])[:, :2]
+  world = jax.tree.map(np.asarray, to_world(prims))
+  signs = np.stack(np.meshgrid([-1, 1], [-1, 1], [-1, 1]), -1).reshape(-1, 3)
+  inside = np.zeros(len(points), bool)
+  near_edge = np.zeros(len(points), bool)
+  for b in np.flatnonzero(world.valid):
+    corners = world.pos[b] + signs * world.half_size[b]  # axis-aligned tower boxes
+    ground = corners[:, :2] - corners[:, 2:] / light[2] * light[:2]
+    hull = Delaunay(ground)
+    inside |= hull.find_simplex(points) >= 0
+    for grow in (-1, 1):  # points within 1 mm of the shadow's outline are left out
+      scaled = ground.mean(0) + (ground - ground.mean(0)) * (1 + grow * 0.002)
+      near_edge |= (Delaunay(scaled).find_simplex(points) >= 0) != (hull.find_simplex(points) >= 0)
+  shadow = labels[floor] % 2 == 1
+  assert inside.sum() > 50  # the tower casts a shadow the camera sees
+  assert np.array_equal(shadow[~near_edge], inside[~near_edge])
+
+
+@pytest.mark.parametrize("light", [None, tuple(camera_lib.LIGHT_DIR)])
+def test_the_edge_score_is_best_at_the_true_outline(light):
+  """An image painted from the true face labels (a colour per label, noise on top; with
+  the light, shadows included): the true boxes outscore any face moved by 4 mm; scored in
+  the window where objects (and their shadows) can appear, every score is the same."""
+  prims = _one_tower()
+  cam = camera_lib.camera_dict(SIZE, SIZE)
+  origin, dirs = rays(cam)
+  dirs = dirs.reshape(-1, 3)
+  labels = image_fit.face_labels(prims, origin, dirs, light)
   rng = np.random.default_rng(0)
-  colours = rng.random((6 * prims.valid.shape[0] + 1, 3))
+  colours = rng.random((2 * (6 * prims.valid.shape[0] + 1), 3))
   image = np.clip(colours[np.asarray(labels)].reshape(SIZE, SIZE, 3)
                   + 0.05 * rng.normal(size=(SIZE, SIZE, 3)), 0, 1)
   across, down = image_fit.edge_strength(image)
-  r0, r1, c0, c1 = image_fit.object_window(cam)
+  r0, r1, c0, c1 = image_fit.object_window(cam, light=light)
   assert 0 < r1 - r0 < SIZE and 0 < c1 - c0 < SIZE
   window_dirs = dirs.reshape(SIZE, SIZE, 3)[r0:r1, c0:c1].reshape(-1, 3)
   w_across, w_down = image_fit.edge_strength(image[r0:r1, c0:c1])
 
   def score(p):
     whole = float(image_fit.edge_score(
-        image_fit.face_labels(p, origin, dirs).reshape(SIZE, SIZE), across, down))
-    window = float(image_fit.edge_score(image_fit.face_labels(p, origin, window_dirs)
+        image_fit.face_labels(p, origin, dirs, light).reshape(SIZE, SIZE), across, down))
+    window = float(image_fit.edge_score(image_fit.face_labels(p, origin, window_dirs, light)
                                         .reshape(r1 - r0, c1 - c0), w_across, w_down))
-    assert window == pytest.approx(whole, rel=1e-6)
+    assert window == whole  # integer scores
     return whole
 
   best = score(prims)
@@ -94,6 +128,19 @@ def test_image_input_errors_are_named():
     ppdjax.fit_boxes(vox, image=image.astype(np.int32), camera=cam)
   with pytest.raises(ValueError, match="without an image or a depth image"):
     ppdjax.fit_boxes(vox, camera=cam)
+  for light in ([0.0, 0.0, 1.0], [1.0, 0.0], [np.nan, 0.0, -1.0]):
+    with pytest.raises(ValueError, match="light_dir must be 3 finite numbers pointing down"):
+      ppdjax.fit_boxes(vox, image=image, camera=dict(cam, light_dir=light))
+
+
+def test_the_cameras_light():
+  """A camera without "light_dir" (datasets written before it) gets the scene's light;
+  None means none is known."""
+  cam = camera_lib.camera_dict(SIZE, SIZE)
+  assert np.allclose(camera_lib.check_camera(cam)["light_dir"], camera_lib.LIGHT_DIR)
+  old = {k: v for k, v in cam.items() if k != "light_dir"}
+  assert np.allclose(camera_lib.check_camera(old)["light_dir"], camera_lib.LIGHT_DIR)
+  assert camera_lib.check_camera(dict(cam, light_dir=None))["light_dir"] is None
 
 
 @pytest.fixture(scope="module")
