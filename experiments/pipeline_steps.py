@@ -16,7 +16,12 @@ machine's devices and take accelerator memory as they need it
 two trainings of the paper preset side by side held 35 GB of an 80 GB H100.
 
 If a step fails, the steps that need it are not started, the running ones finish, and
-the scheduler exits non-zero after naming the failed step and the end of its log.
+the scheduler exits non-zero after naming the failed step and the end of its log. A step
+that ran out of accelerator memory beside others (its log ends with XLA's
+RESOURCE_EXHAUSTED) is not a failure yet: it starts again, resuming as any step does, once
+fewer steps run than ran beside it then, at most MEMORY_RETRIES times (measured: four
+paper-preset trainings beside the evaluation's ahead-of-time compile can exceed an 80 GB
+H100).
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ from collections.abc import Callable, Sequence
 
 POLL_S = 2.0
 LOG_TAIL = 3000
+OUT_OF_MEMORY = "RESOURCE_EXHAUSTED"  # XLA's error when an allocation does not fit
+MEMORY_RETRIES = 2
 
 
 def _child_env() -> dict[str, str]:
@@ -67,6 +74,8 @@ def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]]
   finished = {n for n in names if n not in pending}
   failed: set[str] = set()
   running: dict[str, tuple[subprocess.Popen, float, object]] = {}
+  crowd: dict[str, int] = {}  # a step that ran out of memory: how many ran beside it
+  retries: dict[str, int] = {}
   t0 = time.perf_counter()
 
   def blocked(name: str) -> bool:  # something it needs failed or will never run
@@ -81,15 +90,19 @@ def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]]
         print(f"-- {name}: not started ({', '.join(d for d in needs(name) if d in failed)} "
               "failed)", flush=True)
       elif ((light(name) or sum(not light(r) for r in running) < jobs)
+            and len(running) < crowd.get(name, len(running) + 1)
             and all(d in finished for d in needs(name))):
         pending.remove(name)
-        log = open(os.path.join(log_dir, name.replace(":", "_") + ".log"), "w")
+        # a retry keeps the log of the call that ran out of memory
+        log = open(os.path.join(log_dir, name.replace(":", "_") + ".log"),
+                   "a" if name in crowd else "w")
         cmd = [sys.executable, *argv, f"--step={name}"]
         running[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                           env=_child_env()), time.perf_counter(), log)
         print(f"-- {name}: started ({len(running)} running, "
               f"{time.perf_counter() - t0:.0f} s in)", flush=True)
     time.sleep(POLL_S)
+    beside = len(running) - 1  # steps that ran beside each one that ends now
     for name, (proc, start, log) in list(running.items()):
       if proc.poll() is None:
         continue
@@ -100,6 +113,14 @@ def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]]
         finished.add(name)
         print(f"-- {name}: done in {seconds:.0f} s ({time.perf_counter() - t0:.0f} s in)",
               flush=True)
+      elif (proc.returncode != 0 and beside > 0 and retries.get(name, 0) < MEMORY_RETRIES
+            and OUT_OF_MEMORY in _tail(log.name)):
+        retries[name] = retries.get(name, 0) + 1
+        crowd[name] = beside
+        pending.insert(0, name)
+        print(f"-- {name}: out of accelerator memory after {seconds:.0f} s beside "
+              f"{beside} other steps; it starts again once fewer run (retry "
+              f"{retries[name]} of {MEMORY_RETRIES})", flush=True)
       else:
         failed.add(name)
         print(f"-- {name}: FAILED (exit {proc.returncode}) after {seconds:.0f} s; end of "

@@ -71,9 +71,13 @@ step = [a for a in sys.argv if a.startswith("--step=")][-1][len("--step="):]
 root = sys.argv[1]
 with open(os.path.join(root, "order"), "a") as f:
   f.write(f"start {step}\\n")
-time.sleep(0.3)
+time.sleep(1.5 if step == "slow" else 0.3)
 if step == "bad":
   sys.exit(2)
+if step.startswith("hungry") and not os.path.exists(os.path.join(root, step + ".tried")):
+  open(os.path.join(root, step + ".tried"), "w").close()
+  print("jax.errors.JaxRuntimeError: RESOURCE_EXHAUSTED: Out of memory")
+  sys.exit(1)
 with open(os.path.join(root, "order"), "a") as f:
   f.write(f"end {step}\\n")
 open(os.path.join(root, step), "w").close()
@@ -105,6 +109,27 @@ def test_jobs_start_steps_when_their_inputs_are_done_and_stop_behind_a_failure(t
   assert again == 0 and started == [ln.split()[1] for ln in
                                     (tmp_path / "order").read_text().split("\n")
                                     if ln.startswith("start")]  # done steps are not rerun
+
+
+def test_a_step_out_of_memory_beside_others_starts_again_when_fewer_run(tmp_path, capsys):
+  """Out of accelerator memory beside another step: retried once that step has ended;
+  out of memory alone: a failure."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import pipeline_steps
+  script = tmp_path / "step.py"
+  script.write_text(_FAKE_STEP)
+  needs = {"slow": (), "hungry": ()}
+  done = lambda n: os.path.exists(tmp_path / n)
+  rc = pipeline_steps.run_side_by_side(list(needs), needs.__getitem__, done, 2,
+                                       [str(script), str(tmp_path)], str(tmp_path / "logs"))
+  lines = (tmp_path / "order").read_text().split("\n")
+  assert rc == 0 and done("hungry") and lines.count("start hungry") == 2
+  assert lines.index("end slow") < len(lines) - 1 - lines[::-1].index("start hungry")
+  assert "hungry: out of accelerator memory" in capsys.readouterr().out
+  assert "RESOURCE_EXHAUSTED" in (tmp_path / "logs" / "hungry.log").read_text()  # kept
+  alone = pipeline_steps.run_side_by_side(["hungry2"], lambda n: (), done, 2,
+                                          [str(script), str(tmp_path)], str(tmp_path / "logs"))
+  assert alone == 1 and "-- hungry2: FAILED" in capsys.readouterr().out
 
 
 def test_light_steps_run_beside_the_jobs(tmp_path):
