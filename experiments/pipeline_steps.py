@@ -53,6 +53,13 @@ def _tail(path: str) -> str:
     return f.read()[-LOG_TAIL:]
 
 
+def _written_since(path: str, offset: int) -> str:
+  """What the log received from `offset` on (the latest call of its step)."""
+  with open(path, errors="replace") as f:
+    f.seek(offset)
+    return f.read()
+
+
 def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]],
         done: Callable[[str], bool], jobs: int, argv: Sequence[str], log_dir: str,
         light: Callable[[str], bool] = lambda name: False) -> int:
@@ -73,7 +80,7 @@ def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]]
   pending = [n for n in names if n == "report" or not done(n)]
   finished = {n for n in names if n not in pending}
   failed: set[str] = set()
-  running: dict[str, tuple[subprocess.Popen, float, object]] = {}
+  running: dict[str, tuple[subprocess.Popen, float, object, int]] = {}
   crowd: dict[str, int] = {}  # a step that ran out of memory: how many ran beside it
   retries: dict[str, int] = {}
   t0 = time.perf_counter()
@@ -98,12 +105,13 @@ def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]]
                    "a" if name in crowd else "w")
         cmd = [sys.executable, *argv, f"--step={name}"]
         running[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                                          env=_child_env()), time.perf_counter(), log)
+                                          env=_child_env()), time.perf_counter(), log,
+                         log.tell())
         print(f"-- {name}: started ({len(running)} running, "
               f"{time.perf_counter() - t0:.0f} s in)", flush=True)
     time.sleep(POLL_S)
     beside = len(running) - 1  # steps that ran beside each one that ends now
-    for name, (proc, start, log) in list(running.items()):
+    for name, (proc, start, log, offset) in list(running.items()):
       if proc.poll() is None:
         continue
       del running[name]
@@ -114,7 +122,7 @@ def run_side_by_side(names: Sequence[str], needs: Callable[[str], Sequence[str]]
         print(f"-- {name}: done in {seconds:.0f} s ({time.perf_counter() - t0:.0f} s in)",
               flush=True)
       elif (proc.returncode != 0 and beside > 0 and retries.get(name, 0) < MEMORY_RETRIES
-            and OUT_OF_MEMORY in _tail(log.name)):
+            and OUT_OF_MEMORY in _written_since(log.name, offset)):
         retries[name] = retries.get(name, 0) + 1
         crowd[name] = beside
         pending.insert(0, name)

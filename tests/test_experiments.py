@@ -71,7 +71,7 @@ step = [a for a in sys.argv if a.startswith("--step=")][-1][len("--step="):]
 root = sys.argv[1]
 with open(os.path.join(root, "order"), "a") as f:
   f.write(f"start {step}\\n")
-time.sleep(1.5 if step == "slow" else 0.3)
+time.sleep(5.0 if step == "slow" else 0.3)
 if step == "bad":
   sys.exit(2)
 if step.startswith("hungry") and not os.path.exists(os.path.join(root, step + ".tried")):

@@ -87,7 +87,7 @@ def check_camera(camera: dict, depth_shape: tuple[int, ...] | None = None) -> di
                      f"{depth_shape[-2]}x{depth_shape[-1]}")
   light = camera.get("light_dir", LIGHT_DIR)
   if light is not None:
-    light = np.asarray(light, np.float64)
+    light = np.array(light, np.float64)  # a copy: callers may edit what they get
     if light.shape != (3,) or not np.all(np.isfinite(light)) or light[2] >= 0:
       raise ValueError(f"camera: light_dir must be 3 finite numbers pointing down (z < 0), "
                        f"or None; got {light.tolist()}")

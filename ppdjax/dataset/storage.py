@@ -171,7 +171,8 @@ class Dataset:
   @property
   def camera(self) -> dict:
     """The camera of the "image" and "depth" arrays (`dataset.camera`): height, width,
-    intrinsics (3, 3) and camera_from_world (4, 4), OpenCV axes. Datasets written before
+    intrinsics (3, 3), camera_from_world (4, 4), OpenCV axes, and the scene's light_dir
+    (`camera.check_camera`). Datasets written before
     the manifest stored it were all rendered by the one fixed camera: it is rebuilt from
     `dataset.camera` at their image size."""
     cam = self.manifest.get("camera")
