@@ -195,10 +195,15 @@ def steps_md(log: dict) -> list[str]:
 
 def run_step(root: str, name: str, done: Callable[[], bool], action: Callable[[], None]
              ) -> bool:
-  """Runs one call of a step and logs it; returns whether the step is now done."""
+  """Runs one call of a step and logs it; returns whether the step is now done. A call
+  that raises is logged too (not finished: its time was spent), then the error goes on."""
   print(f"== {name}", flush=True)
   t0 = time.perf_counter()
-  action()
+  try:
+    action()
+  except BaseException:
+    log_call(root, name, time.perf_counter() - t0, False)
+    raise
   finished = name == "report" or done()
   log_call(root, name, time.perf_counter() - t0, finished)
   print(f"== {name}: {time.perf_counter() - t0:.0f} s"

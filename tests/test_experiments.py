@@ -191,6 +191,21 @@ def test_step_log_counts_overlapping_calls_once(tmp_path):
   assert pipeline_steps.read_log(str(tmp_path / "none"))["steps"] == {}
 
 
+def test_a_call_that_raises_is_logged_unfinished(tmp_path):
+  """A step's crashed call (e.g. out of accelerator memory) still counts its time."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import pipeline_steps
+
+  def crash():
+    raise RuntimeError("RESOURCE_EXHAUSTED")
+
+  with pytest.raises(RuntimeError, match="RESOURCE_EXHAUSTED"):
+    pipeline_steps.run_step(str(tmp_path), "train:x", lambda: False, crash)
+  rows = [json.loads(line) for line in (tmp_path / "steps.jsonl").read_text().splitlines()]
+  assert [(r["step"], r["finished"]) for r in rows] == [("train:x", False)]
+  assert pipeline_steps.read_log(str(tmp_path))["steps"]["train:x"]["calls"] == 1
+
+
 def test_the_whole_split_joins_blocks_json_and_the_targets_read_it(tmp_path):
   """blocks_whole_split.py on the committed run's files: the targets then read the whole
   split's rows; an evaluation of a few objects is refused."""
