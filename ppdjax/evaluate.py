@@ -84,6 +84,9 @@ _MAX_SECONDS = flags.DEFINE_float("max_seconds", 0, "Stop after the batch that p
                                   "to go on. 0: no limit. Either way, every batch's records "
                                   "are kept in OUT/partial until the results are written, so "
                                   "an interrupted evaluation resumes where it stopped.")
+_KEEP_RECORDS = flags.DEFINE_bool("keep_records", False, "Keep OUT/partial, the per-object "
+                                  "records, after the results are written (for studies of "
+                                  "single objects, e.g. experiments/table5_errors.py).")
 
 
 def main(argv):
@@ -141,7 +144,8 @@ def main(argv):
   results["workdir"] = _WORKDIR.value
   command = "python -m ppdjax.evaluate " + " ".join(sys.argv[1:])
   paths = markdown.write_results(results, out, command)
-  shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)  # written: not needed
+  if not _KEEP_RECORDS.value:
+    shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)  # written: not needed
   rows = results["table2"]
   best = next(rows[r] for r in ("PPD+Fit(depth)+Est+Sample+Refine", "PPD+Fit+Est+Sample+Refine",
                                 "PPD+Fit(depth)+Sample+Refine", "PPD+Fit+Sample+Refine",
