@@ -48,7 +48,8 @@ def breakdown(rec: dict, row: str, faces: str) -> dict:
   err = np.where(valid, rec[("guess", row)] - np.maximum(rec[("true_slot",)], 0), 0)
   sq = (err.astype(np.float64) ** 2).sum(-1)
   worst_box = np.abs(err).max(-1)
-  face = (np.abs(rec[("faces", faces)]).max(-1).max(-1) * 1000 if faces else None)
+  # the worst face of each object's true boxes, mm (padded boxes hold NaN)
+  face = np.nanmax(np.abs(rec[("faces", faces)]), (-2, -1)) * 1000 if faces else None
   out = {}
   for b in sorted(set(rec[("blocks",)].tolist())):
     sel = rec[("blocks",)] == b
