@@ -6,6 +6,7 @@ import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -298,3 +299,26 @@ def test_tools_rerun_replaces_the_full_models_rows_and_keeps_the_ablations(tmp_p
     json.dump(ev, f)
   refused = run()
   assert refused.returncode != 0 and "test tools" in refused.stderr
+
+
+def test_table5_errors_reads_saved_records_and_finds_the_tail(tmp_path):
+  """Twenty 2-block objects in two saved batches, one of them 10 slots off: it holds all
+  of the squared error; padded boxes' NaN faces are skipped."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import table5_errors
+  from ppdjax.infer import partial
+  store = partial.PartialRecords(str(tmp_path / "partial"), {"test": 1})
+  valid = np.zeros((10, 5), bool)
+  valid[:, :2] = True
+  faces = np.where(valid[..., None], 0.001, np.nan) * np.ones((10, 5, 6))
+  for start in (0, 10):
+    guess = np.full((10, 5), 3)
+    if start:
+      guess[0, 0] = 13
+    store.save(start, {("blocks",): valid.sum(-1), ("true_slot",): np.where(valid, 3, -1),
+                       ("true_valid",): valid, ("guess", "R"): guess, ("faces", "fit"): faces})
+  out = table5_errors.breakdown(table5_errors.read_records(str(tmp_path)), "R", "fit")["2"]
+  assert out["objects"] == 20 and out["share_worst_5pct"] == 1.0
+  assert out["rmse"] == pytest.approx(np.sqrt(100 / 40)) and out["rmse_without_worst_5pct"] == 0
+  assert out["objects_off_by_more_than_5_slots"] == pytest.approx(0.05)
+  assert out["worst_face_mm_median"] == pytest.approx(1.0)
