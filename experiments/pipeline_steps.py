@@ -49,8 +49,7 @@ def _child_env() -> dict[str, str]:
 
 
 def _tail(path: str) -> str:
-  with open(path, errors="replace") as f:
-    return f.read()[-LOG_TAIL:]
+  return _written_since(path, 0)[-LOG_TAIL:]
 
 
 def _written_since(path: str, offset: int) -> str:

@@ -11,7 +11,6 @@ error (objects split at the median of that face error).
 
 from __future__ import annotations
 
-import glob
 import json
 import os
 
@@ -28,16 +27,12 @@ _OUT = flags.DEFINE_string("out", "", "Also write the breakdown as JSON here.")
 
 
 def read_records(folder: str) -> dict:
-  """Every saved batch of DIR/partial, concatenated in object order."""
-  files = sorted(glob.glob(os.path.join(folder, "partial", "batch-*.npz")))
-  if not files:
-    raise app.UsageError(f"{folder}/partial holds no batch records: --eval names the "
-                         "output folder of `python -m ppdjax.evaluate`")
-  store = partial.PartialRecords.__new__(partial.PartialRecords)  # reading only
-  store.folder = os.path.join(folder, "partial")
-  batches = [store.load(int(os.path.basename(f)[6:13])) for f in files]
-  keys = set.intersection(*(set(b) for b in batches))
-  return {k: np.concatenate([b[k] for b in batches]) for k in keys}
+  """Every saved batch of FOLDER/partial, concatenated in object order."""
+  try:
+    return partial.saved_records(os.path.join(folder, "partial"))
+  except ValueError as e:
+    raise app.UsageError(f"{e}: --eval names the output folder of `python -m "
+                         "ppdjax.evaluate --keep_records`") from e
 
 
 def breakdown(rec: dict, row: str, faces: str) -> dict:

@@ -64,14 +64,7 @@ class PartialRecords:
     """The records of the batch that begins at object `start`, or None if not saved (or
     unreadable: it is then recomputed)."""
     path = self._path(start)
-    if not os.path.exists(path):
-      return None
-    try:
-      with np.load(path) as f:
-        keys = json.loads(str(f["__keys__"]))
-        return {tuple(k): f[f"a{i}"] for i, k in enumerate(keys)}
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-      return None
+    return _read(path) if os.path.exists(path) else None
 
   def save(self, start: int, records: dict) -> None:
     """Saves one batch (and, with the first, the settings): written whole or not at all."""
@@ -86,10 +79,35 @@ class PartialRecords:
     _write_atomic(self._path(start), buf.getvalue())
 
   def count(self) -> int:
-    if not os.path.isdir(self.folder):
-      return 0
-    return sum(1 for f in os.listdir(self.folder) if f.startswith("batch-")
-               and f.endswith(".npz"))
+    return len(_batch_files(self.folder))
+
+
+def saved_records(folder: str) -> dict:
+  """Every batch saved in `folder`, concatenated in object order (the per-object records
+  of an evaluation kept with `--keep_records`); ValueError if none or one is unreadable."""
+  files = _batch_files(folder)
+  batches = [_read(os.path.join(folder, f)) for f in files]
+  if not batches or any(b is None for b in batches):
+    raise ValueError(f"{folder} holds no readable batch records"
+                     + (f" ({sum(b is None for b in batches)} unreadable)" if batches else ""))
+  keys = set.intersection(*(set(b) for b in batches))
+  return {k: np.concatenate([b[k] for b in batches]) for k in keys}
+
+
+def _batch_files(folder: str) -> list[str]:
+  if not os.path.isdir(folder):
+    return []
+  return sorted(f for f in os.listdir(folder) if f.startswith("batch-") and f.endswith(".npz"))
+
+
+def _read(path: str) -> dict | None:
+  """One batch file's records, or None if it cannot be read."""
+  try:
+    with np.load(path) as f:
+      keys = json.loads(str(f["__keys__"]))
+      return {tuple(k): f[f"a{i}"] for i, k in enumerate(keys)}
+  except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+    return None
 
 
 def _write_atomic(path: str, data: bytes) -> None:
