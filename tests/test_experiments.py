@@ -303,9 +303,8 @@ def test_tools_rerun_replaces_the_full_models_rows_and_keeps_the_ablations(tmp_p
 
 def test_table5_errors_reads_saved_records_and_finds_the_tail(tmp_path):
   """Twenty 2-block objects in two saved batches, one of them 10 slots off: it holds all
-  of the squared error; padded boxes' NaN faces are skipped."""
-  sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import table5_errors
+  of the squared error; padded boxes' NaN faces are skipped. (Run as a command: its flags
+  would clash with other modules' in this process.)"""
   from ppdjax.infer import partial
   store = partial.PartialRecords(str(tmp_path / "partial"), {"test": 1})
   valid = np.zeros((10, 5), bool)
@@ -317,7 +316,11 @@ def test_table5_errors_reads_saved_records_and_finds_the_tail(tmp_path):
       guess[0, 0] = 13
     store.save(start, {("blocks",): valid.sum(-1), ("true_slot",): np.where(valid, 3, -1),
                        ("true_valid",): valid, ("guess", "R"): guess, ("faces", "fit"): faces})
-  out = table5_errors.breakdown(table5_errors.read_records(str(tmp_path)), "R", "fit")["2"]
+  run = subprocess.run([sys.executable, "experiments/table5_errors.py", f"--eval={tmp_path}",
+                        "--row=R", "--faces=fit", f"--out={tmp_path / 'out.json'}"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+  assert run.returncode == 0, run.stderr[-2000:]
+  out = json.loads((tmp_path / "out.json").read_text())["by_blocks"]["2"]
   assert out["objects"] == 20 and out["share_worst_5pct"] == 1.0
   assert out["rmse"] == pytest.approx(np.sqrt(100 / 40)) and out["rmse_without_worst_5pct"] == 0
   assert out["objects_off_by_more_than_5_slots"] == pytest.approx(0.05)
