@@ -13,9 +13,17 @@ centre), so the faces are placed by `depth_fit.sweep_faces`, face by face, in `p
 sweeps: each face to the middle of the run of positions that score best. A face whose
 outline no pixel sees keeps the voxels' verdict.
 
+An object stands on the floor wherever its frame's origin is, so the image shows heights
+above the floor and never where along z the origin sits: the faces on the floor stay and the
+other z faces may move a whole voxel (`face_spans`). The sweep is local, so it runs from
+two starts (`STARTS`): sharp edges alone, and a sweep on blurred edges first; the faces
+with the better sharp score win.
+
 Measured on 32 fresh paper-preset towers (224² images, experiments/image_fit_study.py,
 docs/inference.md, "With the image"): the faces' median error goes from about 7.7 mm
-(voxels alone) to 2.5 mm (outline) and 1.7 mm (outline and shadows).
+(voxels alone) to 2.5 mm (outline) and 1.7 mm (outline and shadows). On 32 towers of the
+test split's two-block tail the floor anchor and the two starts take the p90 from 10.9 to
+4.8 mm.
 """
 
 from __future__ import annotations
