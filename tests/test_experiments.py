@@ -72,7 +72,7 @@ step = [a for a in sys.argv if a.startswith("--step=")][-1][len("--step="):]
 root = sys.argv[1]
 with open(os.path.join(root, "order"), "a") as f:
   f.write(f"start {step}\\n")
-time.sleep(5.0 if step == "slow" else 0.3)
+time.sleep(5.0 if step.startswith("slow") else 0.3)
 if step == "bad":
   sys.exit(2)
 if step.startswith("hungry") and not os.path.exists(os.path.join(root, step + ".tried")):
@@ -134,19 +134,21 @@ def test_a_step_out_of_memory_beside_others_starts_again_when_fewer_run(tmp_path
 
 
 def test_light_steps_run_beside_the_jobs(tmp_path):
-  """A light step (compiling ahead, no accelerator) starts beside a full set of jobs."""
+  """A light step (compiling ahead, no accelerator) starts beside a full set of jobs, and
+  holds a job's place while it runs: no other step starts beside it then."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   import pipeline_steps
   script = tmp_path / "step.py"
   script.write_text(_FAKE_STEP)
-  needs = {"a": (), "b": (), "light": ()}
+  needs = {"a": (), "b": (), "slow_light": ()}
   rc = pipeline_steps.run_side_by_side(list(needs), needs.__getitem__,
                                        lambda n: os.path.exists(tmp_path / n), 1,
                                        [str(script), str(tmp_path)], str(tmp_path / "logs"),
-                                       light=lambda n: n == "light")
+                                       light=lambda n: n == "slow_light")
   lines = (tmp_path / "order").read_text().split("\n")
-  assert rc == 0 and lines.index("start light") < lines.index("end a")  # beside "a"
+  assert rc == 0 and lines.index("start slow_light") < lines.index("end a")  # beside "a"
   assert lines.index("end a") < lines.index("start b")  # one job at a time
+  assert lines.index("end slow_light") < lines.index("start b")  # light holds a job's place
 
 
 @pytest.mark.slow  # about 5 minutes on 2 cores
