@@ -178,7 +178,8 @@ class Pipeline:
     return tuple(n for n, _, _ in self.steps() if n != "report")
 
   def light(self, name: str) -> bool:
-    """Steps that barely use the accelerator (`--jobs` does not count them)."""
+    """Steps that barely use the accelerator: they start beside a full set of `--jobs`,
+    and hold a job's place while they run (`pipeline_steps.run_side_by_side`)."""
     return name.startswith("compile:")
 
   def compile_record(self) -> str:
