@@ -209,8 +209,9 @@ def test_the_image_brings_the_faces_closer_than_the_voxels(rendered):
   fitted = jax.jit(functools.partial(ppdjax.fit_boxes, camera=cam))(
       jnp.asarray(vox), image=jnp.asarray(images))
   before, after = face_errors(plain, prims), face_errors(fitted, prims)
-  # faces move at most half a voxel from the voxel fit's, which is within half a voxel
-  assert np.all(after <= 1 / 32 + 1e-4)
+  # faces move at most a voxel from the voxel fit's (half a voxel across x and y), which
+  # is within half a voxel of the truth
+  assert np.all(after <= 1.5 / 32 + 1e-4)
   assert np.median(after) < 0.6 * np.median(before)
   assert np.mean(after) < np.mean(before)
   assert np.array_equal(np.asarray(fitted.valid), np.asarray(plain.valid))

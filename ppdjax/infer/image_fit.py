@@ -194,7 +194,7 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
                       bound: float = VOXEL / 2, passes: int = PASSES,
                       window: tuple[int, int, int, int] | None = None,
                       light: tuple[float, float, float] | None = None,
-                      starts: tuple[tuple[float, ...], ...] = ((),)) -> Primitives:
+                      starts: tuple[tuple[float, ...], ...] = STARTS) -> Primitives:
   """One object's boxes (K, object frame) refined against its image (H, W, 3).
 
   Args:
