@@ -152,10 +152,40 @@ def test_a_start_a_voxel_too_tall_reaches_the_true_heights():
   start = prims.replace(pos=prims.pos.at[:, 2].set(0.5 * (lo_z + hi_z)),
                         half_size=prims.half_size.at[:, 2].set(0.5 * (hi_z - lo_z)))
   fitted = index(image_fit.refine_batch(jax.tree.map(lambda a: a[None], start), image[None],
-                                        cam), 0)
+                                        cam, starts=((),)), 0)  # one start: the anchor alone
   heights = lambda p: 2 * np.asarray(p.half_size[order, 2])
   assert np.allclose(heights(start) - heights(prims), [0.0, 2 * d], atol=1e-6)
   assert np.all(np.abs(heights(fitted) - heights(prims)) < 0.002)
+
+
+def test_blurred_edges_keep_their_total_and_stay_integers():
+  strength = np.zeros((40, 40), np.int32)
+  strength[20, 10:30] = 1000  # a horizontal edge
+  blurred = image_fit.blur_strength(jnp.asarray(strength), 2.0)
+  assert blurred.dtype == jnp.int32
+  assert abs(int(blurred.sum()) - int(strength.sum())) < 0.01 * strength.sum()
+  assert int(blurred[20, 20]) < 1000 and int(blurred[22, 20]) > 0  # spread across the edge
+
+
+@pytest.mark.slow  # about 40 s on 2 cores; `make test-all`
+def test_two_starts_keep_the_better_sharp_score():
+  """From a start with every face a few millimetres off, the fit from two starts ends on
+  the better sharp edge score of the two single-start fits."""
+  prims = _one_tower()
+  image, cam = _painted(prims, SIZE, camera_lib.LIGHT_DIR)
+  rng = np.random.default_rng(3)
+  start = prims.replace(pos=prims.pos + 0.01 * rng.uniform(-1, 1, prims.pos.shape),
+                        half_size=prims.half_size + 0.005 * rng.uniform(-1, 1,
+                                                                        prims.half_size.shape))
+  origin, dirs = rays(cam)
+  across, down = image_fit.edge_strength(image)
+  score = lambda p: int(image_fit.edge_score(image_fit.face_labels(
+      p, origin, dirs.reshape(-1, 3), camera_lib.LIGHT_DIR).reshape(SIZE, SIZE), across, down))
+  fit = lambda starts: index(image_fit.refine_batch(
+      jax.tree.map(lambda a: a[None], start), image[None], cam, starts=starts), 0)
+  sharp, blurred, both = fit(((),)), fit(((2.0,),)), fit(((), (2.0,)))
+  assert score(both) == min(score(sharp), score(blurred))
+  assert score(both) <= score(start)
 
 
 def test_image_input_errors_are_named():
