@@ -70,20 +70,26 @@ def test_shadow_labels_on_the_floor_match_the_boxes_projected_along_the_light():
   assert np.array_equal(shadow[~near_edge], inside[~near_edge])
 
 
+def _painted(prims, size, light):
+  """An image painted from the true face labels: a colour per label, noise on top."""
+  cam = camera_lib.camera_dict(size, size)
+  origin, dirs = rays(cam)
+  labels = image_fit.face_labels(prims, origin, dirs.reshape(-1, 3), light)
+  rng = np.random.default_rng(0)
+  colours = rng.random((2 * (6 * prims.valid.shape[0] + 1), 3))
+  return np.clip(colours[np.asarray(labels)].reshape(size, size, 3)
+                 + 0.05 * rng.normal(size=(size, size, 3)), 0, 1).astype(np.float32), cam
+
+
 @pytest.mark.parametrize("light", [None, tuple(camera_lib.LIGHT_DIR)])
 def test_the_edge_score_is_best_at_the_true_outline(light):
   """An image painted from the true face labels (a colour per label, noise on top; with
   the light, shadows included): the true boxes outscore any face moved by 4 mm; scored in
   the window where objects (and their shadows) can appear, every score is the same."""
   prims = _one_tower()
-  cam = camera_lib.camera_dict(SIZE, SIZE)
+  image, cam = _painted(prims, SIZE, light)
   origin, dirs = rays(cam)
   dirs = dirs.reshape(-1, 3)
-  labels = image_fit.face_labels(prims, origin, dirs, light)
-  rng = np.random.default_rng(0)
-  colours = rng.random((2 * (6 * prims.valid.shape[0] + 1), 3))
-  image = np.clip(colours[np.asarray(labels)].reshape(SIZE, SIZE, 3)
-                  + 0.05 * rng.normal(size=(SIZE, SIZE, 3)), 0, 1)
   across, down = image_fit.edge_strength(image)
   r0, r1, c0, c1 = image_fit.object_window(cam, light=light)
   assert 0 < r1 - r0 < SIZE and 0 < c1 - c0 < SIZE
@@ -111,17 +117,6 @@ def test_the_edge_score_is_best_at_the_true_outline(light):
   top = int(np.argmax(np.where(prims.valid, prims.pos[:, 2] + prims.half_size[:, 2], -1)))
   assert score(prims.replace(half_size=prims.half_size.at[top, 2].add(0.02),
                              pos=prims.pos.at[top, 2].add(0.02))) > best
-
-
-def _painted(prims, size, light):
-  """An image painted from the true face labels: a colour per label, noise on top."""
-  cam = camera_lib.camera_dict(size, size)
-  origin, dirs = rays(cam)
-  labels = image_fit.face_labels(prims, origin, dirs.reshape(-1, 3), light)
-  rng = np.random.default_rng(0)
-  colours = rng.random((2 * (6 * prims.valid.shape[0] + 1), 3))
-  return np.clip(colours[np.asarray(labels)].reshape(size, size, 3)
-                 + 0.05 * rng.normal(size=(size, size, 3)), 0, 1).astype(np.float32), cam
 
 
 def test_faces_across_z_are_bounded_by_heights_above_the_floor():

@@ -38,7 +38,7 @@ from ppdjax.dataset.camera import check_camera
 from ppdjax.dataset.depth import camera_rays, to_world
 from ppdjax.infer.depth_fit import (MIN_HALF, TOUCHING, VOXEL, boxes_from_faces, sweep_faces,
                                     touching_faces)
-from ppdjax.primitives import Primitives, quat_to_mat
+from ppdjax.primitives import Primitives, lowest_point, quat_to_mat
 
 # Each start's sweeps first on edges blurred over these many pixels (wider basins), then
 # `passes` on the sharp edges; the start that ends on the best sharp score wins. Measured on
@@ -185,8 +185,7 @@ def face_spans(prims: Primitives, bound: float) -> jax.Array:
   up = rot[:, 2, :]  # (K, 3) each box axis's z component
   vertical = jnp.tile(jnp.abs(up) > 1.0 - 1e-6, (1, 2))  # faces across z, (K, 6)
   face_z = prims.pos[:, 2:3] + jnp.concatenate([-prims.half_size * up, prims.half_size * up], -1)
-  floor = jnp.where(prims.valid[:, None], face_z, jnp.inf).min()
-  on_floor = vertical & (face_z < floor + TOUCHING)
+  on_floor = vertical & (face_z < lowest_point(prims) + TOUCHING)
   return jnp.where(on_floor, 0.0, jnp.where(vertical, 2.0 * bound, bound))
 
 
@@ -229,7 +228,7 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
                         jnp.maximum(prims.half_size - span[:, 3:], MIN_HALF)], -1)
   hi = jnp.concatenate([jnp.minimum(-prims.half_size + span[:, :3], -MIN_HALF),
                         prims.half_size + span[:, 3:]], -1)
-  best, best_score = start, None
+  ends = []
   for blurs in starts:
     faces = start
     for sigma in blurs:
@@ -237,13 +236,9 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
                           scorer([blur_strength(s, sigma) for s in sharp]))
     for _ in range(passes):
       faces = sweep_faces(faces, lo, hi, ties, prims.valid, scorer(sharp))
-    if best_score is None:
-      best, best_score = faces, scorer(sharp)(faces)
-    else:
-      score = scorer(sharp)(faces)
-      best = jnp.where(score < best_score, faces, best)
-      best_score = jnp.minimum(score, best_score)
-  faces = best
+    ends.append(faces)
+  # the best sharp score (argmin: the earlier start on a tie)
+  faces = jnp.stack(ends)[jnp.argmin(jnp.stack([scorer(sharp)(f) for f in ends]))]
   out = boxes_from_faces(prims, faces)
   keep = prims.valid[:, None]
   return out.replace(half_size=jnp.where(keep, out.half_size, prims.half_size),
