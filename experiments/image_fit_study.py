@@ -24,9 +24,8 @@ import numpy as np
 from absl import app, flags
 from tqdm import tqdm
 
-import ppdjax
+import image_fit_common
 from ppdjax.dataset import camera as camera_lib
-from ppdjax.dataset import render
 from ppdjax.infer import image_fit
 from ppdjax.metrics import FACE_NAMES, box_faces
 from ppdjax.primitives import bottom_to_top
@@ -39,10 +38,15 @@ _OUT = flags.DEFINE_string("out", "experiments/results/image_fit_study.json", "r
 _ROWS = flags.DEFINE_list("rows", ["edges", "shadows", "starts"], "image fits to run: edges "
                           "(the outline alone, one start), shadows (outline and shadows, one "
                           "start), starts (outline and shadows from image_fit.STARTS, the "
-                          "default)")
+                          "default), coarse (starts, 17 offsets per face's interval instead of "
+                          "33), coarse_fine5 (and 5 across each end instead of 9)")
 
-ROWS = {"edges": ("edges", False, ((),)), "shadows": ("edges and shadows", True, ((),)),
-        "starts": ("edges and shadows, two starts", True, image_fit.STARTS)}
+# name: (label, with shadows, starts, sweep: offsets per face over its interval, per end)
+ROWS = {"edges": ("edges", False, ((),), image_fit.SWEEP),
+        "shadows": ("edges and shadows", True, ((),), image_fit.SWEEP),
+        "starts": ("edges and shadows, two starts", True, image_fit.STARTS, image_fit.SWEEP),
+        "coarse": ("two starts, sweep 17 x 9", True, image_fit.STARTS, (17, 9)),
+        "coarse_fine5": ("two starts, sweep 17 x 5", True, image_fit.STARTS, (17, 5))}
 
 
 def faces_of(prims) -> np.ndarray:
@@ -65,33 +69,28 @@ def _round(values) -> list[float]:
 def main(argv):
   del argv
   n, size = _TOWERS.value, _SIZE.value
-  prims = ppdjax.sample_towers(_SEED.value, n)
-  rng = np.random.default_rng(_SEED.value)
-  with render.ObjectRenderer(size, size) as r:
-    images = np.stack([r.render(jax.tree.map(lambda a, i=i: a[i], prims),
-                                rng.integers(0, 5, 5), rng.integers(0, 256, 5), depth=False)[0]
-                       for i in tqdm(range(n), desc="render")])
-  voxel_fit = ppdjax.fit_boxes(ppdjax.voxelize(prims))
+  prims, images, voxel_fit = image_fit_common.fresh_towers(_SEED.value, n, size)
   shadows = camera_lib.camera_dict(size, size)
   unknown = sorted(set(_ROWS.value) - set(ROWS))
   if unknown:
     raise app.UsageError(f"--rows: unknown {unknown}; choose from {sorted(ROWS)}")
-  cameras = {ROWS[r][0]: (shadows if ROWS[r][1] else dict(shadows, light_dir=None), ROWS[r][2])
-             for r in _ROWS.value}
+  cameras = {ROWS[r][0]: (shadows if ROWS[r][1] else dict(shadows, light_dir=None),
+                         ROWS[r][2], ROWS[r][3]) for r in _ROWS.value}
   fits = {name: [] for name in cameras}
   seconds = {name: 0.0 for name in cameras}
-  for name, (cam, starts) in cameras.items():  # compile once, off the clock
+  for name, (cam, starts, sweep) in cameras.items():  # compile once, off the clock
     jax.block_until_ready(image_fit.refine_batch(
         jax.tree.map(lambda a: a[:_CHUNK.value], voxel_fit), images[:_CHUNK.value], cam,
-        starts=starts))
+        starts=starts, sweep=sweep))
   for start in tqdm(range(0, n, _CHUNK.value), desc="image fits"):
     chunk = slice(start, start + _CHUNK.value)
     if images[chunk].shape[0] < _CHUNK.value:
       break  # whole chunks only: one compiled shape
-    for name, (cam, starts) in cameras.items():
+    for name, (cam, starts, sweep) in cameras.items():
       t = time.perf_counter()
       fits[name].append(jax.block_until_ready(image_fit.refine_batch(
-          jax.tree.map(lambda a: a[chunk], voxel_fit), images[chunk], cam, starts=starts)))
+          jax.tree.map(lambda a: a[chunk], voxel_fit), images[chunk], cam, starts=starts,
+          sweep=sweep)))
       seconds[name] += time.perf_counter() - t
   done = len(next(iter(fits.values()))) * _CHUNK.value
   valid = np.asarray(prims.valid[:done], bool)
@@ -102,9 +101,9 @@ def main(argv):
   out = {"towers": done, "seed": _SEED.value, "size": size,
          "rows": {name: summary(1000 * (f - truth)[valid]) for name, f in signed.items()},
          "seconds": {k: round(v, 1) for k, v in seconds.items()},
-         "time_ratio_to_edges_and_shadows": (
-             {k: round(v / seconds["edges and shadows"], 2) for k, v in seconds.items()}
-             if "edges and shadows" in seconds else {}),
+         "time_ratio_to": next(iter(seconds)),
+         "time_ratios": {k: round(v / next(iter(seconds.values())), 2)
+                         for k, v in seconds.items()},
          "machine": f"{jax.devices()[0].device_kind} ({jax.default_backend()}), "
                     f"{os.cpu_count()} CPU cores",
          "command": f"python experiments/image_fit_study.py --towers={n} --seed={_SEED.value} "
@@ -125,10 +124,10 @@ def main(argv):
                  f"{row['p90_mm']:.2f} | {' / '.join(map(str, row['median_by_face_mm'].values()))}"
                  f" | {' / '.join(map(str, row['signed_median_by_face_mm'].values()))} | "
                  f"{out['seconds'].get(name, '')} |")
-  if out["time_ratio_to_edges_and_shadows"]:
-    lines += ["", "Time against the outline and shadows from one start (the same towers, side "
-              "by side, after compiling): " + ", ".join(
-                  f"{k} {v}×" for k, v in out["time_ratio_to_edges_and_shadows"].items()) + "."]
+  if len(out["time_ratios"]) > 1:
+    lines += ["", f"Time against {out['time_ratio_to']} (the same towers, side by side, after "
+              "compiling): " + ", ".join(f"{k} {v}×" for k, v in out["time_ratios"].items())
+              + "."]
   with open(_OUT.value.replace(".json", ".md"), "w") as f:
     f.write("\n".join(lines) + "\n")
   print("\n".join(lines))

@@ -44,12 +44,15 @@ _TAUS = flags.DEFINE_list("taus", ["0", "0.01", "0.02", "0.05", "0.1"], "Prior w
 _BATCH = flags.DEFINE_integer("batch", 16, "Objects per jitted call.")
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.")
 _OUT = flags.DEFINE_string("out", None, "Output folder.", required=True)
+_FIT = flags.DEFINE_enum("fit", "depth", ["depth", "image"], "Boxes fitted to the voxels and "
+                         "then the depth image (ours) or the RGB image (the paper's inputs).")
 
 VARIANTS = ("paper", "mass_match")
 
 
-def make_candidates_fn(model, camera, samples: int, pushes, settings):
-  """One jitted call per batch: decode, fit the boxes (voxels, then depth), draw the
+def make_candidates_fn(model, camera, samples: int, pushes, settings, fit: str = "depth"):
+  """One jitted call per batch: decode, fit the boxes (voxels, then `fit`: the depth or the
+  RGB image), draw the
   candidates, simulate them (the paper's pass) and again scaled to the closest one's
   total mass (`sampling.match_closest_mass`, the mass-matched pass)."""
   graphdef, state = nnx.split(model)
@@ -58,7 +61,8 @@ def make_candidates_fn(model, camera, samples: int, pushes, settings):
   def run(state, obs, key):
     prims, raw = nnx.merge(graphdef, state).decode(obs)
     logits = raw.density_logits[:, :prims.num_slots, :NUM_DENSITY_SLOTS]
-    prims = ppdjax.fit_boxes(obs["voxels"], init=prims, depth=obs["depth"], camera=camera)
+    seen = {"depth": obs["depth"]} if fit == "depth" else {"image": obs["image"]}
+    prims = ppdjax.fit_boxes(obs["voxels"], init=prims, camera=camera, **seen)
     traj = obs["trajectories"].astype(jnp.float32)
 
     def one(p, lg, o, k):
@@ -116,7 +120,8 @@ def to_md(results: dict) -> str:
       "", "```", results["command"], "```", "",
       f"Model `{results['workdir']}`, data `{results['data']}` ({results['split']} split, "
       f"{results['objects']} objects), {results['samples']} candidates on boxes fitted to "
-      f"the voxels and the depth image; {results['device']}, {results['seconds']:.0f} s. "
+      f"the voxels and the {dict(depth='depth', image='RGB').get(results.get('fit', 'depth'))} "
+      f"image; {results['device']}, {results['seconds']:.0f} s. "
       "Top-k in %, RMSE in slots, trajectory MAE in mm; 95 % bootstrap intervals.", "",
       "| selection | τ | top-1 | top-5 | top-10 | RMSE | MAE (mm) | RMSE by boxes |",
       "|---|--:|--:|--:|--:|--:|--:|---|"]
@@ -136,7 +141,7 @@ def main(_):
   model, _ = ppdjax.load(_WORKDIR.value)
   taus = [float(t) for t in _TAUS.value]
   run = make_candidates_fn(model, data.camera, _SAMPLES.value, data.pushes,
-                           settings_for(data.engine))
+                           settings_for(data.engine), _FIT.value)
   records = {f"{v}@{t:g}": [] for v in VARIANTS for t in taus}
   keys = ("voxels", "image", "trajectories", "depth", "primitives")
   b = _BATCH.value
@@ -154,7 +159,7 @@ def main(_):
   results = {
       "command": "python " + " ".join(sys.argv), "workdir": _WORKDIR.value,
       "data": _DATA.value, "split": _SPLIT.value, "objects": int(len(objects)),
-      "samples": _SAMPLES.value, "device": jax.devices()[0].device_kind,
+      "samples": _SAMPLES.value, "fit": _FIT.value, "device": jax.devices()[0].device_kind,
       "seconds": time.perf_counter() - t0,
       "rows": {name: summary({k: np.concatenate([r[k] for r in recs]) for k in recs[0]})
                for name, recs in records.items()}}

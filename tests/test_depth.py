@@ -112,3 +112,45 @@ def test_sweep_centres_each_face_in_the_positions_its_pixels_accept():
   np.testing.assert_allclose(np.delete(out, 3, axis=1)[0], np.delete(faces, 3, axis=1)[0],
                              atol=1e-6)  # unseen faces: the middle of their intervals
   assert out[0, 5] == pytest.approx(out[1, 2], abs=1e-6)  # the tie holds
+
+
+def test_the_sweep_visits_the_valid_boxes_faces_wherever_they_sit():
+  """`sweep_faces` loops over the valid boxes' faces only: an invalid slot between two
+  valid boxes moves nothing and changes nothing about where the valid faces go."""
+  from ppdjax.infer import depth_fit
+  base = jnp.asarray([[-0.1, -0.1, -0.1, 0.1, 0.1, 0.1],
+                      [-0.2, -0.2, 0.1, 0.2, 0.2, 0.3]], jnp.float32)
+  target = base + jnp.asarray([0.004, -0.006, 0.0, 0.005, 0.003, -0.002])
+  grid = jnp.linspace(-0.4, 0.4, 801)  # a "pixel" every mm
+
+  def mismatch_of(rows):
+    def mismatch(f):  # per valid face, the pixels between it and its target
+      g = f[jnp.asarray(rows)]
+      return jnp.sum((grid > jnp.minimum(g, target)[..., None])
+                     & (grid <= jnp.maximum(g, target)[..., None]))
+    return mismatch
+
+  ties = lambda k: jnp.zeros((k, k, 3), bool)
+  packed = depth_fit.sweep_faces(base, base - 0.015, base + 0.015, ties(2),
+                                 jnp.array([True, True]), mismatch_of([0, 1]))
+  junk = jnp.full((1, 6), 0.05)
+  spread = jnp.concatenate([base[:1], junk, base[1:]])
+  out = depth_fit.sweep_faces(spread, spread - 0.015, spread + 0.015, ties(3),
+                              jnp.array([True, False, True]), mismatch_of([0, 2]))
+  np.testing.assert_allclose(out[jnp.array([0, 2])], packed, atol=1e-7)
+  np.testing.assert_array_equal(out[1], junk[0])  # the invalid slot stays
+  assert np.abs(np.asarray(packed) - np.asarray(target)).max() < 1e-3  # and it did move
+
+
+def test_objects_go_through_chunks_by_box_count_and_come_back_in_order():
+  from ppdjax.infer import depth_fit
+  counts = np.array([4, 2, 5, 2, 3, 1])
+  valid = np.arange(5)[None] < counts[:, None]
+  prims = ppdjax.Primitives(half_size=jnp.zeros((6, 5, 3)), pos=jnp.zeros((6, 5, 3)),
+                            quat=jnp.zeros((6, 5, 4)), density=jnp.zeros((6, 5)),
+                            valid=jnp.asarray(valid))
+  tag = jnp.arange(6.0)
+  out = depth_fit.map_by_box_count(lambda p, t: (jnp.sum(p.valid), 10 * t), prims, tag,
+                                   chunk=4)
+  np.testing.assert_array_equal(out[0], counts)
+  np.testing.assert_array_equal(out[1], 10 * np.arange(6))

@@ -16,8 +16,10 @@ outline no pixel sees keeps the voxels' verdict.
 An object stands on the floor wherever its frame's origin is, so the image shows heights
 above the floor and never where along z the origin sits: the faces on the floor stay and the
 other z faces may move a whole voxel (`face_spans`). The sweep is local, so it runs from
-two starts (`STARTS`): sharp edges alone, and a sweep on blurred edges first; the faces
-with the better sharp score win.
+two starts (`STARTS`), side by side: sharp edges alone, and a sweep on blurred edges
+first; the faces with the better sharp score win. A sweep visits the valid boxes' faces
+only, and a batch goes through in chunks of objects with as many boxes
+(`depth_fit.map_by_box_count`).
 
 Measured on 32 fresh paper-preset towers (224² images, experiments/image_fit_study.py,
 docs/inference.md, "With the image"): the faces' median error goes from about 7.7 mm
@@ -36,7 +38,8 @@ import numpy as np
 
 from ppdjax.dataset.camera import check_camera
 from ppdjax.dataset.depth import camera_rays, to_world
-from ppdjax.infer.depth_fit import (MIN_HALF, TOUCHING, VOXEL, boxes_from_faces, sweep_faces,
+from ppdjax.infer.depth_fit import (MIN_HALF, SWEEP_COARSE, SWEEP_FINE, TOUCHING, VOXEL,
+                                    boxes_from_faces, map_by_box_count, sweep_faces,
                                     touching_faces)
 from ppdjax.primitives import Primitives, lowest_point, quat_to_mat
 
@@ -46,7 +49,10 @@ from ppdjax.primitives import Primitives, lowest_point, quat_to_mat
 # sharp sweeps alone, 5.8 with a blurred sweep first, 4.8 with the better of both.
 STARTS = ((), (2.0,))
 PASSES = 2  # sweeps over every face (the second places faces whose neighbours moved)
-CHUNK = 8  # objects refined together (224² pixels x 33 positions x K boxes per face)
+SWEEP = (SWEEP_COARSE, SWEEP_FINE)  # a sweep's offsets per face: over its interval, per end
+# objects refined together (224² pixels x 33 positions x K boxes per face); on an H100 8 and
+# 16 are as fast, 32 and 64 slower (experiments/bench_image_fit.py)
+CHUNK = 8
 EDGE_LEVELS = 1024  # integer steps per unit of colour difference
 SHADOW_EPS = 1e-4  # a shadow ray leaving a box this soon (its exit parameter, m) is not
 # blocked by it: a point on a lit face leaves its own box at 0
@@ -193,7 +199,8 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
                       bound: float = VOXEL / 2, passes: int = PASSES,
                       window: tuple[int, int, int, int] | None = None,
                       light: tuple[float, float, float] | None = None,
-                      starts: tuple[tuple[float, ...], ...] = STARTS) -> Primitives:
+                      starts: tuple[tuple[float, ...], ...] = STARTS,
+                      sweep: tuple[int, int] = SWEEP) -> Primitives:
   """One object's boxes (K, object frame) refined against its image (H, W, 3).
 
   Args:
@@ -210,6 +217,7 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
     starts: per start, the blurs (pixels) of the edges in sweeps before the sharp ones
       (`blur_strength`); every start begins at `prims`, and the faces that end on the best
       sharp score win (`STARTS`).
+    sweep: (coarse, fine) offsets a sweep scores per face (`depth_fit.sweep_faces`).
   """
   h, w = image_HW3.shape[:2]
   r0, r1, c0, c1 = window or (0, h, 0, w)
@@ -228,30 +236,48 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
                         jnp.maximum(prims.half_size - span[:, 3:], MIN_HALF)], -1)
   hi = jnp.concatenate([jnp.minimum(-prims.half_size + span[:, :3], -MIN_HALF),
                         prims.half_size + span[:, 3:]], -1)
-  ends = []
-  for blurs in starts:
-    faces = start
-    for sigma in blurs:
-      faces = sweep_faces(faces, lo, hi, ties, prims.valid,
-                          scorer([blur_strength(s, sigma) for s in sharp]))
-    for _ in range(passes):
-      faces = sweep_faces(faces, lo, hi, ties, prims.valid, scorer(sharp))
-    ends.append(faces)
+  faces = _run_starts(start, starts, passes, sharp,
+                      lambda f, strengths: sweep_faces(
+                          f, lo, hi, ties, prims.valid, scorer(strengths),
+                          coarse_steps=sweep[0], fine_steps=sweep[1]))
   # the best sharp score (argmin: the earlier start on a tie)
-  faces = jnp.stack(ends)[jnp.argmin(jnp.stack([scorer(sharp)(f) for f in ends]))]
+  faces = faces[jnp.argmin(jax.vmap(scorer(sharp))(faces))]
   out = boxes_from_faces(prims, faces)
   keep = prims.valid[:, None]
   return out.replace(half_size=jnp.where(keep, out.half_size, prims.half_size),
                      pos=jnp.where(keep, out.pos, prims.pos))
 
 
+def _run_starts(start_Kx6, starts, passes, sharp, sweep_fn):
+  """(S, K, 6) the faces each start ends on: its blurred sweeps (`blur_strength`), then
+  `passes` sharp ones. The starts sweeping at one step run side by side under one
+  `jax.vmap` (on an H100 1.3x faster than one after the other; the work is compute-bound,
+  so two starts still cost 1.9x one), those without a blurred sweep left there wait."""
+  faces = jnp.broadcast_to(start_Kx6, (len(starts),) + start_Kx6.shape)
+  blurred = {sigma: [blur_strength(x, sigma) for x in sharp]
+             for sigma in sorted({sigma for blurs in starts for sigma in blurs})}
+  for step in range(max(len(blurs) for blurs in starts)):
+    which = [i for i, blurs in enumerate(starts) if step < len(blurs)]
+    edges = [jnp.stack([blurred[starts[i][step]][axis] for i in which]) for axis in (0, 1)]
+    moved = jax.vmap(lambda f, a, d: sweep_fn(f, (a, d)))(faces[jnp.array(which)], *edges)
+    faces = faces.at[jnp.array(which)].set(moved)
+  for _ in range(passes):
+    faces = jax.vmap(lambda f: sweep_fn(f, sharp))(faces)
+  return faces
+
+
 def refine_batch(prims: Primitives, images_BxHxWx3, camera: dict, *,
                  passes: int = PASSES, bound: float = VOXEL / 2,
-                 starts: tuple[tuple[float, ...], ...] = STARTS) -> Primitives:
+                 starts: tuple[tuple[float, ...], ...] = STARTS,
+                 chunk: int = CHUNK, sweep: tuple[int, int] = SWEEP) -> Primitives:
   """`refine_with_image` over a batch (B, K) of objects seen by one camera (jitted once per
-  image size and option; CHUNK objects at a time). The camera's "light_dir" (the
-  dataset's light unless set to None, `camera.check_camera`) adds the boxes' shadows to
-  the outline."""
+  image size and option; `chunk` objects at a time, ordered by their number of boxes:
+  `depth_fit.map_by_box_count`). The camera's "light_dir" (the dataset's light unless set
+  to None, `camera.check_camera`) adds the boxes' shadows to the outline."""
+  if not starts or passes < 0 or chunk < 1 or min(sweep) < 2:
+    raise ValueError(f"image fit: need at least one start, passes >= 0, chunk >= 1 and at "
+                     f"least 2 offsets per scan, got starts {starts!r}, passes {passes}, "
+                     f"chunk {chunk}, sweep {sweep}")
   cam = check_camera(camera)
   light = None if cam["light_dir"] is None else tuple(map(float, cam["light_dir"]))
   return _refine_batch(prims, jnp.asarray(images_BxHxWx3),
@@ -259,16 +285,19 @@ def refine_batch(prims: Primitives, images_BxHxWx3, camera: dict, *,
                        jnp.asarray(cam["camera_from_world"], jnp.float32),
                        passes=passes, bound=float(bound), window=object_window(cam, light=light),
                        light=light,
-                       starts=tuple(tuple(map(float, b)) for b in starts))
+                       starts=tuple(tuple(map(float, b)) for b in starts), chunk=int(chunk),
+                       sweep=tuple(map(int, sweep)))
 
 
-@functools.partial(jax.jit, static_argnames=("passes", "bound", "window", "light", "starts"))
+@functools.partial(jax.jit, static_argnames=("passes", "bound", "window", "light", "starts",
+                                             "chunk", "sweep"))
 def _refine_batch(prims, images, intrinsics, camera_from_world, passes, bound, window, light,
-                  starts):
+                  starts, chunk, sweep):
   one = lambda p, im: refine_with_image(p, im, intrinsics, camera_from_world, bound=bound,
-                                        passes=passes, window=window, light=light, starts=starts)
+                                        passes=passes, window=window, light=light, starts=starts,
+                                        sweep=sweep)
   with jax.default_matmul_precision("highest"):  # GPUs' TF32 default: mm at 2.6 m
-    return jax.lax.map(lambda a: one(*a), (prims, images), batch_size=CHUNK)
+    return map_by_box_count(one, prims, images, chunk=chunk)
 
 
 def check_image(image, camera: dict, batch: tuple[int, ...]) -> None:
