@@ -107,7 +107,8 @@ def main(argv):
          "machine": f"{jax.devices()[0].device_kind} ({jax.default_backend()}), "
                     f"{os.cpu_count()} CPU cores",
          "command": f"python experiments/image_fit_study.py --towers={n} --seed={_SEED.value} "
-                    f"--size={size} --rows={','.join(_ROWS.value)}"}
+                    f"--size={size} --rows={','.join(_ROWS.value)}"
+                    + (f" --out={_OUT.value}" if _OUT.value != _OUT.default else "")}
   os.makedirs(os.path.dirname(_OUT.value) or ".", exist_ok=True)
   with open(_OUT.value, "w") as f:
     json.dump(out, f, indent=1)
