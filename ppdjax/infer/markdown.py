@@ -147,7 +147,7 @@ def results_md(results: dict, command: str = "") -> str:
             + (f", refinement {results['refine_steps']} LM steps" if results["refine"] else "")
             + f"; {results['seconds']:.0f} s in all" + seconds_by_part(results)
             + f". Shape F1: **{results['f1']:.1f}** "
-            f"(paper: {PAPER_SHAPE_F1})" + shape_line(results) + ".", "",
+            f"(paper, block towers: {PAPER_SHAPE_F1})" + shape_line(results) + ".", "",
             "## Table 2: density and trajectory", ""]
   lines += table2_md(results["table2"], observes)
   lines += ["", "Paper (block towers): " + paper_line(PAPER_TABLE2_ONE_MODEL) + ".", ""]
