@@ -48,6 +48,7 @@ _FIT = flags.DEFINE_enum("fit", "depth", ["depth", "image"], "Boxes fitted to th
                          "then the depth image (ours) or the RGB image (the paper's inputs).")
 
 VARIANTS = ("paper", "mass_match")
+SEEN = {"depth": "depth", "image": "RGB"}  # --fit: the image the boxes are fitted to
 
 
 def make_candidates_fn(model, camera, samples: int, pushes, settings, fit: str = "depth"):
@@ -120,8 +121,8 @@ def to_md(results: dict) -> str:
       "", "```", results["command"], "```", "",
       f"Model `{results['workdir']}`, data `{results['data']}` ({results['split']} split, "
       f"{results['objects']} objects), {results['samples']} candidates on boxes fitted to "
-      f"the voxels and the {dict(depth='depth', image='RGB').get(results.get('fit', 'depth'))} "
-      f"image; {results['device']}, {results['seconds']:.0f} s. "
+      f"the voxels and the {SEEN[results.get('fit', 'depth')]} image; {results['device']}, "
+      f"{results['seconds']:.0f} s. "
       "Top-k in %, RMSE in slots, trajectory MAE in mm; 95 % bootstrap intervals.", "",
       "| selection | τ | top-1 | top-5 | top-10 | RMSE | MAE (mm) | RMSE by boxes |",
       "|---|--:|--:|--:|--:|--:|--:|---|"]

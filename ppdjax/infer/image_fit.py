@@ -259,8 +259,8 @@ def _run_starts(start_Kx6, starts, passes, sharp, sweep_fn):
   for step in range(max(len(blurs) for blurs in starts)):
     which = [i for i, blurs in enumerate(starts) if step < len(blurs)]
     edges = [jnp.stack([blurred[starts[i][step]][axis] for i in which]) for axis in (0, 1)]
-    moved = jax.vmap(lambda f, a, d: sweep_fn(f, (a, d)))(faces[jnp.array(which)], *edges)
-    faces = faces.at[jnp.array(which)].set(moved)
+    idx = jnp.array(which)
+    faces = faces.at[idx].set(jax.vmap(lambda f, a, d: sweep_fn(f, (a, d)))(faces[idx], *edges))
   for _ in range(passes):
     faces = jax.vmap(lambda f: sweep_fn(f, sharp))(faces)
   return faces
