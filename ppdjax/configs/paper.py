@@ -57,7 +57,11 @@ def get_config():
   # at 0.05). An earlier choice of 0.05 was an artefact of a float32 tie in the evaluation.
   config.eval.prior_weight = 0.0
   config.eval.fit = True  # the +Fit rows (boxes fitted to the voxels, infer.fit)
-  config.eval.depth = True  # the +Fit(depth) rows (then refined against depth, depth_fit)
+  # The +Fit(depth) rows (boxes refined against the dataset's depth images, depth_fit; not
+  # the paper's inputs) are a study: --config.eval.depth=True. Off, +Refine starts from the
+  # +Fit rows' boxes, and the pipeline's evaluation is about 70 s shorter on one H100
+  # (docs/experiments.md, "Where the 25 minutes went").
+  config.eval.depth = False
   # +Refine as plain least squares from the closest sample: a MAP step under the network's
   # density scores (weight > 0) refined worse on every weight tried on the validation
   # split of unseen towers (experiments/results/prior_study_val.md)
