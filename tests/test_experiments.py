@@ -229,11 +229,11 @@ def test_the_whole_split_joins_blocks_json_and_the_targets_read_it(tmp_path):
     joined = json.load(f)
   with open(os.path.join(ev, "results.json")) as f:
     full = json.load(f)
-  row = joined["whole_split"]["table2"]["PPD (full)+Fit(depth)+Sample+Refine"]
+  row = joined["whole_split"]["table2"]["PPD (full)+Fit+Sample+Refine"]
   assert row["objects"] == full["objects"] == 4800
-  assert row["top1"] == full["table2"]["PPD+Fit(depth)+Sample+Refine"]["top1"]
+  assert row["top1"] == full["table2"]["PPD+Fit+Sample+Refine"]["top1"]
   md = (tmp_path / "res" / "blocks.md").read_text()
-  assert f"| PPD (full)+Fit(depth)+Sample+Refine top-1 | {row['top1']:.2f} |" in md
+  assert f"| PPD (full)+Fit+Sample+Refine top-1 | {row['top1']:.2f} |" in md
   assert (tmp_path / "res" / "blocks_whole_split" / "results.md").exists()
   small = tmp_path / "small"
   small.mkdir()
