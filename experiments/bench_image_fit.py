@@ -11,6 +11,9 @@ then, in one process and after compiling each variant once:
   * "one start": the sharp start alone;
   * "two starts, chunk C": `image_fit.STARTS` side by side (the default), C objects per
     chunk (`refine_batch(chunk=C)`);
+  * "two starts, chunk C, every slot": the labels test all K box slots in every chunk
+    (`refine_batch(slots=False)`, the fit before 2026-11-26, late evening), at the first
+    chunk size;
   * with --sweeps, "two starts, chunk C, sweep AxB": fewer offsets scored per face
     (`refine_batch(sweep=(A, B))`; the default is `image_fit.SWEEP`).
 Each time is the median of --repeats calls on the whole batch; ratios are against the peer.
@@ -64,8 +67,8 @@ def main(argv):
   _, images, voxel_fit = image_fit_common.fresh_towers(_SEED.value, n, size)
   cam = camera_lib.camera_dict(size, size)
   chunks = [int(c) for c in _CHUNKS.value]
-  fit = lambda starts, chunk, sweep=image_fit.SWEEP: lambda: image_fit.refine_batch(
-      voxel_fit, images, cam, starts=starts, chunk=chunk, sweep=sweep)
+  fit = lambda starts, chunk, sweep=image_fit.SWEEP, slots=True: lambda: image_fit.refine_batch(
+      voxel_fit, images, cam, starts=starts, chunk=chunk, sweep=sweep, slots=slots)
   rows, faces = {}, {}
   singles = [timed(fit((start,), chunks[0]), _REPEATS.value) for start in image_fit.STARTS]
   rows["one after the other (peer)"] = sum(seconds for _, seconds in singles)
@@ -75,6 +78,9 @@ def main(argv):
     name = f"two starts, chunk {chunk}"
     out, rows[name] = timed(fit(image_fit.STARTS, chunk), _REPEATS.value)
     faces[name] = np.asarray(box_faces(out))
+  name = f"two starts, chunk {chunks[0]}, every slot"
+  out, rows[name] = timed(fit(image_fit.STARTS, chunks[0], slots=False), _REPEATS.value)
+  faces[name] = np.asarray(box_faces(out))
   for text in _SWEEPS.value:
     sweep = tuple(int(x) for x in text.split("x"))
     name = f"two starts, chunk {chunks[0]}, sweep {sweep[0]}x{sweep[1]}"

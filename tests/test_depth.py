@@ -154,3 +154,30 @@ def test_objects_go_through_chunks_by_box_count_and_come_back_in_order():
                                    chunk=4)
   np.testing.assert_array_equal(out[0], counts)
   np.testing.assert_array_equal(out[1], 10 * np.arange(6))
+
+
+def test_chunks_by_slots_see_their_valid_boxes_first_and_put_them_back():
+  """`map_by_box_count(slots=True)`: each chunk's function gets the valid boxes first, cut
+  to the chunk's most valid boxes (at least 2); results go back to their slots, the slots
+  cut off come back as they were, and objects come back in order."""
+  from ppdjax.infer import depth_fit
+  valid = np.array([[1, 0, 1, 1, 0], [1, 1, 0, 0, 0], [1, 1, 1, 1, 1], [0, 1, 0, 0, 0],
+                    [1, 1, 1, 0, 0]], bool)
+  b = len(valid)
+  tag = jnp.arange(b, dtype=jnp.float32)
+  prims = ppdjax.Primitives(
+      half_size=jnp.broadcast_to(jnp.arange(5.0)[None, :, None], (b, 5, 3)),
+      pos=jnp.zeros((b, 5, 3)), quat=jnp.zeros((b, 5, 4)),
+      density=jnp.broadcast_to(tag[:, None], (b, 5)), valid=jnp.asarray(valid))
+
+  def fn(p, t):  # marks the slots it saw with their count; keeps the slots' own sizes
+    return p.replace(density=jnp.where(p.valid, 100.0 * p.valid.shape[0] + t, p.density))
+
+  out = depth_fit.map_by_box_count(fn, prims, tag, chunk=2, slots=True)
+  # sorted by count: [3 (1 box), 1 (2)] -> 2 slots, [4 (3), 0 (3)] -> 3, [2 (5)] -> 5
+  seen = {3: 2, 1: 2, 4: 3, 0: 3, 2: 5}
+  want = np.where(valid, 100.0 * np.array([seen[i] for i in range(b)])[:, None]
+                  + np.arange(b)[:, None], np.arange(b)[:, None])
+  np.testing.assert_array_equal(out.density, want)
+  np.testing.assert_array_equal(out.half_size, prims.half_size)  # every slot in its place
+  np.testing.assert_array_equal(out.valid, valid)

@@ -240,3 +240,16 @@ def test_the_image_brings_the_faces_closer_than_the_voxels(rendered):
   assert np.median(after) < 0.6 * np.median(before)
   assert np.mean(after) < np.mean(before)
   assert np.array_equal(np.asarray(fitted.valid), np.asarray(plain.valid))
+
+
+@pytest.mark.slow  # two compilations of the fit on 2 cores; `make test-all`
+def test_labels_cut_to_each_chunks_boxes_leave_the_faces_as_they_were(rendered):
+  """`refine_batch(slots=True)` (each chunk's labels test only its valid boxes' slots)
+  against every slot: the same faces, on towers of different box counts in chunks of 2."""
+  prims, vox, images, cam = rendered
+  start = ppdjax.fit_boxes(vox)
+  assert len(set(np.asarray(start.valid).sum(-1).tolist())) > 1  # chunks of different widths
+  cut = image_fit.refine_batch(start, images, cam, chunk=2)
+  every = image_fit.refine_batch(start, images, cam, chunk=2, slots=False)
+  for a, b in zip(jax.tree.leaves(cut), jax.tree.leaves(every)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

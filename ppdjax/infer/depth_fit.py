@@ -227,15 +227,55 @@ def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch, *,
                            faces_Kx6)
 
 
-def map_by_box_count(fn, prims: Primitives, *per_object, chunk: int):
+def map_by_box_count(fn, prims: Primitives, *per_object, chunk: int, slots: bool = False):
   """`jax.lax.map(fn, (prims, *per_object), batch_size=chunk)` with the objects ordered by
   their number of valid boxes (B, K): each chunk of `sweep_faces` then loops as long as its
   own objects need (a vmapped loop runs as long as its longest member); results come back
-  in the given order."""
+  in the given order.
+
+  With `slots`, `fn` also sees only as many box slots as its chunk needs: each chunk runs
+  one of K - 1 branches (`jax.lax.switch` on the chunk's most valid boxes, at least 2), whose
+  boxes are the objects' valid ones first, in their order, cut to that many slots; `fn` must
+  return Primitives of the slots it was given, which go back to their places (the slots cut
+  off come back as they were). Work that tests every ray against every slot (the image
+  fit's labels) then costs a two-block chunk 2/K of a full one; it compiles `fn` K - 1 times.
+  """
   order = jnp.argsort(jnp.sum(prims.valid, -1), stable=True)
   take = lambda x: jax.tree.map(lambda a: a[order], x)
-  out = jax.lax.map(lambda a: fn(*a), take((prims,) + tuple(per_object)), batch_size=chunk)
+  args = take((prims,) + tuple(per_object))
+  if slots:
+    out = _map_chunks_by_slots(fn, args, chunk)
+  else:
+    out = jax.lax.map(lambda a: fn(*a), args, batch_size=chunk)
   return jax.tree.map(lambda a: a[jnp.argsort(order)], out)
+
+
+def _map_chunks_by_slots(fn, args, chunk: int):
+  """`map_by_box_count(slots=True)`'s loop over chunks of already ordered objects."""
+  b, k_all = args[0].valid.shape
+  chunk = min(chunk, b)
+  n = -(-b // chunk)
+  pad = n * chunk - b  # the last chunk filled with the first object (fewest boxes), dropped
+  grow = lambda a: jnp.concatenate([a, jnp.repeat(a[:1], pad, 0)]) if pad else a
+  chunks = jax.tree.map(lambda a: grow(a).reshape((n, chunk) + a.shape[1:]), args)
+  sizes = tuple(range(min(2, k_all), k_all + 1))
+  rows = jnp.arange(chunk)[:, None]
+
+  def branch(k):
+    def run(c):
+      p = c[0]
+      slot = jnp.argsort(~p.valid, axis=-1, stable=True)[:, :k]  # valid first, in order
+      got = jax.vmap(fn)(jax.tree.map(lambda a: a[rows, slot], p), *c[1:])
+      return jax.tree.map(lambda full, part: full.at[rows, slot].set(part), p, got)
+    return run
+
+  def one_chunk(c):
+    most = jnp.max(jnp.sum(c[0].valid, -1))
+    index = jnp.searchsorted(jnp.asarray(sizes), most)  # the first size that holds them
+    return jax.lax.switch(jnp.clip(index, 0, len(sizes) - 1), [branch(k) for k in sizes], c)
+
+  out = jax.lax.map(one_chunk, chunks)
+  return jax.tree.map(lambda a: a.reshape((n * chunk,) + a.shape[2:])[:b], out)
 
 
 def check_depth(depth, camera: dict, batch: tuple[int, ...]) -> None:
