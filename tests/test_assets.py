@@ -128,6 +128,13 @@ def test_the_example_keeps_its_depth_and_camera(tmp_path):
   decompose_example.save_example(sample, str(tmp_path / "plain.npz"))
   assert decompose_example.load_camera(str(tmp_path / "plain.npz")) is None
   assert "depth" not in decompose_example.load_example(str(tmp_path / "plain.npz"))[0]
+  # the camera's light goes with it (the image fit's shadows), and so does "no light"
+  for light in ((0.3, -0.2, -0.9), None):
+    path = str(tmp_path / f"lit_{light is None}.npz")
+    decompose_example.save_example({**sample, "depth": obs["depth"]}, path,
+                                   camera=dict(cam, light_dir=light))
+    got = decompose_example.load_camera(path)["light_dir"]
+    assert got is None if light is None else np.allclose(got, light)
 
 
 ESTIMATOR = os.path.join(ROOT, "assets", "density_estimator")

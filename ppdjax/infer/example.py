@@ -19,13 +19,17 @@ from ppdjax.training import checkpoints
 
 def save_example(sample: dict, path: str, camera: dict | None = None) -> None:
   """Writes one dataset sample (observation and true boxes) as an .npz; with the
-  dataset's `camera`, also its depth image and that camera (for the depth fit)."""
+  dataset's `camera`, also its depth image and that camera (for the depth fit), with its
+  light where the camera names one (the image fit's shadows; None: none)."""
   p = sample["primitives"]
   extra = {}
   if camera is not None:
     extra = {"depth": sample["depth"], "camera_size": [camera["height"], camera["width"]],
              "camera_intrinsics": camera["intrinsics"],
              "camera_from_world": camera["camera_from_world"]}
+    if "light_dir" in camera:  # an empty array: the camera has no light
+      light = camera["light_dir"]
+      extra["camera_light_dir"] = np.zeros(0) if light is None else np.asarray(light)
   np.savez_compressed(path, **{k: sample[k] for k in OBS_KEYS}, **extra,
                       **{f"true_{f}": np.asarray(getattr(p, f)) for f in primitives.FIELDS})
 
@@ -43,15 +47,20 @@ def load_example(path: str) -> tuple[dict, Primitives]:
 
 
 def load_camera(path: str) -> dict | None:
-  """The camera of an example's depth image (None for an example saved without one)."""
+  """The camera of an example's depth image (None for an example saved without one), with
+  its "light_dir" where it was saved (else `camera.check_camera` gives the datasets')."""
   try:
     with np.load(path) as z:
       if "camera_size" not in z.files:
         return None
       (h, w), k, pose = z["camera_size"], z["camera_intrinsics"], z["camera_from_world"]
+      light = z["camera_light_dir"] if "camera_light_dir" in z.files else False
   except (OSError, KeyError, ValueError) as e:
     raise DatasetError(f"{path} is not a readable example tower: {e}") from e
-  return {"height": int(h), "width": int(w), "intrinsics": k, "camera_from_world": pose}
+  cam = {"height": int(h), "width": int(w), "intrinsics": k, "camera_from_world": pose}
+  if light is not False:
+    cam["light_dir"] = None if light.size == 0 else light
+  return cam
 
 
 def decompose_example(model_dir: str, example: str, out: str, samples: int = 512,
