@@ -13,9 +13,10 @@ from scratch; evaluate the full model on --max_objects test objects spread over 
 image, the paper's inputs), +Fit+Sample+Refine and the baselines; with
 --config.eval.depth=True the +Fit(depth) rows too, which +Refine then starts from; with
 --joint +Sample+Joint; with --true_shapes the true-box column), with --val_objects a τ
-sweep on validation objects (validate:full), and the ablations on the whole split (plain); `export`, once the full
-model is trained: it goes to assets/blocks_model, with an example tower and the picture
-of its decomposition; then `report`: experiments/results/blocks.{json,md} and PNGs.
+sweep on validation objects (validate:full), and the ablations on the whole split
+(plain); `export`, once the full model is trained: it goes to assets/blocks_model, with an
+example tower and the picture of its decomposition; then `report`:
+experiments/results/blocks.{json,md} and PNGs.
 Every step resumes:
 generation by shard, training from its last checkpoint (a training step stops itself
 after --step_seconds and the next call goes on); the test-split evaluations save each batch
