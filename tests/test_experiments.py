@@ -327,3 +327,27 @@ def test_table5_errors_reads_saved_records_and_finds_the_tail(tmp_path):
   assert out["rmse"] == pytest.approx(np.sqrt(100 / 40)) and out["rmse_without_worst_5pct"] == 0
   assert out["objects_off_by_more_than_5_slots"] == pytest.approx(0.05)
   assert out["worst_face_mm_median"] == pytest.approx(1.0)
+
+
+@pytest.mark.slow  # a tool simulated six times by MuJoCo C, a few seconds
+def test_tool_identifiability_measures_the_parts_and_the_box_mismatch():
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from ppdjax.dataset import tools
+  import tool_identifiability  # pylint: disable=import-outside-toplevel
+
+  assert tool_identifiability.other_metal_mode(25) == 84
+  assert tool_identifiability.other_metal_mode(90) == 27
+  a = np.zeros((4, 10, 7))
+  b = a.copy()
+  b[..., 1] = 0.003  # 3 mm along y at every step
+  assert tool_identifiability.distance_mm(a, b) == pytest.approx(3.0)
+  tool = tools.sample_tool(2026, 0, category="hammer")
+  r = tool_identifiability.study_tool(tool)
+  assert r["category"] == "hammer" and len(r["parts"]) == len(tool.parts)
+  assert r["mismatch_mm"] > 0 and r["moved_mm"] > 0
+  assert sum(p["mass_fraction"] for p in r["parts"]) == pytest.approx(1.0)
+  for p in r["parts"]:  # a heavier part changes the motion, and metal has its other mode
+    assert p["x1.5"] > 0 and p["x0.667"] > 0
+    assert ("metal mode" in p) == (p["material"] == "metal")
+  summary = tool_identifiability.summarize([r])
+  assert summary["tools"] == 1 and summary["parts"] == len(tool.parts)
