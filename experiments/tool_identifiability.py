@@ -11,6 +11,9 @@ MuJoCo C under the tools' four pushes (`tool_scene.simulate_tool`, `tool_pushes(
   * each part's sensitivity: the tool's own trajectories with that part's density times
     1.5 and divided by 1.5 (the other parts as they are), and for metal parts in the other
     mode of metal's two slot ranges (21-35 and 71-100, ×100 kg/m³);
+  * the mismatch split: the tool's own shape with the boxes' mass properties
+    (`simulate_tool(inertial=)`), against the tool (the mass properties' part) and against
+    the boxes (the contact shape's part);
   * a part whose density change moves the tool less than the box mismatch cannot be read
     from the motion through boxes: the closest box trajectory is as likely to pick the
     wrong density as the right one.
@@ -69,6 +72,18 @@ def study_tool(tool) -> dict | None:
   mass = np.asarray([p.volume for p in parts]) * dens
   out = {"category": tool.category, "mismatch_mm": distance_mm(boxes, seen),
          "moved_mm": distance_mm(seen, np.broadcast_to(seen[:, :1], seen.shape)), "parts": []}
+  # the mismatch split: the tool's own shape with the boxes' mass, centre of mass and
+  # inertia is off the tool by what the mass properties cost, and off the boxes by what
+  # the contact shape (and where the pushes land) costs
+  mp = ppdjax.mass_properties(prims)
+  inertial = (float(mp.mass), np.asarray(mp.com, np.float64), np.asarray(mp.inertia, np.float64))
+  out["box_mass_ratio"] = float(mp.mass / mass.sum())
+  try:
+    hybrid = tool_scene.simulate_tool(parts, dens, inertial=inertial)
+    out["mass_part_mm"] = distance_mm(hybrid, seen)
+    out["shape_part_mm"] = distance_mm(hybrid, boxes)
+  except RuntimeError:
+    out["mass_part_mm"] = out["shape_part_mm"] = None
   for i, (name, material) in enumerate(zip(tool.names, tool.materials)):
     changes = {}
     for factor in FACTORS:
@@ -116,6 +131,16 @@ def summarize(rows: list[dict]) -> dict:
           "mismatch_mm": {"median": float(np.median(mismatch)),
                           "p90": float(np.percentile(mismatch, 90))},
           "moved_mm_median": float(np.median([r["moved_mm"] for r in rows])),
+          "box_mass_ratio_median": float(np.median([r["box_mass_ratio"] for r in rows])),
+          **{f"{k}_median": float(np.median([r[k] for r in rows if r[k] is not None]))
+             for k in ("mass_part_mm", "shape_part_mm")},
+          "by_category": {
+              c: {"tools": sum(r["category"] == c for r in rows),
+                  **{k: float(np.median([r[k] for r in rows
+                                         if r["category"] == c and r[k] is not None]))
+                     for k in ("box_mass_ratio", "mismatch_mm", "mass_part_mm",
+                               "shape_part_mm")}}
+              for c in sorted({r["category"] for r in rows})},
           "hidden_x1.5": float(np.mean([p["x1.5"] < r["mismatch_mm"] for r in rows
                                         for p in r["parts"] if p["x1.5"] is not None])),
           "by_part": table}
@@ -169,6 +194,19 @@ def main(argv):
       "no box candidate can come closer. A part is *hidden* when multiplying its density "
       "by 1.5 moves the tool less than that mismatch. Hidden overall: "
       f"**{100 * summary['hidden_x1.5']:.0f} %** of parts.", "",
+      "The mismatch split: the tool's own shape simulated with its boxes' mass, centre of "
+      "mass and inertia (the boxes weigh a median "
+      f"{summary['box_mass_ratio_median']:.2f}x the tool) is a median "
+      f"{summary['mass_part_mm_median']:.2f} mm off the tool (what the boxes' mass "
+      f"properties cost) and {summary['shape_part_mm_median']:.2f} mm off the boxes (what "
+      "their contact shape and where the pushes land cost). Medians by category:", "",
+      "| category | tools | boxes / tool mass | box mismatch (mm) | mass properties' part (mm) "
+      "| contact shape's part (mm) |", "|---|--:|--:|--:|--:|--:|"]
+  for category, c in summary["by_category"].items():
+    lines.append(f"| {category} | {c['tools']} | {c['box_mass_ratio']:.2f} | "
+                 f"{c['mismatch_mm']:.2f} | {c['mass_part_mm']:.2f} | {c['shape_part_mm']:.2f} |")
+  lines += [
+      "",
       "| category | part | material | parts | mass share (median) | × 1.5: change (median mm) "
       "| hidden (× 1.5) | other metal mode: change (median mm) | hidden (metal mode) |",
       "|---|---|---|--:|--:|--:|--:|--:|--:|"]

@@ -345,6 +345,8 @@ def test_tool_identifiability_measures_the_parts_and_the_box_mismatch():
   r = tool_identifiability.study_tool(tool)
   assert r["category"] == "hammer" and len(r["parts"]) == len(tool.parts)
   assert r["mismatch_mm"] > 0 and r["moved_mm"] > 0
+  assert r["box_mass_ratio"] > 1  # boxes cover more than the parts
+  assert r["mass_part_mm"] > 0 and r["shape_part_mm"] > 0
   assert sum(p["mass_fraction"] for p in r["parts"]) == pytest.approx(1.0)
   for p in r["parts"]:  # a heavier part changes the motion, and metal has its other mode
     assert p["x1.5"] > 0 and p["x0.667"] > 0

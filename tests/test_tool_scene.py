@@ -23,6 +23,24 @@ def test_a_box_tool_moves_as_the_same_box_tower():
   assert np.linalg.norm(want[:, -1, :3] - want[:, 0, :3], axis=-1).min() > 0.01  # it moved
 
 
+def test_a_tool_simulated_with_given_mass_properties():
+  """`simulate_tool(inertial=)`: the box's own (ppdjax.mass_properties) changes nothing;
+  twice its mass with the same shape moves it less far."""
+  half = np.array([0.4, 0.15, 0.1])
+  box = trimesh.creation.box(extents=2 * half)
+  prims = primitives.stack([primitives.make(half[None], np.zeros((1, 3)), density=2000.0)])
+  mp = ppdjax.mass_properties(prims)
+  own = (float(mp.mass[0]), np.asarray(mp.com[0], np.float64), np.asarray(mp.inertia[0], np.float64))
+  pushes = ppdjax.default_pushes()  # the towers' push: a 96 kg box slides
+  plain = tool_scene.simulate_tool([box], [2000.0], pushes, steps=64)
+  same = tool_scene.simulate_tool([box], [2000.0], pushes, steps=64, inertial=own)
+  np.testing.assert_allclose(same, plain, atol=1e-6)
+  heavy = tool_scene.simulate_tool([box], [2000.0], pushes, steps=64,
+                                   inertial=(2 * own[0], own[1], 2 * own[2]))
+  travel = lambda t: np.linalg.norm(t[:, -1, :3] - t[:, 0, :3], axis=-1)
+  assert np.all(travel(heavy) < travel(plain))
+
+
 def test_mass_properties_add_up_as_the_box_formulas():
   halves = np.array([[0.3, 0.1, 0.05], [0.05, 0.05, 0.2]])
   centres = np.array([[0.0, 0.0, 0.0], [0.35, 0.0, 0.15]])

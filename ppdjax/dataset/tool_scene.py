@@ -83,10 +83,11 @@ def _floats(x) -> str:
   return " ".join(f"{float(v):.9g}" for v in np.ravel(x))
 
 
-def tool_xml(parts, densities, *, textures: bool = False) -> str:
+def tool_xml(parts, densities, *, textures: bool = False, inertial=None) -> str:
   """MJCF of the tool on the ground: convex-piece mesh geoms (part i's named part{i}_j,
-  material mat{i} when `textures`) in one free body with the parts' exact inertia."""
-  mass, com, inertia = mass_properties(parts, densities)
+  material mat{i} when `textures`) in one free body with the parts' exact inertia, or
+  `inertial` = (mass, centre of mass, inertia about it) in the tool's frame instead."""
+  mass, com, inertia = mass_properties(parts, densities) if inertial is None else inertial
   meshes, geoms = [], []
   for i, part in enumerate(parts):
     for j, piece in enumerate(convex_pieces(part)):
@@ -139,18 +140,19 @@ def push_points(parts, pushes: Pushes) -> np.ndarray:
 
 
 def simulate_tool(parts, densities, pushes: Pushes | None = None, *,
-                  steps: int = STEPS) -> np.ndarray:
+                  steps: int = STEPS, inertial=None) -> np.ndarray:
   """(P, steps, 7) poses (object-frame origin, quaternion w x y z) of the tool under each
   push (default `tool_pushes()`), by MuJoCo C with MuJoCo's default solver settings (as
-  `backend="mujoco"`). Raises RuntimeError if the solver diverges."""
+  `backend="mujoco"`); `inertial` (mass, centre of mass, inertia about it) replaces the
+  parts' own (`tool_xml`). Raises RuntimeError if the solver diverges."""
   pushes = tool_pushes() if pushes is None else pushes
   if pushes.is_strike:
     raise ValueError("simulate_tool applies forces; strikes (Pushes.striker_masses) are "
                      "simulated by ppdjax.simulate on boxes")
   import mujoco  # pylint: disable=import-outside-toplevel
-  model = mujoco.MjModel.from_xml_string(tool_xml(parts, densities))
+  model = mujoco.MjModel.from_xml_string(tool_xml(parts, densities, inertial=inertial))
   data = mujoco.MjData(model)
-  _, com, _ = mass_properties(parts, densities)
+  _, com, _ = mass_properties(parts, densities) if inertial is None else inertial
   sources = np.asarray(pushes.sources, np.float64)
   directions = np.asarray(pushes.targets, np.float64) - sources
   directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
