@@ -23,6 +23,7 @@ Writes OUT/results.json, OUT/results.md and OUT/sensitivity.png.
 
 from __future__ import annotations
 
+import argparse
 import collections
 import json
 import os
@@ -33,7 +34,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from absl import app, flags  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import ppdjax  # noqa: E402
@@ -42,9 +42,6 @@ from ppdjax.dataset import tool_scene, tools  # noqa: E402
 from ppdjax.dataset.meshes import normalize  # noqa: E402
 from ppdjax.dataset.tool_generation import boxes_of_parts  # noqa: E402
 
-_TOOLS = flags.DEFINE_integer("tools", 120, "fresh tools")
-_SEED = flags.DEFINE_integer("seed", 2026, "their seed")
-_OUT = flags.DEFINE_string("out", "experiments/results/tool_identifiability", "output folder")
 FACTORS = (1.5, 1 / 1.5)
 
 
@@ -59,14 +56,22 @@ def other_metal_mode(slot: int) -> int:
   return 84 if slot <= 34 else 27
 
 
+def simulated(parts, densities, **options):
+  """`tool_scene.simulate_tool`, or None where MuJoCo diverges."""
+  try:
+    return tool_scene.simulate_tool(parts, densities, **options)
+  except RuntimeError:
+    return None
+
+
 def study_tool(tool) -> dict | None:
   """One tool's mismatch and parts' sensitivities; None if MuJoCo diverges on it."""
   parts, _ = normalize(list(tool.parts))
   dens = tool.densities
-  try:
-    seen = tool_scene.simulate_tool(parts, dens)
-  except RuntimeError:
+  seen = simulated(parts, dens)
+  if seen is None:
     return None
+  off = lambda traj: None if traj is None else distance_mm(traj, seen)
   prims, _ = boxes_of_parts(parts, dens)
   boxes = np.asarray(ppdjax.simulate(prims, tool_scene.tool_pushes(), backend="mujoco"))
   mass = np.asarray([p.volume for p in parts]) * dens
@@ -78,28 +83,15 @@ def study_tool(tool) -> dict | None:
   mp = ppdjax.mass_properties(prims)
   inertial = (float(mp.mass), np.asarray(mp.com, np.float64), np.asarray(mp.inertia, np.float64))
   out["box_mass_ratio"] = float(mp.mass / mass.sum())
-  try:
-    hybrid = tool_scene.simulate_tool(parts, dens, inertial=inertial)
-    out["mass_part_mm"] = distance_mm(hybrid, seen)
-    out["shape_part_mm"] = distance_mm(hybrid, boxes)
-  except RuntimeError:
-    out["mass_part_mm"] = out["shape_part_mm"] = None
+  hybrid = simulated(parts, dens, inertial=inertial)
+  out["mass_part_mm"] = off(hybrid)
+  out["shape_part_mm"] = None if hybrid is None else distance_mm(hybrid, boxes)
   for i, (name, material) in enumerate(zip(tool.names, tool.materials)):
-    changes = {}
-    for factor in FACTORS:
-      d = dens.copy()
-      d[i] = dens[i] * factor
-      try:
-        changes[f"x{factor:.3g}"] = distance_mm(tool_scene.simulate_tool(parts, d), seen)
-      except RuntimeError:
-        changes[f"x{factor:.3g}"] = None
+    with_part = lambda rho: off(simulated(parts, np.where(np.arange(len(dens)) == i, rho, dens)))
+    changes = {f"x{factor:.3g}": with_part(dens[i] * factor) for factor in FACTORS}
     if material == "metal":
-      d = dens.copy()
-      d[i] = slot_to_density(other_metal_mode(int(density_to_slot(dens[i]))))
-      try:
-        changes["metal mode"] = distance_mm(tool_scene.simulate_tool(parts, d), seen)
-      except RuntimeError:
-        changes["metal mode"] = None
+      changes["metal mode"] = with_part(
+          slot_to_density(other_metal_mode(int(density_to_slot(dens[i])))))
     out["parts"].append({"name": name, "material": material,
                          "mass_fraction": float(mass[i] / mass.sum()), **changes})
   return out
@@ -164,28 +156,35 @@ def plot(rows: list[dict], path: str) -> None:
   plt.close(fig)
 
 
-def main(argv):
-  del argv
+def main():
+  # argparse, not absl flags: the tests import this module beside modules that define
+  # absl flags of the same names
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--tools", type=int, default=120, help="fresh tools")
+  parser.add_argument("--seed", type=int, default=2026, help="their seed")
+  parser.add_argument("--out", default="experiments/results/tool_identifiability",
+                      help="output folder")
+  args = parser.parse_args()
   t0 = time.perf_counter()
   rows, diverged = [], 0
-  for tool in tqdm(tools.sample_tools(_SEED.value, _TOOLS.value), desc="tools"):
+  for tool in tqdm(tools.sample_tools(args.seed, args.tools), desc="tools"):
     r = study_tool(tool)
     if r is None:
       diverged += 1
     else:
       rows.append(r)
-  summary = {**summarize(rows), "diverged": diverged, "seed": _SEED.value,
+  summary = {**summarize(rows), "diverged": diverged, "seed": args.seed,
              "seconds": round(time.perf_counter() - t0, 1),
-             "command": f"python experiments/tool_identifiability.py --tools={_TOOLS.value} "
-                        f"--seed={_SEED.value}"}
-  os.makedirs(_OUT.value, exist_ok=True)
-  with open(os.path.join(_OUT.value, "results.json"), "w") as f:
+             "command": f"python experiments/tool_identifiability.py --tools={args.tools} "
+                        f"--seed={args.seed}"}
+  os.makedirs(args.out, exist_ok=True)
+  with open(os.path.join(args.out, "results.json"), "w") as f:
     json.dump({**summary, "rows": rows}, f, indent=1)
-  plot(rows, os.path.join(_OUT.value, "sensitivity.png"))
+  plot(rows, os.path.join(args.out, "sensitivity.png"))
   lines = [
       "# What a tool's motion says about each part's density", "", "```",
       summary["command"], "```", "",
-      f"{summary['tools']} fresh tools (seed {_SEED.value}; {diverged} left out: MuJoCo "
+      f"{summary['tools']} fresh tools (seed {args.seed}; {diverged} left out: MuJoCo "
       f"diverged), {summary['parts']} parts, MuJoCo C under the tools' four pushes "
       f"({tool_scene.TOOL_PUSH_FORCE:g} N). The tools move a median "
       f"{summary['moved_mm_median']:.1f} mm from rest (mean over steps). The true boxes at "
@@ -218,10 +217,10 @@ def main(argv):
                  f"{100 * t['hidden_x1.5']:.0f} % | {mm} | {hm} |")
   lines += ["", "![sensitivity against mass share](sensitivity.png)", "",
             f"{summary['seconds']:.0f} s on the CPU."]
-  with open(os.path.join(_OUT.value, "results.md"), "w") as f:
+  with open(os.path.join(args.out, "results.md"), "w") as f:
     f.write("\n".join(lines) + "\n")
   print("\n".join(lines))
 
 
 if __name__ == "__main__":
-  app.run(main)
+  main()

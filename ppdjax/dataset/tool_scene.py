@@ -150,9 +150,10 @@ def simulate_tool(parts, densities, pushes: Pushes | None = None, *,
     raise ValueError("simulate_tool applies forces; strikes (Pushes.striker_masses) are "
                      "simulated by ppdjax.simulate on boxes")
   import mujoco  # pylint: disable=import-outside-toplevel
+  inertial = mass_properties(parts, densities) if inertial is None else inertial
   model = mujoco.MjModel.from_xml_string(tool_xml(parts, densities, inertial=inertial))
   data = mujoco.MjData(model)
-  _, com, _ = mass_properties(parts, densities) if inertial is None else inertial
+  _, com, _ = inertial
   sources = np.asarray(pushes.sources, np.float64)
   directions = np.asarray(pushes.targets, np.float64) - sources
   directions /= np.linalg.norm(directions, axis=-1, keepdims=True)

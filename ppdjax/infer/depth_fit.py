@@ -222,9 +222,14 @@ def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch, *,
 
   # the valid boxes' faces in order (an invalid box's step leaves the faces as they are):
   # a loop as long as this object's valid faces, so that two blocks cost 12 steps, not 30
-  order = (jnp.argsort(~valid_K, stable=True)[:, None] * 6 + jnp.arange(6)).reshape(-1)
+  order = (valid_first(valid_K)[:, None] * 6 + jnp.arange(6)).reshape(-1)
   return jax.lax.fori_loop(0, 6 * jnp.sum(valid_K), lambda i, f: one(f, order[i])[0],
                            faces_Kx6)
+
+
+def valid_first(valid):
+  """(..., K) slot indices with the valid boxes first, each group in slot order."""
+  return jnp.argsort(~valid, axis=-1, stable=True)
 
 
 def map_by_box_count(fn, prims: Primitives, *per_object, chunk: int, slots: bool = False):
@@ -264,7 +269,7 @@ def _map_chunks_by_slots(fn, args, chunk: int):
   def branch(k):
     def run(c):
       p = c[0]
-      slot = jnp.argsort(~p.valid, axis=-1, stable=True)[:, :k]  # valid first, in order
+      slot = valid_first(p.valid)[:, :k]
       got = jax.vmap(fn)(jax.tree.map(lambda a: a[rows, slot], p), *c[1:])
       return jax.tree.map(lambda full, part: full.at[rows, slot].set(part), p, got)
     return run
