@@ -6,7 +6,9 @@ alone (the peer) and on all local devices, side by side in one process.
 Training (`Trainer(devices=...)`, the preset's model step on one fixed batch already on the
 devices, after 3 warm-up steps): the same global batch split over N devices (strong
 scaling: steps/s ratio) and N times the batch (weak scaling: each device's share as the
-one device's; samples/s ratio). Evaluation (`evaluate(devices=...)`, the model's own
+one device's; samples/s ratio), for each `--batch_norms` mode over all devices
+(`train.batch_norm`: statistics over the whole batch, all-reduced at every normalisation,
+or over each device's share, one average at the step's end). Evaluation (`evaluate(devices=...)`, the model's own
 evaluation settings: fit, depth fit, baselines, refinement; the preset's network with random
 weights unless --workdir names a trained one): `--eval_batch` objects a
 device a batch, so each device runs the one device's programs; objects/s after the first
@@ -34,6 +36,8 @@ flags.DEFINE_integer("train_batch", 256, "Training batch a device (the preset's:
 flags.DEFINE_integer("steps", 30, "Timed training steps (after 3 warm-up steps).")
 flags.DEFINE_integer("eval_batch", 64, "Evaluation objects a device a batch.")
 flags.DEFINE_integer("objects", 768, "Test objects in each timed evaluation.")
+flags.DEFINE_list("batch_norms", ["global"], "train.batch_norm modes timed over all devices "
+                  "(global, per_device); one device runs one program for either.")
 flags.DEFINE_bool("train", True, "Time training.")
 flags.DEFINE_bool("evaluate", True, "Time the evaluation.")
 flags.DEFINE_string("out", "", "Write the rows as JSON here.")
@@ -56,11 +60,14 @@ def time_training(ds, device_sets) -> list[dict]:
   from ppdjax.training.state import Trainer
   rows = []
   n_all = len(device_sets[-1])
-  for devices, global_batch, kind in ((device_sets[0], FLAGS.train_batch, "peer"),
-                                      (device_sets[-1], FLAGS.train_batch, "strong"),
-                                      (device_sets[-1], FLAGS.train_batch * n_all, "weak")):
+  cases = [(device_sets[0], FLAGS.train_batch, "peer", "global")]
+  for mode in FLAGS.batch_norms:
+    cases += [(device_sets[-1], FLAGS.train_batch, "strong", mode),
+              (device_sets[-1], FLAGS.train_batch * n_all, "weak", mode)]
+  for devices, global_batch, kind, mode in cases:
     config = FLAGS.config.copy_and_resolve_references()
     config.train.batch_size = global_batch
+    config.train.batch_norm = mode
     with tempfile.TemporaryDirectory() as workdir:
       t = time.perf_counter()
       trainer = Trainer(config, workdir, devices=devices)
@@ -71,10 +78,12 @@ def time_training(ds, device_sets) -> list[dict]:
       compile_s = time.perf_counter() - t
       rate = _steps_per_s(trainer, batch, FLAGS.steps)
       trainer.close()
-    rows.append({"case": kind, "devices": len(devices), "global_batch": global_batch,
+    rows.append({"case": kind, "batch_norm": mode, "devices": len(devices),
+                 "global_batch": global_batch,
                  "steps_per_s": rate, "samples_per_s": rate * global_batch,
                  "first_step_s": compile_s})
-    print(f"train {kind}: {len(devices)} device(s), batch {global_batch}: {rate:.2f} steps/s "
+    print(f"train {kind}, batch norm {mode}: {len(devices)} device(s), batch {global_batch}: "
+          f"{rate:.2f} steps/s "
           f"= {rate * global_batch:.0f} samples/s (first step {compile_s:.0f} s)", flush=True)
   peer = rows[0]
   for r in rows[1:]:
@@ -130,7 +139,8 @@ def markdown(train_rows, eval_rows) -> str:
            "|---|--:|--:|--:|--:|--:|"]
   for r in train_rows:
     rate = f"{r['steps_per_s']:.2f} steps/s = {r['samples_per_s']:.0f} samples/s"
-    lines.append(f"| training ({r['case']}) | {r['devices']} | {r['global_batch']} | {rate} | "
+    bn = "" if r["devices"] == 1 else f", batch norm {r['batch_norm']}"
+    lines.append(f"| training ({r['case']}{bn}) | {r['devices']} | {r['global_batch']} | {rate} | "
                  f"{r.get('ratio', 1.0):.2f} | {r.get('efficiency', 1.0):.2f} |")
   for r in eval_rows:
     lines.append(f"| evaluation | {r['devices']} | {r['batch_size']} | "

@@ -1,5 +1,8 @@
 """Test setup: CPU backend, JAX's persistent compilation cache, shared fixtures."""
 
+import contextlib
+import fcntl
+import json
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -31,21 +34,46 @@ def rng():
   return np.random.default_rng(1234)
 
 
+@contextlib.contextmanager
+def _made_once(tmp_path_factory, name):
+  """(folder, made): a folder shared by every pytest-xdist worker of this run, and whether
+  an earlier worker already filled it. The first worker to ask fills it under a file lock
+  while the others wait, so the tiny dataset and run are made once, not once per worker."""
+  base = tmp_path_factory.getbasetemp()
+  root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+  folder, done = root / name, root / f"{name}.done"
+  with open(root / f"{name}.lock", "w") as lock:
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    try:
+      yield str(folder), done.exists()
+      done.touch()
+    finally:
+      fcntl.flock(lock, fcntl.LOCK_UN)
+
+
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory):
-  """The tiny preset's dataset, generated once per session (as `make demo` makes it)."""
+  """The tiny preset's dataset, generated once per test run (as `make demo` makes it)."""
   from ppdjax.configs import tiny
   from ppdjax.dataset import generation
-  out = str(tmp_path_factory.mktemp("tiny") / "blocks")
-  generation.generate(tiny.get_config(), out, progress=False)
+  with _made_once(tmp_path_factory, "tiny_blocks") as (out, made):
+    if not made:
+      generation.generate(tiny.get_config(), out, progress=False)
   return out
 
 
 @pytest.fixture(scope="session")
 def tiny_run(tiny_dataset, tmp_path_factory):
-  """The tiny preset trained exactly as the README's demo trains it: (workdir, final)."""
+  """The tiny preset trained exactly as the README's demo trains it, once per test run:
+  (workdir, final). Tests read the workdir and never write to it."""
   from ppdjax.configs import tiny
   from ppdjax.training import loop
-  workdir = str(tmp_path_factory.mktemp("tiny_run"))
-  final = loop.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir, progress=False)
+  with _made_once(tmp_path_factory, "tiny_run") as (workdir, made):
+    final_file = workdir + ".final.json"
+    if not made:
+      final = loop.train_and_evaluate(tiny.get_config(), tiny_dataset, workdir, progress=False)
+      with open(final_file, "w") as f:
+        json.dump(final, f, default=float)
+    with open(final_file) as f:
+      final = json.load(f)
   return workdir, final

@@ -178,6 +178,55 @@ def test_eight_fake_devices_match_one(straight_run, tiny_dataset, tmp_path):
     np.testing.assert_allclose(b["loss"], a["loss"], rtol=1e-4)
 
 
+@pytest.mark.slow  # two compilations in a second process, about a minute on 2 cores
+def test_per_device_batch_norm_averages_each_devices_step(tiny_dataset):
+  """train.batch_norm = "per_device" over 2 devices: the logged loss, the BatchNorm
+  running statistics and Adam's first moment (linear in the gradient) are the means of
+  one-device steps on each half of the batch."""
+  code = f"""
+import jax, jax.numpy as jnp, numpy as np, tempfile
+from flax import nnx
+from ppdjax.dataset import storage
+from ppdjax.training import loader, state as ts
+from tests.test_train import short_config
+config = short_config()
+config.model.dropout = 0.0
+config.train.update(batch_size=8, batch_norm="per_device")
+ds = storage.open_dataset({tiny_dataset!r}, "train")
+batch = jax.tree.map(jnp.asarray, loader.model_inputs(next(storage.batches(ds, 8, seed=0))))
+graphdef, state = nnx.split(ts.build(config))
+halves = []
+for half in (slice(0, 4), slice(4, 8)):
+  one = config.copy_and_resolve_references()
+  one.train.batch_size = 4
+  step = jax.jit(lambda s, b: ts.train_step(graphdef, s, b, 0, 0.5, one.train))
+  halves.append(step(jax.tree.map(jnp.copy, state), jax.tree.map(lambda x: x[half], batch)))
+with tempfile.TemporaryDirectory() as workdir:
+  trainer = ts.Trainer(config, workdir)
+  aux = trainer.train_step(batch, 0, 0.5)
+  both = jax.tree.map(np.asarray, trainer.state)
+np.testing.assert_allclose(aux["geometry_loss"],
+                           np.mean([h[1]["geometry_loss"] for h in halves]), rtol=1e-5)
+np.testing.assert_allclose(aux["density_loss"],
+                           np.mean([h[1]["density_loss"] for h in halves]), rtol=1e-5)
+pick = lambda tree, kind: jax.tree.leaves(nnx.State(tree).filter(kind))
+stats = [pick(h[0]["model"], nnx.BatchStat) for h in halves]
+assert stats[0]
+for got, a, b in zip(pick(both["model"], nnx.BatchStat), *stats, strict=True):
+  np.testing.assert_allclose(got, (np.asarray(a) + np.asarray(b)) / 2, rtol=1e-4, atol=1e-6)
+mu = lambda tree: [x for p, x in jax.tree_util.tree_leaves_with_path(tree["optimizer"])
+                   if "mu" in jax.tree_util.keystr(p)]
+for got, a, b in zip(mu(both), mu(halves[0][0]), mu(halves[1][0]), strict=True):
+  np.testing.assert_allclose(got, (np.asarray(a) + np.asarray(b)) / 2, rtol=1e-4, atol=1e-7)
+"""
+  env = dict(os.environ, JAX_PLATFORMS="cpu",
+             XLA_FLAGS="--xla_force_host_platform_device_count=2",
+             JAX_COMPILATION_CACHE_DIR=os.path.join(ROOT, ".jax_cache"))
+  done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env,
+                        capture_output=True, text=True, timeout=900)
+  assert done.returncode == 0, done.stderr[-3000:]
+
+
 def test_a_subset_of_the_devices_takes_the_work():
   """`devices=` keeps training and per-object work on the devices named (the peer of
   experiments/bench_devices.py), and all local devices are the default; either compiles

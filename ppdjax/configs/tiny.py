@@ -53,6 +53,10 @@ def get_config() -> ml_collections.ConfigDict:
   config.train = ml_collections.ConfigDict()
   config.train.seed = 0
   config.train.batch_size = 16  # global, split over all devices
+  # Over several devices, BatchNorm's statistics: "global" (the whole batch, all-reduced at
+  # every normalisation: the math of one device) or "per_device" (each device's share; the
+  # step's one collective is the average of its gradients at the end). One device: the same.
+  config.train.batch_norm = "global"
   config.train.learning_rate = 1e-3  # Adam, beta = (0.9, 0.999), as in the appendix
   config.train.schedule = "constant"  # or "cosine": decay to 0 over all steps
   config.train.warmup_steps = 0  # > 0: the rate rises linearly from 0 over these steps

@@ -19,6 +19,7 @@ from ppdjax.training.loader import BATCH_KEYS, model_inputs
 
 STREAM_SEED = 7_919  # offsets the stream's key from the dropout key of the same seed
 VAL_STREAM_SEED = 7_920  # a held-out stream: validation of a run that reads no dataset
+BATCH_NORM_MODES = ("global", "per_device")  # train.batch_norm: see Trainer
 
 
 class TrainState(nnx.Module):
@@ -110,36 +111,52 @@ def _loss(model, batch, w, train, key, weights):
                         geometry_weight=weights["geometry_weight"])
 
 
-def stream_batch(t, step, sharding=None) -> dict:
-  """The geometry stream's batch for `step` (fresh towers; a function of seed and step)."""
+def stream_batch(t, step, sharding=None, axis=None, devices=1) -> dict:
+  """The geometry stream's batch for `step` (fresh towers; a function of seed and step).
+
+  Inside a per-device step (`axis`, the mesh axis of `devices` devices) each device draws
+  its own share of the batch, its key folded with its index.
+  """
   key = jax.random.fold_in(jax.random.key(t.seed + STREAM_SEED), step)
-  batch = stream.geometry_batch(key, t.batch_size, t.get("augment", True))
+  if axis is not None:
+    key = jax.random.fold_in(key, jax.lax.axis_index(axis))
+  batch = stream.geometry_batch(key, t.batch_size // devices, t.get("augment", True))
   return batch if sharding is None else jax.lax.with_sharding_constraint(batch, sharding)
 
 
-def train_step(graphdef, state, batch, step, w, t, sharding=None):
+def train_step(graphdef, state, batch, step, w, t, sharding=None, axis=None, devices=1):
   """One Adam step; pure in (state, batch, step): the dropout key is fold_in(seed, step).
 
   `batch` None is a step of the geometry stream alone (voxels of fresh towers, w = 0);
   otherwise, with `train.stream_weight` > 0, a stream batch's geometry and end-token
   loss joins the dataset's, so the voxel pathway keeps seeing unlimited geometries.
+
+  `axis` names the mesh axis when each of `devices` devices runs this on its share of the
+  batch (`jax.shard_map`; `train.batch_norm = "per_device"`): BatchNorm then normalises
+  by the device's own statistics, and the gradients, batch statistics and logged losses
+  are averaged over the devices once, at the end (`Trainer`).
   """
   ts = nnx.merge(graphdef, state)
   key = jax.random.fold_in(jax.random.key(t.seed), step)
+  if axis is not None:  # each device its own dropout masks
+    key = jax.random.fold_in(key, jax.lax.axis_index(axis))
   weights, stream_weight = loss_weights(t), t.get("stream_weight", 0.0)
+  streamed = lambda: stream_batch(t, step, sharding, axis, devices)
 
   def total(m):
     if batch is None:
-      return _loss(m, stream_batch(t, step, sharding), 0.0, True, key, weights)
+      return _loss(m, streamed(), 0.0, True, key, weights)
     loss, aux = _loss(m, batch, w, True, key, weights)
     if stream_weight > 0:
-      s_loss, s_aux = _loss(m, stream_batch(t, step, sharding), 0.0, True,
-                            jax.random.fold_in(key, 1), weights)
+      s_loss, s_aux = _loss(m, streamed(), 0.0, True, jax.random.fold_in(key, 1), weights)
       loss = loss + stream_weight * s_loss
       aux = {**aux, "loss": loss, "stream_geometry_loss": s_aux["geometry_loss"]}
     return loss, aux
 
   grads, aux = nnx.grad(total, has_aux=True)(ts.model)
+  if axis is not None:
+    grads, aux = jax.lax.pmean((grads, aux), axis)
+    nnx.update(ts.model, jax.lax.pmean(nnx.state(ts.model, nnx.BatchStat), axis))
   ts.optimizer.update(ts.model, grads)
   if batch is None:
     aux = {k: v for k, v in aux.items() if k != "density_loss"}  # placeholder densities
@@ -205,12 +222,31 @@ class Trainer:
     self.state = jax.device_put(state, self.replicated)
     self.latest, self.best = checkpoints.managers(workdir, config.train.keep_checkpoints)
     t, batch_sharding = config.train, sharding.batch_sharded(self.mesh)
-    self._train = jax.jit(lambda s, b, i, w: train_step(self.graphdef, s, b, i, w, t,
-                                                        batch_sharding),
-                          out_shardings=(self.replicated, self.replicated), donate_argnums=0)
+    self._train = self._compile_train_step(t, batch_sharding)
     weights = loss_weights(t)
     self._eval = jax.jit(lambda s, b, w: eval_step(self.graphdef, s, b, w, weights),
                          out_shardings=self.replicated)
+
+  def _compile_train_step(self, t, batch_sharding):
+    """The jitted step. Over several devices BatchNorm takes its statistics either over
+    the whole batch (`train.batch_norm = "global"`: the partitioner all-reduces them at
+    every normalisation, forward and backward; the math of one device) or over each
+    device's share (`"per_device"`: a `jax.shard_map` step whose only collective is the
+    average of gradients, statistics and losses at its end)."""
+    mode = t.get("batch_norm", "global")
+    if mode not in BATCH_NORM_MODES:
+      raise ValueError(f"train.batch_norm must be one of {BATCH_NORM_MODES}, got {mode!r}")
+    if mode == "global" or self.mesh.size == 1:
+      return jax.jit(lambda s, b, i, w: train_step(self.graphdef, s, b, i, w, t,
+                                                   batch_sharding),
+                     out_shardings=(self.replicated, self.replicated), donate_argnums=0)
+    P, n = jax.sharding.PartitionSpec, self.mesh.size
+    local = jax.shard_map(
+        lambda s, b, i, w: train_step(self.graphdef, s, b, i, w, t, None,
+                                      sharding.DATA_AXIS, n),
+        mesh=self.mesh, in_specs=(P(), P(sharding.DATA_AXIS), P(), P()),
+        out_specs=(P(), P()), check_vma=False)
+    return jax.jit(local, donate_argnums=0)
 
   def restore_latest(self) -> int:
     """Restores the newest intact checkpoint if there is one; returns its step (0 if none).
