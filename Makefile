@@ -17,8 +17,8 @@ demo: $(VENV)/.installed
 	$(PY) -m ppdjax.demo --config=ppdjax/configs/tiny.py --out=$(OUT)
 
 # two pytest workers, each taking whole test modules (a module's fixtures are made once;
-# session fixtures, the tiny dataset and run, once per worker): on 2 cores the suite takes
-# about 7.5 minutes instead of 10 (compilation is single-threaded)
+# the tiny dataset and run once per test run, shared through a file lock): on 2 cores
+# about 8.5 minutes from a cold compilation cache (compilation is single-threaded)
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 --dist loadscope
 

@@ -268,7 +268,8 @@ assert placed.devices() == {{d1}}
 def test_bad_configs_and_inputs_are_named(tiny_dataset, straight_run, tmp_path, monkeypatch):
   for section, key, value, match in [("train", "batch_size", 0, "batch_size"),
                                      ("model", "dropout", 1.0, "dropout"),
-                                     ("train", "joint_steps", -1, "joint_steps")]:
+                                     ("train", "joint_steps", -1, "joint_steps"),
+                                     ("train", "batch_norm", "sync", "batch_norm")]:
     config = short_config()
     config[section][key] = value
     with pytest.raises(ValueError, match=match):

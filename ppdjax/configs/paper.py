@@ -34,6 +34,10 @@ def get_config():
   # step 1.055x faster on an H100 (experiments/results/benchmarks.md, "Training step")
   config.model.trajectory_unroll = 8
   config.train.batch_size = 256
+  # Over several devices each normalises by its own share's statistics: two H200s then
+  # train at 1.99x one (weak scaling) against 1.73x with statistics all-reduced at every
+  # BatchNorm (benchmarks.md, "Two GPUs without synchronised BatchNorm"). One device: the same.
+  config.train.batch_norm = "per_device"
   config.train.learning_rate = 1e-3
   config.train.warmup_steps = 300
   config.train.clip_norm = 1.0

@@ -20,7 +20,7 @@ from ppdjax.dataset import storage
 from ppdjax.plots import plot_learning_curve
 from ppdjax.training import checkpoints, sharding
 from ppdjax.training.loader import Loader
-from ppdjax.training.state import Trainer, density_weight, phase, total_steps
+from ppdjax.training.state import Trainer, batch_norm_mode, density_weight, phase, total_steps
 
 
 # Keys added since runs were first saved, with the value that reproduces older runs.
@@ -29,11 +29,13 @@ ADDED_KEYS = {"model.voxel_width": 1, "model.voxel_coords": False, "model.voxel_
               "train.geometry_weight": 1.0, "train.stream_steps": 0, "train.stream_weight": 0.0,
               "train.augment": True, "train.init_from": "",
               "train.clip_norm": 0.0, "train.warmup_steps": 0, "train.density_ramp_steps": 0,
+              "train.batch_norm": "global",
               "model.image_dtype": "float32", "model.trajectory_unroll": 1}
 # Keys a resumed run may change without invalidating its checkpoints.
 RESUMABLE_CHANGES = ("train.joint_steps", "train.log_every", "train.eval_every",
                      "train.eval_batches", "train.prefetch", "train.keep_checkpoints",
-                     "model.trajectory_unroll")  # the same arithmetic, scheduled differently
+                     "model.trajectory_unroll",  # the same arithmetic, scheduled differently
+                     "train.batch_norm")  # the same on one device; checkpoints unchanged
 
 
 def check_config(config) -> None:
@@ -54,6 +56,7 @@ def check_config(config) -> None:
       raise ValueError(f"config.train.{name} must be >= 0, got {t[name]}")
   if total_steps(t) == 0:
     raise ValueError("config.train.stream_steps + geometry_steps + joint_steps must be > 0")
+  batch_norm_mode(t)
   if (t.get("stream_steps", 0) or t.get("stream_weight", 0)) and not m.use_voxels:
     raise ValueError("config.train.stream_steps / stream_weight train the voxel pathway; "
                      "this model has use_voxels=False: set them to 0")

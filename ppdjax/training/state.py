@@ -22,6 +22,15 @@ VAL_STREAM_SEED = 7_920  # a held-out stream: validation of a run that reads no 
 BATCH_NORM_MODES = ("global", "per_device")  # train.batch_norm: see Trainer
 
 
+def batch_norm_mode(t) -> str:
+  """`train.batch_norm` ("global" where a saved run predates it); ValueError if unknown."""
+  mode = t.get("batch_norm", "global")
+  if mode not in BATCH_NORM_MODES:
+    raise ValueError(f"config.train.batch_norm must be one of {BATCH_NORM_MODES}, got "
+                     f"{mode!r}")
+  return mode
+
+
 class TrainState(nnx.Module):
   """What training updates: the model and its optimizer, split and merged as one pytree
   (its State has the keys "model" and "optimizer", as the checkpoints do)."""
@@ -233,10 +242,7 @@ class Trainer:
     every normalisation, forward and backward; the math of one device) or over each
     device's share (`"per_device"`: a `jax.shard_map` step whose only collective is the
     average of gradients, statistics and losses at its end)."""
-    mode = t.get("batch_norm", "global")
-    if mode not in BATCH_NORM_MODES:
-      raise ValueError(f"train.batch_norm must be one of {BATCH_NORM_MODES}, got {mode!r}")
-    if mode == "global" or self.mesh.size == 1:
+    if batch_norm_mode(t) == "global" or self.mesh.size == 1:
       return jax.jit(lambda s, b, i, w: train_step(self.graphdef, s, b, i, w, t,
                                                    batch_sharding),
                      out_shardings=(self.replicated, self.replicated), donate_argnums=0)
