@@ -12,7 +12,8 @@ accelerator: forced CPU devices compile the same partitioned program (the GPU ba
 fuse or combine collectives differently; `--xla_gpu_all_reduce_combine_threshold_bytes`
 is its knob). DIR is any dataset (its dtypes are read; the preset's image size is used).
 `--config.train.batch_norm=global` or `per_device` picks where BatchNorm's statistics
-come from (two H200s: 58 all-reduces of 211 MB a step against one of 70 MB).
+come from (the paper preset on two devices: 58 all-reduces of 211 MB a step against one
+of 70 MB).
 """
 
 from __future__ import annotations
