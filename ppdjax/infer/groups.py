@@ -16,7 +16,6 @@ from flax import nnx
 
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
-from ppdjax.infer import depth_fit
 from ppdjax.infer.fit import fit_boxes, refine_fitted
 from ppdjax.infer.tables import BASELINES
 from ppdjax.nn.estimator import combine_logits
@@ -71,12 +70,12 @@ def decode_groups(graphdef, state, obs, true, est_state=None, *, groups, camera,
          "group_logits": {g: logits for g in groups}}
   if groups:
     fitted = fit_boxes(obs["voxels"], init=pred)
-    if "fit_depth" in groups:
-      out["fitted"]["fit_depth"] = depth_fit.refine_batch(
-          fitted, obs["depth"].astype(jnp.float32), camera, iterations=depth_iterations)
+    refined = lambda **seen: refine_fitted(fitted, obs["voxels"], camera=camera,
+                                           depth_iterations=depth_iterations, **seen)
+    if "fit_depth" in groups:  # refined and snapped as `decompose` does (fit.refine_fitted)
+      out["fitted"]["fit_depth"] = refined(depth=obs["depth"])
     if "fit" in groups:
-      out["fitted"]["fit"] = (refine_fitted(fitted, obs["voxels"], image=obs["image"],
-                                            camera=camera) if image_fit else fitted)
+      out["fitted"]["fit"] = refined(image=obs["image"]) if image_fit else fitted
   for g, boxes in list(out["fitted"].items()):
     out["fitted"][g] = boxes.replace(density=pred.density)
     out["shape_" + g] = metrics.shape_counts(boxes, true)
