@@ -353,3 +353,27 @@ def test_tool_identifiability_measures_the_parts_and_the_box_mismatch():
     assert ("metal mode" in p) == (p["material"] == "metal")
   summary = tool_identifiability.summarize([r])
   assert summary["tools"] == 1 and summary["parts"] == len(tool.parts)
+
+
+@pytest.mark.slow  # one tool, 3 x 8 candidates by MuJoCo C, a few seconds
+def test_tool_mass_calibration_picks_among_candidates_that_hold_the_labels():
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from ppdjax.dataset import tools
+  import tool_mass_calibration as study  # pylint: disable=import-outside-toplevel
+
+  labels, valid = np.array([10, 50, 0, 0, 0]), np.array([True, True, False, False, False])
+  slots = study.candidate_slots(labels, valid, 64, 20, np.random.default_rng(0))
+  np.testing.assert_array_equal(slots[0], labels)  # the truth is always a candidate
+  assert np.all(slots[:, 2:] == 0) and np.all(np.abs(slots[:, :2] - labels[:2]) <= 20)
+  assert slots.min() >= 0 and len({tuple(s) for s in slots}) > 32
+  tool = tools.sample_tool(2026, 0, category="hammer")
+  r = study.study_tool(tool, 1.3, 8, 5, np.random.default_rng(0))
+  assert r["box_mass_ratio"] > 1 and len(r["labels"]) >= 1
+  for name in study.FACTORS:  # the pick is the closest, so no further than the labels
+    assert r[name]["distance_mm"] <= r[name]["truth_distance_mm"] + 1e-9
+    assert len(r[name]["slots"]) == len(r["labels"])
+  s = study.summarize([r, r])
+  assert s["tools"] == 2 and s["boxes"] == 2 * len(r["labels"])
+  for name in study.FACTORS:
+    lo, hi = s["rows"][name]["rmse_ci95"]
+    assert lo <= s["rows"][name]["rmse"] + 1e-9 and s["rows"][name]["rmse"] <= hi + 1e-9
