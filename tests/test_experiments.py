@@ -377,3 +377,26 @@ def test_tool_mass_calibration_picks_among_candidates_that_hold_the_labels():
   for name in study.FACTORS:
     lo, hi = s["rows"][name]["rmse_ci95"]
     assert lo <= s["rows"][name]["rmse"] + 1e-9 and s["rows"][name]["rmse"] <= hi + 1e-9
+
+
+@pytest.mark.slow  # one tool, three bodies by MuJoCo C, a few seconds
+def test_tool_voxel_body_covers_each_voxel_once_and_is_simulated():
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from ppdjax.dataset import tools
+  import tool_voxel_body as study  # pylint: disable=import-outside-toplevel
+
+  per_part = np.zeros((2, 32, 32, 32), bool)
+  per_part[0, 3, 4, 2:9] = True  # one run
+  per_part[0, 3, 4, 12] = True  # a second run in the same column
+  per_part[1, 3, 4, 5:15] = True  # overlaps part 0: voxels 5-8 stay part 0's
+  per_part[1, 10, 10, 0] = True
+  boxes = study.voxel_columns(per_part)
+  volume = sum(np.prod(hi - lo) for _, lo, hi in boxes)
+  assert volume * 32 ** 3 == pytest.approx(per_part.any(0).sum())
+  assert sorted((p, round(lo[2] * 32 + 16), round(hi[2] * 32 + 16)) for p, lo, hi in boxes) == [
+      (0, 2, 9), (0, 12, 13), (1, 0, 1), (1, 9, 12), (1, 13, 15)]
+  r = study.study_tool(tools.sample_tool(2026, 0, category="hammer"))
+  assert r["voxel_boxes"] > 0 and r["voxel_mass_ratio"] > 0 and r["moved_mm"] > 0
+  assert all(r[name] > 0 for name in study.BODIES)
+  s = study.summarize([r])
+  assert s["tools"] == 1 and s["by_category"]["hammer"]["tools"] == 1
