@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import json
 import os
 import time
 
@@ -34,21 +33,15 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 import ppdjax  # noqa: E402
 from ppdjax.conventions import density_to_slot, slot_to_density  # noqa: E402
-from ppdjax.dataset import tool_scene, tools  # noqa: E402
+from ppdjax.dataset import tool_scene  # noqa: E402
 from ppdjax.dataset.meshes import normalize  # noqa: E402
 from ppdjax.dataset.tool_generation import boxes_of_parts  # noqa: E402
+from tool_studies import distance_mm, over_tools, write  # noqa: E402
 
 FACTORS = (1.5, 1 / 1.5)
-
-
-def distance_mm(a, b) -> float:
-  """Mean over pushes and steps of the position error (mm)."""
-  return float(np.linalg.norm(np.asarray(a)[..., :3] - np.asarray(b)[..., :3], axis=-1).mean()
-               * 1000)
 
 
 def other_metal_mode(slot: int) -> int:
@@ -166,20 +159,12 @@ def main():
                       help="output folder")
   args = parser.parse_args()
   t0 = time.perf_counter()
-  rows, diverged = [], 0
-  for tool in tqdm(tools.sample_tools(args.seed, args.tools), desc="tools"):
-    r = study_tool(tool)
-    if r is None:
-      diverged += 1
-    else:
-      rows.append(r)
+  rows, diverged = over_tools(args.seed, args.tools, study_tool)
   summary = {**summarize(rows), "diverged": diverged, "seed": args.seed,
              "seconds": round(time.perf_counter() - t0, 1),
              "command": f"python experiments/tool_identifiability.py --tools={args.tools} "
                         f"--seed={args.seed}"}
   os.makedirs(args.out, exist_ok=True)
-  with open(os.path.join(args.out, "results.json"), "w") as f:
-    json.dump({**summary, "rows": rows}, f, indent=1)
   plot(rows, os.path.join(args.out, "sensitivity.png"))
   lines = [
       "# What a tool's motion says about each part's density", "", "```",
@@ -217,9 +202,7 @@ def main():
                  f"{100 * t['hidden_x1.5']:.0f} % | {mm} | {hm} |")
   lines += ["", "![sensitivity against mass share](sensitivity.png)", "",
             f"{summary['seconds']:.0f} s on the CPU."]
-  with open(os.path.join(args.out, "results.md"), "w") as f:
-    f.write("\n".join(lines) + "\n")
-  print("\n".join(lines))
+  write(args.out, summary, rows, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -23,18 +23,16 @@ Writes OUT/results.json and OUT/results.md.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import time
 
 import numpy as np
-from tqdm import tqdm
 
 import ppdjax
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS, density_to_slot, slot_to_density
 from ppdjax.dataset import meshes, tool_scene, tools
 from ppdjax.dataset.mesh_boxes import boxes_of_parts
+from tool_studies import over_tools, write
 
 FACTORS = ("paper (x1)", "calibrated (x1/c)", "oracle (tool's own)")
 HORIZONS = (0, 128, 64, 32, 16)  # steps of 1/300 s the distance reads (0: all 256)
@@ -172,15 +170,8 @@ def main():
   t0 = time.perf_counter()
   c = calibration(args.calibrate_seed, args.calibrate_tools)
   rng = np.random.default_rng(args.seed)
-  rows, diverged = [], 0
-  for tool in tqdm(tools.sample_tools(args.seed, args.tools), desc="tools"):
-    r = study_tool(tool, c, args.candidates, args.radius, rng)
-    if r is None:
-      diverged += 1
-    else:
-      rows.append(r)
-  if not rows:
-    raise SystemExit("MuJoCo diverged on every tool")
+  rows, diverged = over_tools(
+      args.seed, args.tools, lambda tool: study_tool(tool, c, args.candidates, args.radius, rng))
   summary = {**summarize(rows), "diverged": diverged, "calibration": c,
              "box_mass_ratio_median": float(np.median([r["box_mass_ratio"] for r in rows])),
              "seconds": round(time.perf_counter() - t0, 1),
@@ -188,12 +179,7 @@ def main():
                          f"--seed={args.seed} --calibrate_seed={args.calibrate_seed} "
                          f"--calibrate_tools={args.calibrate_tools} "
                          f"--candidates={args.candidates} --radius={args.radius}")}
-  os.makedirs(args.out, exist_ok=True)
-  with open(os.path.join(args.out, "results.json"), "w") as f:
-    json.dump({**summary, "tools_rows": rows}, f, indent=1)
-  with open(os.path.join(args.out, "results.md"), "w") as f:
-    f.write(markdown(summary, args, c))
-  print(markdown(summary, args, c))
+  write(args.out, summary, rows, markdown(summary, args, c), rows_key="tools_rows")
 
 
 if __name__ == "__main__":

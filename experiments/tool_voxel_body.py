@@ -20,25 +20,17 @@ from __future__ import annotations
 
 import argparse
 import collections
-import json
-import os
 import time
 
 import numpy as np
 import trimesh
-from tqdm import tqdm
 
 import ppdjax
-from ppdjax.dataset import meshes, tool_scene, tools
+from ppdjax.dataset import meshes, tool_scene
 from ppdjax.dataset.mesh_boxes import boxes_of_parts
+from tool_studies import distance_mm, over_tools, write
 
 BODIES = ("true boxes", "voxel body", "voxel body at the tool's mass")
-
-
-def distance_mm(a, b) -> float:
-  """Mean over pushes and steps of the position error (mm)."""
-  return float(np.linalg.norm(np.asarray(a)[..., :3] - np.asarray(b)[..., :3], axis=-1).mean()
-               * 1000)
 
 
 def voxel_columns(per_part: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -142,24 +134,11 @@ def main():
   if args.tools < 1:
     parser.error("--tools must be >= 1")
   t0 = time.perf_counter()
-  rows, diverged = [], 0
-  for tool in tqdm(tools.sample_tools(args.seed, args.tools), desc="tools"):
-    r = study_tool(tool)
-    if r is None:
-      diverged += 1
-    else:
-      rows.append(r)
-  if not rows:
-    raise SystemExit("MuJoCo diverged on every tool")
+  rows, diverged = over_tools(args.seed, args.tools, study_tool)
   s = {**summarize(rows), "diverged": diverged, "seconds": round(time.perf_counter() - t0, 1),
        "command": f"python experiments/tool_voxel_body.py --tools={args.tools} "
                   f"--seed={args.seed}"}
-  os.makedirs(args.out, exist_ok=True)
-  with open(os.path.join(args.out, "results.json"), "w") as f:
-    json.dump({**s, "rows": rows}, f, indent=1)
-  with open(os.path.join(args.out, "results.md"), "w") as f:
-    f.write(markdown(s))
-  print(markdown(s))
+  write(args.out, s, rows, markdown(s))
 
 
 if __name__ == "__main__":

@@ -31,6 +31,17 @@ def short_config(geometry_steps=3, joint_steps=3, stream_steps=0):
   return config
 
 
+def _run_on_fake_devices(code: str, devices: int, timeout: int) -> None:
+  """Runs `code` in a second Python process on `devices` forced CPU devices (JAX fixes its
+  device count when it starts), sharing the compilation cache; fails with its stderr."""
+  env = dict(os.environ, JAX_PLATFORMS="cpu",
+             XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
+             JAX_COMPILATION_CACHE_DIR=os.path.join(ROOT, ".jax_cache"))
+  done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env,
+                        capture_output=True, text=True, timeout=timeout)
+  assert done.returncode == 0, done.stderr[-3000:]
+
+
 STREAM = 2  # geometry-stream steps of the stream-phase test
 
 
@@ -166,12 +177,7 @@ def test_eight_fake_devices_match_one(straight_run, tiny_dataset, tmp_path):
           f"loop.train_and_evaluate(short_config(), {tiny_dataset!r}, "
           f"{workdir!r}, "
           "progress=False)")
-  env = dict(os.environ, JAX_PLATFORMS="cpu",
-             XLA_FLAGS="--xla_force_host_platform_device_count=8",
-             JAX_COMPILATION_CACHE_DIR=os.path.join(ROOT, ".jax_cache"))
-  done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env,
-                        capture_output=True, text=True, timeout=900)
-  assert done.returncode == 0, done.stderr[-3000:]
+  _run_on_fake_devices(code, 8, timeout=900)
   one, eight = _rows(straight_run), _rows(workdir)
   assert [r["step"] for r in eight] == [r["step"] for r in one]
   for a, b in zip(one, eight):
@@ -219,12 +225,7 @@ mu = lambda tree: [x for p, x in jax.tree_util.tree_leaves_with_path(tree["optim
 for got, a, b in zip(mu(both), mu(halves[0][0]), mu(halves[1][0]), strict=True):
   np.testing.assert_allclose(got, (np.asarray(a) + np.asarray(b)) / 2, rtol=1e-4, atol=1e-7)
 """
-  env = dict(os.environ, JAX_PLATFORMS="cpu",
-             XLA_FLAGS="--xla_force_host_platform_device_count=2",
-             JAX_COMPILATION_CACHE_DIR=os.path.join(ROOT, ".jax_cache"))
-  done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env,
-                        capture_output=True, text=True, timeout=900)
-  assert done.returncode == 0, done.stderr[-3000:]
+  _run_on_fake_devices(code, 2, timeout=900)
 
 
 def test_a_subset_of_the_devices_takes_the_work():
@@ -258,11 +259,7 @@ assert list(sharding.make_mesh([d1]).devices) == [d1] and sharding.make_mesh().s
 placed = jax.device_put(jnp.ones(4), sharding.replicated(sharding.make_mesh([d1])))
 assert placed.devices() == {{d1}}
 """
-  env = dict(os.environ, JAX_PLATFORMS="cpu",
-             XLA_FLAGS="--xla_force_host_platform_device_count=2")
-  done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env,
-                        capture_output=True, text=True, timeout=300)
-  assert done.returncode == 0, done.stderr[-3000:]
+  _run_on_fake_devices(code, 2, timeout=300)
 
 
 def test_bad_configs_and_inputs_are_named(tiny_dataset, straight_run, tmp_path, monkeypatch):
