@@ -445,6 +445,36 @@ def test_the_oracle_pick_takes_the_sample_closest_to_the_truth():
   np.testing.assert_array_equal(rec[("coverage", "PPD+Sample")], [[False, True, False]])
 
 
+def test_the_posterior_marginal_sums_the_candidates_of_each_slot():
+  """Hand case: three candidates for two boxes. Candidate 0 is closest, but candidates 1
+  and 2 (nearly as close, and together more probable) agree on box 0's slot, so the
+  marginal reads their slot on box 0 and candidate 0's on box 1 (its weight is the larger
+  of the two that hold slot 12 there); far below T the marginal is the closest pick."""
+  from ppdjax.infer import rows
+  slots = np.array([[[30, 12], [31, 12], [31, 13]]])  # (B=1, S=3, K=2)
+  dist = np.array([[1.0e-3, 1.1e-3, 1.2e-3]])
+  logp = np.log(np.array([[0.2, 0.3, 0.3]]))
+  valid, slot = np.ones((1, 2), bool), np.array([[31, 12]])
+  logits = np.zeros((1, 2, 100))
+  w = rows.posterior_weights(dist, logp, 1e-3)
+  assert w.max() == 0.0 and np.argmax(w) == 1  # best: 0.3·e^-0.1 > 0.2
+  scores = rows.posterior_scores(logits, slots, w, valid)
+  np.testing.assert_array_equal(np.argmax(scores, -1), [[31, 12]])
+  mass = np.exp(w[0])
+  assert scores[0, 0, 31] - scores[0, 0, 30] == pytest.approx(
+      np.log((mass[1] + mass[2]) / mass[0]))
+  assert np.all(scores[0, 0, 32:] < scores[0, 0, 30])  # unsampled slots rank below
+  sharp = rows.posterior_scores(logits, slots, rows.posterior_weights(dist, logp, 1e-6), valid)
+  np.testing.assert_array_equal(np.argmax(sharp, -1), [[30, 12]])
+  relative = rows.posterior_weights(dist, logp, "rel:1")  # T = the least distance
+  np.testing.assert_allclose(relative, w)
+  rec = rows.posterior_records("PPD+Sample", logits, slots, dist, logp,
+                               np.array([[5.0, 6.0, 7.0]]), valid, slot, valid)
+  assert rec[("posterior", "PPD+Sample", 1e-3, "top1")].sum() == 2
+  assert rec[("posterior", "PPD+Sample", 1e-3, "mae")][0] == 6.0  # the heaviest candidate
+  assert rec[("posterior", "PPD+Sample", 1e-4, "sq_err")].sum() == 1  # closest: 30 on box 0
+
+
 def test_sample_rows_pick_the_closest_candidate_at_micrometre_distances():
   """+Sample's rows read the candidate that `argmin` of the objective picks, however close
   the distances: at τ = 0 they are metres of a few micrometres' difference (a float32

@@ -93,6 +93,19 @@ def prior_sweep_md(sweeps: dict) -> list[str]:
   return lines
 
 
+def posterior_sweep_md(sweeps: dict) -> list[str]:
+  """Markdown lines: per +Sample row and temperature, the row read by each box's posterior
+  marginal: top-1 / top-5 / top-10, RMSE, MAE and Table 5's RMSE by blocks."""
+  lines = ["| row | T | top-1 / top-5 / top-10 | RMSE | MAE (mm) | Table 5: 2 / 3 / 4 / 5 blocks |",
+           "|---|--:|--:|--:|--:|--:|"]
+  for row, sweep in sweeps.items():
+    for t, o in sweep.items():
+      lines.append(f"| {row} | {t} | {o['top1']:.1f} / {o['top5']:.1f} / {o['top10']:.1f} | "
+                   f"{o['rmse']:.2f} | {o['mae']:.1f} | "
+                   + " / ".join(f"{v:.2f}" for v in o["table5"].values()) + " |")
+  return lines
+
+
 def selection_sweep_md(sweep: dict) -> list[str]:
   """Markdown lines: one +Sample row's top-1 / RMSE for each τ (rows) and horizon (columns)."""
   hs = list(sweep)
@@ -173,6 +186,11 @@ def results_md(results: dict, command: str = "") -> str:
     lines += ["", f"Table 2's +Sample rows use τ = {results['prior_weight']}"
               + (f" on the first {results['selection_horizon']} steps"
                  if results.get("selection_horizon") else "") + ".", ""]
+  if results.get("posterior_sweeps"):
+    lines += ["## +Sample read by each box's posterior marginal: p(slots) · exp(−distance / T)",
+              "", "T in metres; rel:α is α × the object's least distance.", ""]
+    lines += posterior_sweep_md(results["posterior_sweeps"])
+    lines += [""]
   for row, sweep in results.get("selection_sweeps", {}).items():
     lines += [f"## {row}: top-1 / RMSE by τ and by the steps the distance covers", ""]
     lines += selection_sweep_md(sweep)

@@ -13,8 +13,8 @@ import numpy as np
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, SLOT_DENSITY
 from ppdjax.infer import sampling
-from ppdjax.infer.tables import (BASELINES, FIT_ROWS, PRIOR_WEIGHTS, SCREENS,
-                                 SELECTION_HORIZONS)
+from ppdjax.infer.tables import (BASELINES, FIT_ROWS, POSTERIOR_TEMPERATURES, PRIOR_WEIGHTS,
+                                 SCREENS, SELECTION_HORIZONS)
 
 
 SAMPLED_ABOVE = 1e9  # slots no sample has rank below every sampled one (objectives >= 0)
@@ -38,6 +38,55 @@ def sample_scores(logits, slots, objective, valid):
   out = np.where(np.isfinite(best), -np.where(np.isfinite(best), best, 0.0),
                  lsm - SAMPLED_ABOVE)
   return np.where(valid[..., None], out, logits)
+
+
+def posterior_weights(distance, logp, temperature):
+  """(B, S) log weights of the candidates under the posterior p(slots) · exp(−distance / T)
+  over the sampled set (the candidates are distinct, so the prior enters once), T in metres
+  of trajectory distance; a string "rel:α" makes T = α × each object's least distance
+  (noise that grows with the misfit). Shifted so that each object's best is 0."""
+  d = np.asarray(distance, np.float64)
+  dmin = d.min(-1, keepdims=True)
+  if isinstance(temperature, str):
+    t = float(temperature.split(":")[1]) * np.maximum(dmin, 1e-9)
+  else:
+    t = float(temperature)
+  w = np.asarray(logp, np.float64) - (d - dmin) / t
+  return w - w.max(-1, keepdims=True)
+
+
+def posterior_scores(logits, slots, log_weight, valid):
+  """(B, K, 100) ranking by each box's posterior marginal: log Σ of the weights of the
+  candidates that give the box that slot (a log-sum-exp per box and slot). Slots no
+  candidate has follow in the network's order, as in `sample_scores`."""
+  b, s, k = slots.shape
+  flat = ((np.arange(b)[:, None, None] * k + np.arange(k)) * NUM_DENSITY_SLOTS
+          + slots).ravel()
+  w = np.broadcast_to(log_weight[:, :, None], slots.shape).ravel()
+  top = np.full(b * k * NUM_DENSITY_SLOTS, -np.inf)
+  np.maximum.at(top, flat, w)
+  mass = np.bincount(flat, np.exp(w - top[flat]), minlength=top.size)
+  sampled = np.isfinite(top)
+  score = np.where(sampled, top + np.log(np.where(sampled, mass, 1.0)), 0.0)
+  lsm = np.asarray(logits, np.float64)
+  lsm = lsm - lsm.max(-1, keepdims=True)
+  lsm = lsm - np.log(np.exp(lsm).sum(-1, keepdims=True))
+  out = np.where(sampled.reshape(b, k, -1), score.reshape(b, k, -1), lsm - SAMPLED_ABOVE)
+  return np.where(valid[..., None], out, logits)
+
+
+def posterior_records(row, logits, slots, distance, logp, mae, pvalid, slot, valid) -> dict:
+  """+Sample's candidates read by each box's posterior marginal for every temperature of
+  POSTERIOR_TEMPERATURES (free: the candidates are simulated once), keyed ("posterior",
+  row, T, name); "mae" is that of the candidate of most posterior weight."""
+  out = {}
+  rows = np.arange(len(slot))
+  for t in POSTERIOR_TEMPERATURES:
+    w = posterior_weights(distance, logp, t)
+    counts = row_counts(posterior_scores(logits, slots, w, pvalid), slot, valid)
+    counts["mae"] = mae[rows, np.argmax(w, -1)]
+    out.update({("posterior", row, t, k): v for k, v in counts.items()})
+  return out
 
 
 def refine_scores(logits, density, valid):
@@ -156,6 +205,8 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   rec.update(_sweep("PPD+Sample", logits, slots, objective, omae, pvalid, slot, valid, hi,
                      horizon_sweep))
   rec.update(oracle_pick("PPD+Sample", logits, slots, slot, valid, pvalid))
+  rec.update(posterior_records("PPD+Sample", logits, slots, hdist[..., hi], out["logp"], omae,
+                               pvalid, slot, valid))
   rec.update(screen_records("PPD+Sample", hdist, objective(prior_weight), omae, logits, slots,
                             slot, valid, pvalid))
   table4 = table4 or not with_baselines  # without the baselines: the network's rows
@@ -193,6 +244,8 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
                       fvalid, slot, valid, hi, horizon_sweep))
     rec.update(oracle_pick(name + "+Sample", glogits, out["fit_slots"][group], slot, valid,
                            fvalid))
+    rec.update(posterior_records(name + "+Sample", glogits, out["fit_slots"][group],
+                                 fhd[..., hi], out["fit_logp"][group], fm, fvalid, slot, valid))
     rec.update(screen_records(name + "+Sample", fhd, f_obj, fm, glogits,
                               out["fit_slots"][group], slot, valid, fvalid))
     if group != "true":  # +Refine and +Joint start from the most precise fit

@@ -23,6 +23,10 @@ PPD_ROWS = ("PPD", "PPD+Sample", "PPD+Sample+Refine") + tuple(
 PREFIXES = (1, 8, 64, 512)  # Table 4's sample counts
 # τ swept for +Sample (m per nat); the estimator study chose 0.1, so the sweep goes past it
 PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
+# +Sample read by each box's posterior marginal (`rows.posterior_records`): temperatures T
+# of the likelihood exp(−distance / T), in metres, or "rel:α" for α × the object's least
+# distance
+POSTERIOR_TEMPERATURES = (1e-4, 3e-4, 1e-3, 3e-3, "rel:0.03", "rel:0.1", "rel:0.3", "rel:1")
 # +Sample's distance over the first h steps, swept beside τ (0: all steps, the paper's)
 SELECTION_HORIZONS = (16, 32, 64, 128, 0)
 # screened selection replayed on the exhaustive candidates (`rows.screen_records`): every
@@ -150,6 +154,18 @@ def summarize(switches: dict, rec: dict) -> dict:
     mae = counts.pop("mae")
     results["selection_sweeps"].setdefault(row, {}).setdefault(str(h), {})[str(tau)] = {
         **metrics.summarize(counts), "mae": float(np.mean(mae))}
+  results["posterior_sweeps"] = {}  # +Sample row -> T -> metrics, Table 5 by blocks
+  for row in sorted({k[1] for k in rec if k[0] == "posterior"}, key=PPD_ROWS.index):
+    for t in POSTERIOR_TEMPERATURES:
+      counts = {k: np.asarray(v) for k, v in group("posterior", row, t).items()}
+      mae = counts.pop("mae")
+      results["posterior_sweeps"].setdefault(row, {})[str(t)] = {
+          **metrics.summarize(counts), "mae": float(np.mean(mae)),
+          "table5": {str(b): metrics.summarize({k: v[nb == b] for k, v in counts.items()})
+                     ["rmse"] for b in range(2, nb.max() + 1) if np.any(nb == b)},
+          "table5_ci95": {str(b): metrics.bootstrap_interval(
+              lambda i, sel=np.flatnonzero(nb == b): np_metrics(counts, sel[i])["rmse"],
+              int(np.sum(nb == b))) for b in range(2, nb.max() + 1) if np.any(nb == b)}}
   results["oracle_pick"] = {}  # +Sample row -> its ceiling on the same candidates
   for row in sorted({k[1] for k in rec if k[0] == "oracle_pick"}, key=PPD_ROWS.index):
     counts = group("oracle_pick", row)
