@@ -14,7 +14,7 @@ import pipeline_steps
 
 from ppdjax import make_decompose_fn, plots
 from ppdjax.configs import tools as tools_preset
-from ppdjax.dataset import storage
+from ppdjax.dataset import storage, tool_generation
 from ppdjax.infer.markdown import oracle_pick_md, prior_sweep_md, table2_md
 from ppdjax.training import checkpoints
 
@@ -45,6 +45,7 @@ def collect(pipe) -> dict:
       rows[extra.replace("PPD", "PPD (full)")] = full["table2"][extra]
   return {"rows": rows, "shape": full["shape"], "shape_fit": full.get("shape_fit"),
           "objects": full["objects"],
+          "configs_per_tool": tool_generation.configs_per_tool(pipe.config.data),
           "samples": full["samples"], "mae_units": full.get("mae_units", "mm"),
           **pipeline_steps.read_log(pipe.root)}
 
@@ -56,7 +57,8 @@ def figure(pipe, path: str, model_dir: str) -> str:
   decompose = make_decompose_fn(model_dir, num_samples=pipe.config.eval.samples, fit=False,
                                 pushes=test.pushes)
   panels = []
-  for i in range(min(FIGURE_TOOLS, len(test))):
+  every = tool_generation.configs_per_tool(pipe.config.data)  # one configuration a tool
+  for i in range(0, min(FIGURE_TOOLS * every, len(test)), every):
     s = test[i]
     obs = {k: s[k] for k in ("voxels", "image", "trajectories")}
     d = jax.tree.map(np.asarray, decompose(obs, jax.random.key(i)))
@@ -83,7 +85,9 @@ def markdown(r: dict, command: str) -> str:
   frequent = rows["Frequent"]["mae"]
   lines = ["# Tools (paper Table 3)", "",
            f"`{command}`", "",
-           f"{r['objects']} test tools of the procedural tools dataset (none trained on), "
+           f"{r['objects']} test objects of the procedural tools dataset (none trained on"
+           + (f"; {r['objects'] // r['configs_per_tool']} tools x {r['configs_per_tool']} "
+              "density configurations" if r.get("configs_per_tool", 1) > 1 else "") + "), "
            f"{r['samples']} density samples for +Sample; 95 % bootstrap intervals in "
            f"brackets; trajectory MAE in {r['mae_units']}.", ""]
   if r.get("rerun"):

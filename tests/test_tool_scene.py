@@ -82,28 +82,39 @@ def test_tools_simulate_and_render(tmp_path, monkeypatch):
 
 
 def test_a_tools_dataset_is_written_and_read_as_towers_are(tmp_path):
+  """Two tools, each under two density configurations (`data.configs_per_tool`)."""
   from ppdjax.configs import tiny
   from ppdjax.conventions import density_to_slot
   from ppdjax.dataset import generation, materials, storage
   config = tiny.get_config()
   config.data.update(kind="tools", num_tools=2, tools_per_shard=1, image_size=32, steps=12,
-                     backend="mujoco")
+                     backend="mujoco", configs_per_tool=2)
   manifest = generation.generate(config, str(tmp_path / "tools"), progress=False)
-  assert manifest["kind"] == "tools" and manifest["tools"] == 2 and manifest["samples"] == 2
+  assert manifest["kind"] == "tools" and manifest["tools"] == 2 and manifest["samples"] == 4
   ds = storage.open_dataset(str(tmp_path / "tools"), verify=True)
   np.testing.assert_array_equal(ds.pushes.magnitudes, tool_scene.tool_pushes().magnitudes)
-  batch = ds.take(np.arange(2))
-  assert batch["trajectories"].shape == (2, 4, 12, 7) and batch["depth"].shape == (2, 32, 32)
+  batch = ds.take(np.arange(4))
+  assert batch["trajectories"].shape == (4, 4, 12, 7) and batch["depth"].shape == (4, 32, 32)
   prims = batch["primitives"]
-  for i in range(2):
+  for i in range(4):
     valid = prims.valid[i]
     assert 1 <= valid.sum() <= 5 and np.all((batch["materials"][i] >= 0) == valid)
     for m, rho in zip(batch["materials"][i][valid], prims.density[i][valid]):
       assert density_to_slot(rho) in materials.material_slots(materials.MATERIAL_NAMES[m])
-  # a sample is a pure function of (seed, index)
+  # a tool's configurations share its geometry, image and materials, not its densities
+  np.testing.assert_array_equal(batch["tower_id"], [0, 0, 1, 1])
+  for a in (0, 2):
+    for field in ("voxels", "image", "materials"):
+      np.testing.assert_array_equal(batch[field][a], batch[field][a + 1])
+    np.testing.assert_array_equal(prims.half_size[a], prims.half_size[a + 1])
+    assert not np.array_equal(prims.density[a], prims.density[a + 1])
+    assert not np.array_equal(batch["trajectories"][a], batch["trajectories"][a + 1])
+  # a sample is a pure function of (seed, index): the first configuration is the tool's own
   again = generation.tool_generation.tool_sample(config.seed, 1, 32, 12)
-  np.testing.assert_array_equal(again["trajectories"], batch["trajectories"][1])
-  np.testing.assert_array_equal(again["half_size"], prims.half_size[1])
+  np.testing.assert_array_equal(again["trajectories"], batch["trajectories"][2])
+  np.testing.assert_array_equal(again["half_size"], prims.half_size[2])
+  own = tools.sample_tool(config.seed, 1).densities  # (its first attempt did not diverge)
+  assert set(prims.density[2][prims.valid[2]].tolist()) <= set(own.astype(np.float32).tolist())
 
 
 @pytest.mark.slow

@@ -56,7 +56,8 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
 
   m = ds.manifest
   lines = [f"# Dataset card: {m['config'].get('name', '?')} preset", "",
-           (f"{m['tools']} tools, one sample each; splits by tool: " if "tools" in m else
+           (f"{m['tools']} tools x {m['config']['data'].get('configs_per_tool', 1)} density "
+            f"configurations = {m['samples']} samples; splits by tool: " if "tools" in m else
             f"{m['towers']} towers x {m['config']['data']['configs_per_tower']} configurations "
             f"= {m['samples']} samples; splits by tower: ") +
            ", ".join(f"{k} {v}" for k, v in m["splits"].items()) +

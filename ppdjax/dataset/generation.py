@@ -48,7 +48,8 @@ def check_config(cfg) -> None:
   if kind_of(cfg) not in KINDS:
     raise ValueError(f"config.data.kind must be one of {KINDS}, got {cfg.kind!r}")
   if kind_of(cfg) == "tools":
-    rules = [("num_tools", cfg.num_tools >= 1), ("tools_per_shard", cfg.tools_per_shard >= 1)]
+    rules = [("num_tools", cfg.num_tools >= 1), ("tools_per_shard", cfg.tools_per_shard >= 1),
+             ("configs_per_tool", tool_generation.configs_per_tool(cfg) >= 1)]
   else:
     rules = [("num_towers", cfg.num_towers >= 1),
              ("block_counts", kind_of(cfg) != "pendulum" or (
@@ -84,7 +85,7 @@ def pushes_of(cfg):
 def _plan(cfg):
   """(objects, objects per shard, samples per object, unit) of the data section."""
   if kind_of(cfg) == "tools":
-    return cfg.num_tools, cfg.tools_per_shard, 1, "tool"
+    return cfg.num_tools, cfg.tools_per_shard, tool_generation.configs_per_tool(cfg), "tool"
   return cfg.num_towers, cfg.towers_per_shard, cfg.configs_per_tower, "tower"
 
 

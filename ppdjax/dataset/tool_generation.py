@@ -23,16 +23,27 @@ ATTEMPTS = 4
 ATTEMPT_STRIDE = 1_000_000
 
 
-def tool_sample(seed: int, index: int, image_size: int, steps: int) -> dict[str, np.ndarray]:
-  """The arrays of tool `index` (one row of each storage field but "split")."""
+def tool_samples(seed: int, index: int, image_size: int, steps: int,
+                 configs: int = 1) -> list[dict[str, np.ndarray]]:
+  """The arrays of tool `index` (one row of each storage field but "split") under
+  `configs` density configurations: the first with the tool's own slots, each other with
+  every part's slot drawn again within its material's range (`tools.with_new_slots`,
+  from (seed, index, c)). Geometry, materials and textures are shared, so voxels, image,
+  depth and boxes are made once; each configuration has its own trajectories and box
+  densities."""
   rng = np.random.default_rng([seed, index])
   for attempt in range(ATTEMPTS):
     tool = tools.sample_tool(seed, index + attempt * ATTEMPT_STRIDE)
     parts, _ = normalize(list(tool.parts))
     tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, len(parts))
+    variants = [tool] + [tools.with_new_slots(tool, np.random.default_rng([seed, index, c]))
+                         for c in range(1, configs)]
     try:
       obs = tool_scene.observe(parts, tool.materials, tool.densities, tex_seeds,
                                image_size=image_size, steps=steps)
+      trajectories = [obs["trajectories"]] + [
+          tool_scene.simulate_tool(parts, v.densities, steps=steps).astype(np.float32)
+          for v in variants[1:]]
       break
     except RuntimeError:
       continue
@@ -41,12 +52,22 @@ def tool_sample(seed: int, index: int, image_size: int, steps: int) -> dict[str,
   prims, owner = boxes_of_parts(parts, tool.densities)
   ids = np.asarray([materials.ALL_MATERIAL_NAMES.index(tool.materials[o]) if o >= 0 else -1
                     for o in owner])
-  return {**obs, **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS},
-          "materials": ids, "tower_id": np.int64(index)}
+  fields = {f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS}
+  out = []
+  for v, traj in zip(variants, trajectories):
+    density = np.where(owner >= 0, v.densities[np.maximum(owner, 0)], fields["density"])
+    out.append({**obs, **fields, "trajectories": traj, "density": density.astype(np.float32),
+                "materials": ids, "tower_id": np.int64(index)})
+  return out
+
+
+def tool_sample(seed: int, index: int, image_size: int, steps: int) -> dict[str, np.ndarray]:
+  """The arrays of tool `index` under its own densities (the first of `tool_samples`)."""
+  return tool_samples(seed, index, image_size, steps)[0]
 
 
 def _one(args):
-  return tool_sample(*args)
+  return tool_samples(*args)
 
 
 class ToolWorkers:
@@ -70,11 +91,18 @@ class ToolWorkers:
     self.close()
 
 
+def configs_per_tool(cfg) -> int:
+  """Density configurations per tool geometry (1 for data sections made before the key)."""
+  return int(cfg.get("configs_per_tool", 1))
+
+
 def generate_shard(cfg, seed: int, shard: int, workers: ToolWorkers) -> dict[str, np.ndarray]:
   """All arrays of one shard of tools."""
   first = shard * cfg.tools_per_shard
   count = min(cfg.tools_per_shard, cfg.num_tools - first)
-  rows = workers.map([(seed, i, cfg.image_size, cfg.steps) for i in range(first, first + count)])
+  configs = configs_per_tool(cfg)
+  jobs = [(seed, i, cfg.image_size, cfg.steps, configs) for i in range(first, first + count)]
+  rows = [row for tool in workers.map(jobs) for row in tool]
   arrays = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
   arrays["split"] = storage.split_of(arrays["tower_id"], tuple(cfg.split_fractions))
   return arrays

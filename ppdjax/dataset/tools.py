@@ -190,6 +190,13 @@ def sample_tool(seed: int, index: int, category: str | None = None) -> Tool:
   return Tool(category, tuple(parts), tuple(names), tuple(str(m) for m in materials), slots)
 
 
+def with_new_slots(tool: Tool, rng: np.random.Generator) -> Tool:
+  """The same tool (geometry, materials) with each part's slot drawn again within its
+  material's range: another density configuration, as a tower's configurations are."""
+  slots = tuple(int(rng.choice(material_slots(m))) for m in tool.materials)
+  return dataclasses.replace(tool, slots=slots)
+
+
 def sample_tools(seed: int, count: int) -> list[Tool]:
   """`count` tools of `seed`, deterministic."""
   return [sample_tool(seed, i) for i in range(count)]
