@@ -6,9 +6,9 @@
 
 The paper had 204 tools; procedural ones are free, so 3,000 here (the paper's split
 fractions), each observed under `data.configs_per_tool` density configurations, lying on
-the ground in the normalised frame. As the paper,
-the model is pretrained on 2-block towers with small noise and rotations of the blocks
-(`pretrain`), then fine-tuned on tools (`train`, from the pretrained weights).
+the ground in the normalised frame. As the paper, the model is pretrained on 2-block
+towers with small noise and rotations of the blocks (`pretrain`), then fine-tuned on tools
+(`train`, from the pretrained weights).
 """
 
 import ml_collections
