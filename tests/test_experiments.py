@@ -400,3 +400,31 @@ def test_tool_voxel_body_covers_each_voxel_once_and_is_simulated():
   assert all(r[name] > 0 for name in study.BODIES)
   s = study.summarize([r])
   assert s["tools"] == 1 and s["by_category"]["hammer"]["tools"] == 1
+
+
+@pytest.mark.slow  # one tool and one tower, a few dozen MuJoCo C rollouts
+def test_tool_resolution_separates_what_other_parts_can_mimic():
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from ppdjax.dataset import tools
+  import tool_resolution as study  # pylint: disable=import-outside-toplevel
+
+  # two columns that are the same motion: neither is unique; a third apart is
+  jac = np.array([[1.0, 2.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 3.0]])
+  np.testing.assert_allclose(study.unique_sensitivity(jac), [0.0, 0.0, 3.0], atol=1e-9)
+  a = np.zeros((4, 10, 7))
+  a[..., 3] = 1.0
+  b = a.copy()
+  b[..., 1] = 0.003  # 3 mm along y at every step: RMS 3 mm
+  assert np.linalg.norm(study.features_mm(b) - study.features_mm(a)) == pytest.approx(3.0)
+  tool = tools.sample_tool(2026, 0, category="hammer")
+  r = study.study_tool(tool, 1e3)
+  assert r["category"] == "hammer" and len(r["parts"]) == len(tool.parts) and r["moved_mm"] > 0
+  for p in r["parts"]:
+    assert 0 <= p["unique_mm"] <= p["alone_mm"] + 1e-9 and p["voxel_volume_ratio"] > 1
+    assert p["resolution_slots_1mm"] == pytest.approx(10 * p["resolution_slots_0.1mm"])
+  curve = study.tool_curve(tool, 1e3)
+  assert len(curve) == len(study.CURVE_STEPS) and curve[-1] > curve[0] >= 0
+  towers = study.tower_curves(0, 1)
+  assert len(towers) == 1 and towers[0][-1] > towers[0][0] >= 0
+  summary = study.summarize([r])
+  assert sum(v["parts"] for k, v in summary.items() if k.endswith(": all")) == len(tool.parts)
