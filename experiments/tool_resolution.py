@@ -124,17 +124,25 @@ def study_tool(tool, force: float, step: float = STEP):
 
 def response_curve(simulate, densities: np.ndarray) -> list[float] | None:
   """RMS trajectory change (mm) when the first part's density grows by each of
-  CURVE_STEPS (log), or None where the engine diverges."""
+  CURVE_STEPS (log), then the relative mismatch of its forward and backward differences
+  at STEP (as `study_tool`'s), then how far the object moves (RMS mm from its first
+  pose); None where the engine diverges."""
   try:
-    base = features_mm(simulate(densities))
-    out = []
-    for step in CURVE_STEPS:
+    seen = simulate(densities)
+    base = features_mm(seen)
+    moved_mm = float(np.linalg.norm(base - features_mm(np.broadcast_to(seen[:, :1],
+                                                                        seen.shape))))
+    out, diffs = [], []
+    for step in CURVE_STEPS + (-STEP,):
       moved = np.array(densities, np.float64)
       moved[0] *= np.exp(step)
-      out.append(float(np.linalg.norm(features_mm(simulate(moved)) - base)))
+      diffs.append(features_mm(simulate(moved)) - base)
+      out.append(float(np.linalg.norm(diffs[-1])))
   except RuntimeError:
     return None
-  return out
+  up, down = diffs[CURVE_STEPS.index(STEP)], -diffs[-1]
+  return out[:-1] + [float(np.linalg.norm(up - down)
+                           / max(np.linalg.norm(up) + np.linalg.norm(down), 1e-9)), moved_mm]
 
 
 def tool_curve(tool, force: float):
@@ -165,10 +173,13 @@ def tower_curves(seed: int, count: int) -> list[list[float]]:
 
 def curve_summary(curves: list[list[float]]) -> dict:
   c = np.asarray(curves)
-  return {f"{s:g}": {"median_mm": float(np.median(c[:, i])),
-                     "p90_mm": float(np.percentile(c[:, i], 90)),
-                     "share_above_0.1mm": float(np.mean(c[:, i] > 0.1))}
-          for i, s in enumerate(CURVE_STEPS)}
+  out = {f"{s:g}": {"median_mm": float(np.median(c[:, i])),
+                    "p90_mm": float(np.percentile(c[:, i], 90)),
+                    "share_above_0.1mm": float(np.mean(c[:, i] > 0.1))}
+         for i, s in enumerate(CURVE_STEPS)}
+  out["smooth_share"] = float(np.mean(c[:, -2] < SMOOTH))
+  out["moved_median_mm"] = float(np.median(c[:, -1]))
+  return out
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -227,11 +238,12 @@ def markdown(summary: dict, curves: dict, args, tools_used: int, diverged: int,
             "RMS trajectory change (mm) when the first part's (block's) density grows by a "
             "factor e^s; a smooth response grows in proportion to s.", "",
             "| objects | " + " | ".join(f"s = {s:g}: median / p90" for s in CURVE_STEPS)
-            + " |", "|---|" + "--:|" * len(CURVE_STEPS)]
+            + f" | smooth at ±{STEP:g} | moved (mm) |",
+            "|---|" + "--:|" * (len(CURVE_STEPS) + 2)]
   for name, c in curves.items():
     lines.append(f"| {name} | " + " | ".join(
         f"{c[f'{s:g}']['median_mm']:.3g} / {c[f'{s:g}']['p90_mm']:.3g}" for s in CURVE_STEPS)
-        + " |")
+        + f" | {100 * c['smooth_share']:.0f} % | {c['moved_median_mm']:.0f} |")
   return "\n".join(lines) + "\n"
 
 

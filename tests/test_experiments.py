@@ -422,9 +422,11 @@ def test_tool_resolution_separates_what_other_parts_can_mimic():
   for p in r["parts"]:
     assert 0 <= p["unique_mm"] <= p["alone_mm"] + 1e-9 and p["voxel_volume_ratio"] > 1
     assert p["resolution_slots_1mm"] == pytest.approx(10 * p["resolution_slots_0.1mm"])
-  curve = study.tool_curve(tool, 1e3)
-  assert len(curve) == len(study.CURVE_STEPS) and curve[-1] > curve[0] >= 0
+  curve = study.tool_curve(tool, 1e3)  # the changes, the ±5 % mismatch, the motion
+  n = len(study.CURVE_STEPS)
+  assert len(curve) == n + 2 and curve[n - 1] > curve[0] >= 0
+  assert 0 <= curve[n] <= 1 and curve[n + 1] > 0
   towers = study.tower_curves(0, 1)
-  assert len(towers) == 1 and towers[0][-1] > towers[0][0] >= 0
+  assert len(towers) == 1 and towers[0][n - 1] > towers[0][0] >= 0 and towers[0][n + 1] > 0
   summary = study.summarize([r])
   assert sum(v["parts"] for k, v in summary.items() if k.endswith(": all")) == len(tool.parts)
