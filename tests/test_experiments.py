@@ -429,4 +429,4 @@ def test_tool_resolution_separates_what_other_parts_can_mimic():
   towers = study.tower_curves(0, 1)
   assert len(towers) == 1 and towers[0][n - 1] > towers[0][0] >= 0 and towers[0][n + 1] > 0
   summary = study.summarize([r])
-  assert sum(v["parts"] for k, v in summary.items() if k.endswith(": all")) == len(tool.parts)
+  assert sum(summary[f"hammer {name}"]["parts"] for name in tool.names) == len(tool.parts)

@@ -29,7 +29,9 @@ from ppdjax.sim.pushes import Pushes, default_pushes
 # thin and light (median 8 kg against about 100 kg for a tower): 1e5 N for a step would
 # send them off at 100 m/s, and MuJoCo's solver diverges on 4 of 40 tools already at
 # 1e4 N. 1e3 N moves the median tool 2.3 cm (p90 12 cm) in 256 steps, none diverging
-# (docs/data.md); the directions are the paper's.
+# (docs/data.md); the directions are the paper's. At 1e3 N part of a tool's response to a
+# small density change is a jump (rolling, tipping), not a trend; at 300 N it is
+# proportional, at less than half the motion (experiments/results/tool_resolution/).
 TOOL_PUSH_FORCE = 1e3
 SLABS = 4  # convex pieces of a part that is not convex
 CONVEX_TOL = 0.02  # a part whose hull exceeds its volume by this fraction is cut
