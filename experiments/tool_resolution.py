@@ -28,6 +28,8 @@ import argparse
 import collections
 import time
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 import ppdjax
@@ -35,7 +37,7 @@ from ppdjax.conventions import SLOT_DENSITY, density_to_slot
 from ppdjax.dataset import towers
 from ppdjax.dataset import tool_scene
 from ppdjax.dataset.meshes import normalize, voxelize_parts
-from ppdjax.metrics import ROTATION_LENGTH
+from ppdjax.metrics import ROTATION_LENGTH, rotation_vector
 from ppdjax.sim.pushes import default_pushes
 from tool_studies import over_tools, write
 
@@ -45,19 +47,12 @@ THRESHOLDS_MM = (0.1, 1.0)
 CURVE_STEPS = (1e-6, 1e-3, 1e-2, 5e-2)  # log-density changes of the response curve
 
 
-def rotation_vectors(quats: np.ndarray) -> np.ndarray:
-  """(..., 3) axis · angle of (..., 4) unit quaternions w x y z (either sign): as
-  `metrics.rotation_vector`, in float64 (the response curve reads changes of 1e-5 mm)."""
-  q = quats * np.where(quats[..., :1] < 0, -1.0, 1.0)
-  n = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
-  angle = 2.0 * np.arctan2(n, q[..., :1])
-  return np.where(n > 1e-12, q[..., 1:] * angle / np.maximum(n, 1e-12), 2.0 * q[..., 1:])
-
-
 def features_mm(traj: np.ndarray) -> np.ndarray:
   """A trajectory (P, T, 7) as one vector (mm) whose norm is the RMS pose over pushes and
   steps: positions, and rotations as ROTATION_LENGTH × angle."""
-  pose = np.concatenate([traj[..., :3], ROTATION_LENGTH * rotation_vectors(traj[..., 3:])], -1)
+  with jax.enable_x64(True):  # float64: the response curve reads changes of 1e-5 mm
+    rot = np.asarray(rotation_vector(jnp.asarray(traj[..., 3:], jnp.float64)))
+  pose = np.concatenate([traj[..., :3], ROTATION_LENGTH * rot], -1)
   return 1000.0 * pose.ravel() / np.sqrt(traj.shape[0] * traj.shape[1])
 
 
