@@ -23,7 +23,6 @@ Writes OUT/results.json, OUT/results.md and OUT/sensitivity.png.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import os
 import time
@@ -39,7 +38,7 @@ from ppdjax.conventions import density_to_slot, slot_to_density  # noqa: E402
 from ppdjax.dataset import tool_scene  # noqa: E402
 from ppdjax.dataset.meshes import normalize  # noqa: E402
 from ppdjax.dataset.tool_generation import boxes_of_parts  # noqa: E402
-from tool_studies import distance_mm, over_tools, write  # noqa: E402
+from tool_studies import distance_mm, over_tools, study_parser, write  # noqa: E402
 
 FACTORS = (1.5, 1 / 1.5)
 
@@ -150,13 +149,7 @@ def plot(rows: list[dict], path: str) -> None:
 
 
 def main():
-  # argparse, not absl flags: the tests import this module beside modules that define
-  # absl flags of the same names
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--tools", type=int, default=120, help="fresh tools")
-  parser.add_argument("--seed", type=int, default=2026, help="their seed")
-  parser.add_argument("--out", default="experiments/results/tool_identifiability",
-                      help="output folder")
+  parser = study_parser(__doc__, "tool_identifiability", tools=120, seed=2026)
   args = parser.parse_args()
   t0 = time.perf_counter()
   rows, diverged = over_tools(args.seed, args.tools, study_tool)

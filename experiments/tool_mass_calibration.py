@@ -22,7 +22,6 @@ Writes OUT/results.json and OUT/results.md.
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
@@ -32,7 +31,7 @@ from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS, density_to_slot, slot_to_density
 from ppdjax.dataset import meshes, tool_scene, tools
 from ppdjax.dataset.mesh_boxes import boxes_of_parts
-from tool_studies import over_tools, write
+from tool_studies import over_tools, study_parser, write
 
 FACTORS = ("paper (x1)", "calibrated (x1/c)", "oracle (tool's own)")
 HORIZONS = (0, 128, 64, 32, 16)  # steps of 1/300 s the distance reads (0: all 256)
@@ -155,15 +154,12 @@ def markdown(s: dict, args, c: float) -> str:
 
 
 def main():
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--tools", type=int, default=100, help="fresh test tools")
-  parser.add_argument("--seed", type=int, default=7, help="their seed")
+  parser = study_parser(__doc__, "tool_mass_calibration", tools=100, seed=7,
+                        tools_help="fresh test tools")
   parser.add_argument("--calibrate_seed", type=int, default=8, help="the calibration's seed")
   parser.add_argument("--calibrate_tools", type=int, default=100, help="its tools")
   parser.add_argument("--candidates", type=int, default=256, help="candidates a tool")
   parser.add_argument("--radius", type=int, default=20, help="slots a label moves at most")
-  parser.add_argument("--out", default="experiments/results/tool_mass_calibration",
-                      help="output folder")
   args = parser.parse_args()
   if args.tools < 1 or args.candidates < 2 or args.radius < 1:
     parser.error("--tools >= 1, --candidates >= 2 and --radius >= 1")

@@ -24,7 +24,6 @@ Writes OUT/results.json and OUT/results.md.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import time
 
@@ -39,7 +38,7 @@ from ppdjax.dataset import tool_scene
 from ppdjax.dataset.meshes import normalize, voxelize_parts
 from ppdjax.metrics import ROTATION_LENGTH, rotation_vector
 from ppdjax.sim.pushes import default_pushes
-from tool_studies import over_tools, write
+from tool_studies import over_tools, study_parser, write
 
 STEP = 0.05  # forward difference in log density
 SMOOTH = 0.25  # forward and backward differences this close (relative): a linear response
@@ -239,14 +238,11 @@ def markdown(summary: dict, curves: dict, args, tools_used: int, diverged: int,
 
 
 def main():
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--tools", type=int, default=200)
-  parser.add_argument("--seed", type=int, default=2027)
+  parser = study_parser(__doc__, "tool_resolution", tools=200, seed=2027)
   parser.add_argument("--force", type=float, default=tool_scene.TOOL_PUSH_FORCE)
   parser.add_argument("--step", type=float, default=STEP, help="log-density difference")
   parser.add_argument("--curve_objects", type=int, default=60,
                       help="tools and towers of the response curve")
-  parser.add_argument("--out", default="experiments/results/tool_resolution")
   args = parser.parse_args()
   t0 = time.time()
   rows, diverged = over_tools(args.seed, args.tools, lambda t: study_tool(t, args.force, args.step))

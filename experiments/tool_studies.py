@@ -1,9 +1,11 @@
 """What the tool studies (`tool_identifiability.py`, `tool_mass_calibration.py`,
-`tool_voxel_body.py`) share: the trajectory distance they report, the loop over fresh
-tools that leaves out those MuJoCo diverges on, and their output files."""
+`tool_voxel_body.py`, `tool_resolution.py`) share: their flags, the trajectory distance
+they report, the loop over fresh tools that leaves out those MuJoCo diverges on, and their
+output files."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 
@@ -17,6 +19,18 @@ def distance_mm(a, b) -> float:
   """Mean over pushes and steps of the position error (mm)."""
   return float(np.linalg.norm(np.asarray(a)[..., :3] - np.asarray(b)[..., :3], axis=-1).mean()
                * 1000)
+
+
+def study_parser(doc: str, name: str, tools: int, seed: int,
+                 tools_help: str = "fresh tools") -> argparse.ArgumentParser:
+  """The flags every tool study takes: --tools, --seed and --out (default
+  experiments/results/NAME). argparse, not absl flags: the tests import the studies beside
+  modules that define absl flags of the same names."""
+  parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+  parser.add_argument("--tools", type=int, default=tools, help=tools_help)
+  parser.add_argument("--seed", type=int, default=seed, help="their seed")
+  parser.add_argument("--out", default=f"experiments/results/{name}", help="output folder")
+  return parser
 
 
 def over_tools(seed: int, count: int, study) -> tuple[list[dict], int]:

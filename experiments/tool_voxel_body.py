@@ -18,7 +18,6 @@ Distance: the mean over pushes and steps of the object-frame origin's position e
 
 from __future__ import annotations
 
-import argparse
 import collections
 import time
 
@@ -28,7 +27,7 @@ import trimesh
 import ppdjax
 from ppdjax.dataset import meshes, tool_scene
 from ppdjax.dataset.mesh_boxes import boxes_of_parts
-from tool_studies import distance_mm, over_tools, write
+from tool_studies import distance_mm, over_tools, study_parser, write
 
 BODIES = ("true boxes", "voxel body", "voxel body at the tool's mass")
 
@@ -125,11 +124,7 @@ def markdown(s: dict) -> str:
 
 
 def main():
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--tools", type=int, default=60, help="fresh tools")
-  parser.add_argument("--seed", type=int, default=7, help="their seed")
-  parser.add_argument("--out", default="experiments/results/tool_voxel_body",
-                      help="output folder")
+  parser = study_parser(__doc__, "tool_voxel_body", tools=60, seed=7)
   args = parser.parse_args()
   if args.tools < 1:
     parser.error("--tools must be >= 1")

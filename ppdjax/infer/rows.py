@@ -20,6 +20,13 @@ from ppdjax.infer.tables import (BASELINES, FIT_ROWS, POSTERIOR_TEMPERATURES, PR
 SAMPLED_ABOVE = 1e9  # slots no sample has rank below every sampled one (objectives >= 0)
 
 
+def log_softmax(logits):
+  """Log-softmax over the last axis in float64, on the host."""
+  lsm = np.asarray(logits, np.float64)
+  lsm = lsm - lsm.max(-1, keepdims=True)
+  return lsm - np.log(np.exp(lsm).sum(-1, keepdims=True))
+
+
 def sample_scores(logits, slots, objective, valid):
   """(B, K, 100) +Sample ranking: slots a sample has, by that sample's best objective first.
 
@@ -30,9 +37,7 @@ def sample_scores(logits, slots, objective, valid):
   best = np.full((b, k, NUM_DENSITY_SLOTS), np.inf)
   bi, _, ki = np.meshgrid(np.arange(b), np.arange(s), np.arange(k), indexing="ij")
   np.minimum.at(best, (bi, ki, slots), np.broadcast_to(objective[:, :, None], slots.shape))
-  lsm = np.asarray(logits, np.float64)
-  lsm = lsm - lsm.max(-1, keepdims=True)
-  lsm = lsm - np.log(np.exp(lsm).sum(-1, keepdims=True))  # log-softmax, on the host
+  lsm = log_softmax(logits)
   # float64 throughout: objectives differ by micrometres of trajectory distance (τ = 0), so
   # an offset such as 1e6 − objective in float32 (steps of 0.06) would tie every candidate
   out = np.where(np.isfinite(best), -np.where(np.isfinite(best), best, 0.0),
@@ -68,9 +73,7 @@ def posterior_scores(logits, slots, log_weight, valid):
   mass = np.bincount(flat, np.exp(w - top[flat]), minlength=top.size)
   sampled = np.isfinite(top)
   score = np.where(sampled, top + np.log(np.where(sampled, mass, 1.0)), 0.0)
-  lsm = np.asarray(logits, np.float64)
-  lsm = lsm - lsm.max(-1, keepdims=True)
-  lsm = lsm - np.log(np.exp(lsm).sum(-1, keepdims=True))
+  lsm = log_softmax(logits)
   out = np.where(sampled.reshape(b, k, -1), score.reshape(b, k, -1), lsm - SAMPLED_ABOVE)
   return np.where(valid[..., None], out, logits)
 

@@ -84,6 +84,18 @@ def intervals(counts: dict, mae, resamples: int = 1000) -> dict:
   return out
 
 
+def by_blocks(counts: dict, blocks) -> tuple[dict, dict]:
+  """Table 5 of one row: density RMSE of the objects of each block count from 2 up, and
+  its 95 % bootstrap interval, keyed by the count as a string."""
+  present = [b for b in range(2, blocks.max() + 1) if np.any(blocks == b)]
+  rmse = {str(b): metrics.summarize({k: v[blocks == b] for k, v in counts.items()})["rmse"]
+          for b in present}
+  ci95 = {str(b): metrics.bootstrap_interval(
+      lambda i, sel=np.flatnonzero(blocks == b): np_metrics(counts, sel[i])["rmse"],
+      int(np.sum(blocks == b))) for b in present}
+  return rmse, ci95
+
+
 def _f1(rec, kind):
   c = [np.asarray(rec[(kind, k)]) for k in ("matched", "predicted", "true")]
   f1 = lambda i: metrics.f1_from_counts(c[0][i], c[1][i], c[2][i])
@@ -128,14 +140,7 @@ def summarize(switches: dict, rec: dict) -> dict:
     row["mae"] = None if mae is None else float(np.mean(mae))
     row["ci95"] = intervals(counts, None if mae is None else np.asarray(mae))
     results["table2"][name] = row
-    results["table5_ci95"][name] = {
-        str(b): metrics.bootstrap_interval(
-            lambda i, sel=np.flatnonzero(nb == b): np_metrics(counts, sel[i])["rmse"],
-            int(np.sum(nb == b)))
-        for b in range(2, nb.max() + 1) if np.any(nb == b)}
-    results["table5"][name] = {
-        str(b): metrics.summarize({k: v[nb == b] for k, v in counts.items()})["rmse"]
-        for b in range(2, nb.max() + 1) if np.any(nb == b)}
+    results["table5"][name], results["table5_ci95"][name] = by_blocks(counts, nb)
     results["table5"][name]["overall"] = row["rmse"]
   # face error (mm) of the network's ("ppd"), fitted ("fit") and depth-fitted boxes
   results["face_error_mm"] = {g[1]: face_summary(rec[g]) for g in rec if g[0] == "faces"}
@@ -159,13 +164,10 @@ def summarize(switches: dict, rec: dict) -> dict:
     for t in POSTERIOR_TEMPERATURES:
       counts = {k: np.asarray(v) for k, v in group("posterior", row, t).items()}
       mae = counts.pop("mae")
+      table5, table5_ci95 = by_blocks(counts, nb)
       results["posterior_sweeps"].setdefault(row, {})[str(t)] = {
-          **metrics.summarize(counts), "mae": float(np.mean(mae)),
-          "table5": {str(b): metrics.summarize({k: v[nb == b] for k, v in counts.items()})
-                     ["rmse"] for b in range(2, nb.max() + 1) if np.any(nb == b)},
-          "table5_ci95": {str(b): metrics.bootstrap_interval(
-              lambda i, sel=np.flatnonzero(nb == b): np_metrics(counts, sel[i])["rmse"],
-              int(np.sum(nb == b))) for b in range(2, nb.max() + 1) if np.any(nb == b)}}
+          **metrics.summarize(counts), "mae": float(np.mean(mae)), "table5": table5,
+          "table5_ci95": table5_ci95}
   results["oracle_pick"] = {}  # +Sample row -> its ceiling on the same candidates
   for row in sorted({k[1] for k in rec if k[0] == "oracle_pick"}, key=PPD_ROWS.index):
     counts = group("oracle_pick", row)
