@@ -13,6 +13,7 @@ from PIL import Image
 import pipeline_steps
 
 from ppdjax import make_decompose_fn, plots
+from ppdjax.conventions import slot_to_density
 from ppdjax.configs import tools as tools_preset
 from ppdjax.dataset import storage, tool_generation
 from ppdjax.infer.markdown import oracle_pick_md, prior_sweep_md, table2_md
@@ -44,7 +45,7 @@ def collect(pipe) -> dict:
     if extra in full["table2"]:
       rows[extra.replace("PPD", "PPD (full)")] = full["table2"][extra]
   return {"rows": rows, "shape": full["shape"], "shape_fit": full.get("shape_fit"),
-          "objects": full["objects"],
+          "objects": full["objects"], "frequent_slot": full.get("frequent_slot"),
           "configs_per_tool": tool_generation.configs_per_tool(pipe.config.data),
           "samples": full["samples"], "mae_units": full.get("mae_units", "mm"),
           **pipeline_steps.read_log(pipe.root)}
@@ -103,6 +104,14 @@ def markdown(r: dict, command: str) -> str:
     paper = PAPER.get(name)
     lines.append(f"| {name} | {row['mae'] / frequent:.2f} | "
                  + (f"{paper[4] / PAPER['Frequent'][4]:.2f}" if paper else "–") + " |")
+  slot = r.get("frequent_slot")
+  lines += ["", "Frequent simulates every box at the training split's most frequent slot"
+            + (f" (here slot {slot}, {float(slot_to_density(slot)):.0f} kg/m³)"
+               if slot is not None else "")
+            + ". For tools that is one of wood's ten slots, which are about equally "
+            "frequent: which of them wins, and with it Frequent's MAE (a light tool slides "
+            "far), changes from one dataset to the next. Compare the MAE column, not these "
+            "ratios, with the paper's (docs/data.md, \"Tools\")."]
   lines += ["", "Paper (top-1 / top-5 / top-10 / RMSE / MAE): "
             + "; ".join(f"{k} {'/'.join(str(v) for v in vals)}" for k, vals in PAPER.items()),
             "", f"Shape F1 (IoU > 0.5): {_with_interval(r['shape'], 'f1')}; box count exact "

@@ -269,13 +269,14 @@ def test_tool_shape_errors_find_the_attribute_that_misses():
 
 
 def test_tools_rerun_replaces_the_full_models_rows_and_keeps_the_ablations(tmp_path):
-  """experiments/tools_rerun.py on the committed results: the full model's rows and the
-  τ sweep come from the new evaluation; the ablations' rows and the run's steps stay; an
-  evaluation over other objects is refused."""
+  """experiments/tools_rerun.py on the committed results (the shipped run's own evaluation
+  of the full model, marked): the full model's rows and the τ sweep come from the new
+  evaluation; the ablations' rows and the run's steps stay; an evaluation over other
+  objects is refused."""
   results = os.path.join(ROOT, "experiments", "results")
   shutil.copy(os.path.join(results, "tools.json"), tmp_path / "tools.json")
   new = tmp_path / "eval"
-  shutil.copytree(os.path.join(results, "tools_rerun"), new)
+  shutil.copytree(os.path.join(results, "tools_runs", "eval_full"), new)
   with open(new / "results.json") as f:
     ev = json.load(f)
   ev["table2"]["PPD+Sample"]["top1"] = 99.0  # a marker that must reach tools.json

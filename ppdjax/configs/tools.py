@@ -57,7 +57,7 @@ def get_config(size: str = "paper"):
   config.finetune.geometry_steps = 600 if size == "paper" else 20
   config.finetune.geometry_weight = 1.0
   # 700 joint steps: with 350 the training density loss was still falling (6.2 against
-  # 7.0 on validation at the end, experiments/results/tools_runs/)
+  # 7.0 on validation at the end, experiments/results/tools_runs_one_config/)
   config.finetune.joint_steps = 700 if size == "paper" else 40
   config.finetune.learning_rate = 3e-4 if size == "paper" else config.train.learning_rate
   config.finetune.eval_every = 50 if size == "paper" else config.train.eval_every

@@ -304,6 +304,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
       "devices": num_devices, "seconds": round(time.perf_counter() - t_start, 1),
       "seconds_by_part": {"read": round(read.waited, 1),
                           **{k: round(v, 1) for k, v in parts.items()}}})
+  if train is not None:  # Frequent's one slot for every box (unknown to a call that only resumed)
+    results["frequent_slot"] = int(np.argmax(train.frequency_scores()))
   if computed:
     # where the device time of a batch goes once compiled: per jitted stage
     after = {k: v - first.get(k, 0.0) for k, v in ev.seconds.items() if k != "compile"}
