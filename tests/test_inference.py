@@ -16,7 +16,7 @@ from ppdjax import metrics
 from ppdjax.configs import tiny
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage, towers
-from ppdjax.infer import batches, evaluation, markdown, partial, refine, sampling, tables
+from ppdjax.infer import baselines, batches, evaluation, markdown, partial, refine, sampling, tables
 from ppdjax.primitives import quat_mul
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
 from ppdjax.training import checkpoints
@@ -384,6 +384,10 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   for row in rows.values():
     assert 0 <= row["top1"] <= row["top5"] <= row["top10"] <= 100 and row["mae"] >= 0
   assert rows["Oracle"]["top10"] > rows["Frequent"]["top10"]
+  # Frequent's one slot: the training split's commonest box label
+  train = storage.open_dataset(tiny_dataset, "train")
+  labels = baselines.true_slots(train.take(np.arange(len(train)), keys=("primitives",))["primitives"])
+  assert results["frequent_slot"] == np.bincount(labels[labels >= 0]).argmax()
   assert set(results["table4"]) == {"PPD", "Sample Phys.", "Sample Phys.+Shape"}
   for r in results["table4"].values():  # MAE (mm) of the best of 1, 8, S by distance
     assert set(r) == {"1", "8", str(SAMPLES)} and all(0 < v < 2000 for v in r.values())
