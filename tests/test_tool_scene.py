@@ -82,18 +82,29 @@ def test_tools_simulate_and_render(tmp_path, monkeypatch):
 
 
 def test_a_tools_dataset_is_written_and_read_as_towers_are(tmp_path):
-  """Two tools, each under two density configurations (`data.configs_per_tool`)."""
+  """Two tools, each under two density configurations (`data.configs_per_tool`), pushed at
+  300 N (`data.tool_push_force`): the manifest records the pushes the trajectories had."""
   from ppdjax.configs import tiny
+  from ppdjax.configs import tools as tools_preset
   from ppdjax.conventions import density_to_slot
-  from ppdjax.dataset import generation, materials, storage
+  from ppdjax.dataset import generation, materials, storage, tool_generation
+  assert tools_preset.get_config().data.tool_push_force == tool_scene.TOOL_PUSH_FORCE
   config = tiny.get_config()
   config.data.update(kind="tools", num_tools=2, tools_per_shard=1, image_size=32, steps=12,
-                     backend="mujoco", configs_per_tool=2)
+                     backend="mujoco", configs_per_tool=2, tool_push_force=300.0)
+  for bad in (0.0, 2e4):
+    data = config.data.copy_and_resolve_references()
+    data.tool_push_force = bad
+    with pytest.raises(ValueError, match="tool_push_force"):
+      generation.check_config(data)
   manifest = generation.generate(config, str(tmp_path / "tools"), progress=False)
   assert manifest["kind"] == "tools" and manifest["tools"] == 2 and manifest["samples"] == 4
+  assert "300 N" in manifest["engine"]["tools"]
   ds = storage.open_dataset(str(tmp_path / "tools"), verify=True)
-  np.testing.assert_array_equal(ds.pushes.magnitudes, tool_scene.tool_pushes().magnitudes)
+  np.testing.assert_array_equal(ds.pushes.magnitudes, tool_scene.tool_pushes(300.0).magnitudes)
   batch = ds.take(np.arange(4))
+  at_1e3 = tool_generation.tool_sample(config.seed, 0, 32, 12)["trajectories"]
+  assert np.abs(batch["trajectories"][0] - at_1e3).max() > 1e-3  # a weaker push
   assert batch["trajectories"].shape == (4, 4, 12, 7) and batch["depth"].shape == (4, 32, 32)
   prims = batch["primitives"]
   for i in range(4):
@@ -110,7 +121,7 @@ def test_a_tools_dataset_is_written_and_read_as_towers_are(tmp_path):
     assert not np.array_equal(prims.density[a], prims.density[a + 1])
     assert not np.array_equal(batch["trajectories"][a], batch["trajectories"][a + 1])
   # a sample is a pure function of (seed, index): the first configuration is the tool's own
-  again = generation.tool_generation.tool_sample(config.seed, 1, 32, 12)
+  again = tool_generation.tool_sample(config.seed, 1, 32, 12, force=300.0)
   np.testing.assert_array_equal(again["trajectories"], batch["trajectories"][2])
   np.testing.assert_array_equal(again["half_size"], prims.half_size[2])
   own = tools.sample_tool(config.seed, 1).densities  # (its first attempt did not diverge)

@@ -30,6 +30,11 @@ def get_config(size: str = "paper"):
   # configurations cost a simulation each (the image, voxels and boxes are shared)
   config.data.configs_per_tool = 4 if size == "paper" else 2
   config.data.backend = "mujoco"  # tools are simulated by MuJoCo C from their own parts
+  # The pushes' magnitude in newtons (ppdjax.dataset.tool_scene.TOOL_PUSH_FORCE, up to 1e4).
+  # At 1e3 N part of a tool's response to a small density change is a jump; at 300 N it is
+  # proportional, at less than half the motion (experiments/results/tool_resolution/); no
+  # model has been trained at 300 N yet.
+  config.data.tool_push_force = 1e3
   if size == "paper":
     config.data.render_workers = 14  # a tool is CPU work only (mesh, MuJoCo C, render)
   # The pretraining towers: 2 blocks, each turned up to 0.2 rad and resized by up to 10 %

@@ -49,7 +49,9 @@ def check_config(cfg) -> None:
     raise ValueError(f"config.data.kind must be one of {KINDS}, got {cfg.kind!r}")
   if kind_of(cfg) == "tools":
     rules = [("num_tools", cfg.num_tools >= 1), ("tools_per_shard", cfg.tools_per_shard >= 1),
-             ("configs_per_tool", tool_generation.configs_per_tool(cfg) >= 1)]
+             ("configs_per_tool", tool_generation.configs_per_tool(cfg) >= 1),
+             # above 1e4 N MuJoCo's solver diverges on some tools (tool_scene.TOOL_PUSH_FORCE)
+             ("tool_push_force", 0 < tool_generation.push_force(cfg) <= 1e4)]
   else:
     rules = [("num_towers", cfg.num_towers >= 1),
              ("block_counts", kind_of(cfg) != "pendulum" or (
@@ -78,8 +80,9 @@ def kind_of(cfg) -> str:
 
 def pushes_of(cfg):
   """The pushes a dataset of this data section is recorded under."""
-  return {"tools": tool_scene.tool_pushes, "pendulum": pendulum_strike}.get(
-      kind_of(cfg), default_pushes)()
+  if kind_of(cfg) == "tools":
+    return tool_scene.tool_pushes(tool_generation.push_force(cfg))
+  return pendulum_strike() if kind_of(cfg) == "pendulum" else default_pushes()
 
 
 def _plan(cfg):
@@ -189,7 +192,8 @@ def generate(config, out: str, progress: bool = True) -> dict:
                  # the JAX engine's settings (inference reads "mujoco" data through MJX)
                  "settings": dataclasses.asdict(settings_for(cfg.backend)),
                  **({"tools": "MuJoCo C on the parts' convex pieces, pushes of "
-                              f"{tool_scene.TOOL_PUSH_FORCE:g} N"} if unit == "tool" else {})},
+                              f"{tool_generation.push_force(cfg):g} N"}
+                    if unit == "tool" else {})},
       "pushes": pushes_record(pushes_of(cfg)),
       "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
       "depth": source,

@@ -23,14 +23,14 @@ ATTEMPTS = 4
 ATTEMPT_STRIDE = 1_000_000
 
 
-def tool_samples(seed: int, index: int, image_size: int, steps: int,
-                 configs: int = 1) -> list[dict[str, np.ndarray]]:
+def tool_samples(seed: int, index: int, image_size: int, steps: int, configs: int = 1,
+                 force: float = tool_scene.TOOL_PUSH_FORCE) -> list[dict[str, np.ndarray]]:
   """The arrays of tool `index` (one row of each storage field but "split") under
   `configs` density configurations: the first with the tool's own slots, each other with
   every part's slot drawn again within its material's range (`tools.with_new_slots`,
   from (seed, index, c)). Geometry, materials and textures are shared, so voxels, image,
   depth and boxes are made once; each configuration has its own trajectories and box
-  densities."""
+  densities. The pushes are the paper's four directions at `force` newtons."""
   rng = np.random.default_rng([seed, index])
   for attempt in range(ATTEMPTS):
     tool = tools.sample_tool(seed, index + attempt * ATTEMPT_STRIDE)
@@ -38,11 +38,12 @@ def tool_samples(seed: int, index: int, image_size: int, steps: int,
     tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, len(parts))
     variants = [tool] + [tools.with_new_slots(tool, np.random.default_rng([seed, index, c]))
                          for c in range(1, configs)]
+    pushes = tool_scene.tool_pushes(force)
     try:
       obs = tool_scene.observe(parts, tool.materials, tool.densities, tex_seeds,
-                               image_size=image_size, steps=steps)
+                               image_size=image_size, steps=steps, pushes=pushes)
       trajectories = [obs["trajectories"]] + [
-          tool_scene.simulate_tool(parts, v.densities, steps=steps).astype(np.float32)
+          tool_scene.simulate_tool(parts, v.densities, pushes, steps=steps).astype(np.float32)
           for v in variants[1:]]
       break
     except RuntimeError:
@@ -61,9 +62,10 @@ def tool_samples(seed: int, index: int, image_size: int, steps: int,
   return out
 
 
-def tool_sample(seed: int, index: int, image_size: int, steps: int) -> dict[str, np.ndarray]:
+def tool_sample(seed: int, index: int, image_size: int, steps: int,
+                force: float = tool_scene.TOOL_PUSH_FORCE) -> dict[str, np.ndarray]:
   """The arrays of tool `index` under its own densities (the first of `tool_samples`)."""
-  return tool_samples(seed, index, image_size, steps)[0]
+  return tool_samples(seed, index, image_size, steps, force=force)[0]
 
 
 def _one(args):
@@ -96,12 +98,19 @@ def configs_per_tool(cfg) -> int:
   return int(cfg.get("configs_per_tool", 1))
 
 
+def push_force(cfg) -> float:
+  """The pushes' magnitude in newtons (`tool_scene.TOOL_PUSH_FORCE` for data sections made
+  before the key, and for the towers' models)."""
+  return float(cfg.get("tool_push_force", tool_scene.TOOL_PUSH_FORCE))
+
+
 def generate_shard(cfg, seed: int, shard: int, workers: ToolWorkers) -> dict[str, np.ndarray]:
   """All arrays of one shard of tools."""
   first = shard * cfg.tools_per_shard
   count = min(cfg.tools_per_shard, cfg.num_tools - first)
   configs = configs_per_tool(cfg)
-  jobs = [(seed, i, cfg.image_size, cfg.steps, configs) for i in range(first, first + count)]
+  jobs = [(seed, i, cfg.image_size, cfg.steps, configs, push_force(cfg))
+          for i in range(first, first + count)]
   rows = [row for tool in workers.map(jobs) for row in tool]
   arrays = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
   arrays["split"] = storage.split_of(arrays["tower_id"], tuple(cfg.split_fractions))

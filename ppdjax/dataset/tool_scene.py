@@ -32,14 +32,15 @@ from ppdjax.sim.pushes import Pushes, default_pushes
 # (docs/data.md); the directions are the paper's. At 1e3 N part of a tool's response to a
 # small density change is a jump (rolling, tipping), not a trend; at 300 N it is
 # proportional, at less than half the motion (experiments/results/tool_resolution/).
+# A dataset may choose another magnitude (`config.data.tool_push_force`).
 TOOL_PUSH_FORCE = 1e3
 SLABS = 4  # convex pieces of a part that is not convex
 CONVEX_TOL = 0.02  # a part whose hull exceeds its volume by this fraction is cut
 
 
-def tool_pushes() -> Pushes:
-  """The paper's four push directions at the tools' magnitude (TOOL_PUSH_FORCE)."""
-  return default_pushes(TOOL_PUSH_FORCE)
+def tool_pushes(force: float = TOOL_PUSH_FORCE) -> Pushes:
+  """The paper's four push directions at the tools' magnitude (newtons; TOOL_PUSH_FORCE)."""
+  return default_pushes(force)
 
 
 def mass_properties(parts, densities) -> tuple[float, np.ndarray, np.ndarray]:
