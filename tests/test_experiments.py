@@ -431,3 +431,27 @@ def test_tool_resolution_separates_what_other_parts_can_mimic():
   assert len(towers) == 1 and towers[0][n - 1] > towers[0][0] >= 0 and towers[0][n + 1] > 0
   summary = study.summarize([r])
   assert sum(summary[f"hammer {name}"]["parts"] for name in tool.names) == len(tool.parts)
+
+
+@pytest.mark.slow  # one tool, 2 x 2 x 5 candidates by MuJoCo C, a few seconds
+def test_tool_push_study_picks_the_truth_when_it_is_a_candidate():
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from ppdjax.dataset import tools
+  from ppdjax.dataset.materials import material_slots
+  import tool_push_study as study  # pylint: disable=import-outside-toplevel
+
+  tool = tools.sample_tool(2026, 0, category="hammer")
+  drawn = study.draw_candidates(tool, 64, np.random.default_rng(0))
+  for k, m in enumerate(tool.materials):  # within each part's material
+    assert set(drawn[:, k]) <= set(material_slots(m).tolist())
+  candidates = np.concatenate([drawn[:4], np.asarray(tool.slots)[None]])  # the truth last
+  r = study.study_tool(tool, [300.0, 1000.0], candidates)
+  assert r["best"] == list(tool.slots) and r["slots"] == list(tool.slots)
+  for key in ("300", "1000"):  # the own shape's pick is the truth itself (distance 0)
+    assert r[key]["own shape"] == list(tool.slots) and r[key]["motion_mm"] > 0
+    assert r[key]["true boxes"] in candidates.tolist()
+  assert r["300"]["motion_mm"] < r["1000"]["motion_mm"]
+  s = study.summarize([r, r], [300.0, 1000.0])
+  assert s["best"]["rmse"] == 0 and s["random_rmse"] > 0
+  own = s["forces"]["1000"]["own shape"]
+  assert own["rmse"] == 0 and own["explained"] == pytest.approx(1.0)
