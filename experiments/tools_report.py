@@ -47,6 +47,7 @@ def collect(pipe) -> dict:
   return {"rows": rows, "shape": full["shape"], "shape_fit": full.get("shape_fit"),
           "objects": full["objects"], "frequent_slot": full.get("frequent_slot"),
           "configs_per_tool": tool_generation.configs_per_tool(pipe.config.data),
+          "push_force": tool_generation.push_force(pipe.config.data),
           "samples": full["samples"], "mae_units": full.get("mae_units", "mm"),
           **pipeline_steps.read_log(pipe.root)}
 
@@ -89,7 +90,8 @@ def markdown(r: dict, command: str) -> str:
            f"{r['objects']} test objects of the procedural tools dataset (none trained on"
            + (f"; {r['objects'] // r['configs_per_tool']} tools x {r['configs_per_tool']} "
               "density configurations" if r.get("configs_per_tool", 1) > 1 else "") + "), "
-           f"{r['samples']} density samples for +Sample; 95 % bootstrap intervals in "
+           + (f"pushes of {r['push_force']:g} N, " if r.get("push_force") else "")
+           + f"{r['samples']} density samples for +Sample; 95 % bootstrap intervals in "
            f"brackets; trajectory MAE in {r['mae_units']}.", ""]
   if r.get("rerun"):
     lines += [f"The full model's rows (the baselines, PPD (full) and every +Fit, +Sample and "
