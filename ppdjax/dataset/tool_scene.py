@@ -31,7 +31,9 @@ from ppdjax.sim.pushes import Pushes, default_pushes
 # 1e4 N. 1e3 N moves the median tool 2.3 cm (p90 12 cm) in 256 steps, none diverging
 # (docs/data.md); the directions are the paper's. At 1e3 N part of a tool's response to a
 # small density change is a jump (rolling, tipping), not a trend; at 300 N it is
-# proportional, at less than half the motion (experiments/results/tool_resolution/).
+# proportional, at less than half the motion (experiments/results/tool_resolution/), yet
+# between whole configurations 1e3 N tells densities apart as well
+# (experiments/results/tool_push_study/).
 # A dataset may choose another magnitude (`config.data.tool_push_force`).
 TOOL_PUSH_FORCE = 1e3
 SLABS = 4  # convex pieces of a part that is not convex
