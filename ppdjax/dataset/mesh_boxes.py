@@ -14,7 +14,7 @@ vertices. Here, on area-weighted surface samples of the normalised mesh:
    mesh's own volume), up to `max_boxes` boxes. A straight part stays one box; a bent or
    L-shaped one splits where its box is mostly air. A box holds the convex hull of its
    points, so a cut whose halves' hulls already hold more than a saving allows is not
-   fitted (the same boxes, about a third of the time).
+   fitted (the same boxes in two thirds of the time).
 3. **Assignment and refit** (the paper's last step, repeated): every sample goes to its
    nearest box (signed distance: the box it lies deepest inside), each box becomes the
    minimum oriented bounding box of its samples.
