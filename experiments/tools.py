@@ -5,6 +5,8 @@
   python experiments/tools.py --step=next                             # one call, then exit
   python experiments/tools.py --jobs=2        # independent steps side by side
   python experiments/tools.py --list                                  # done and left
+  python experiments/tools.py --root=R2 --config.data.configs_per_tool=8 \
+      --variants=full --pretrained=out/tools/pretrain  # a study: one model, no pretraining
 
 Steps: generate the 2-block pretraining towers (`config.pretrain`) and the tools dataset;
 pretrain the full model on the towers; fine-tune the full model and the no-image and
@@ -17,6 +19,12 @@ to assets/tools_model. Generation resumes by shard, training from its last check
 ROOT/steps.jsonl records each call's wall time and device (experiments/pipeline_steps.py);
 with --jobs=N, up to N steps whose inputs are ready run at once, e.g. the tools are made
 on the CPU while the model pretrains on the towers.
+
+For a study of the tools data or the fine-tuning, --variants trains and evaluates only
+some of the three models (the report, which needs all three, is then left out), and
+--pretrained starts them from an existing pretraining workdir (another root's
+ROOT/pretrain: the towers do not depend on the tools section) instead of making the
+towers and pretraining again.
 """
 
 from __future__ import annotations
@@ -47,17 +55,28 @@ flags.DEFINE_string("step", "all", "'all' (every step left), 'next', or a step n
 flags.DEFINE_integer("jobs", 1, "Steps run at once, each in its own process (with "
                      "--step=all).")
 flags.DEFINE_bool("list", False, "Print the steps and their state, then exit.")
-FLAGS = flags.FLAGS
 VARIANTS = ("full", "no_image", "no_trajectory")
+flags.DEFINE_list("variants", list(VARIANTS), "The fine-tuned models to train and evaluate; "
+                  "the report only with all three.")
+flags.DEFINE_string("pretrained", "", "Start the fine-tuning from this finished pretraining "
+                    "workdir (e.g. another root's pretrain) instead of pretraining here.")
+FLAGS = flags.FLAGS
 
 
 class Pipeline:
   """The steps, each a (name, done?, action); state lives only on disk."""
 
-  variants = VARIANTS
-
-  def __init__(self, config, root: str):
-    self.config, self.root = config, root
+  def __init__(self, config, root: str, variants=VARIANTS, pretrained: str = ""):
+    unknown = sorted(set(variants) - set(VARIANTS))
+    if unknown or not variants:
+      raise app.UsageError(f"--variants must be some of {', '.join(VARIANTS)}, got "
+                           f"{', '.join(variants) or 'none'}")
+    if pretrained and loop.trained_steps(pretrained) < total_steps(
+        self._pretrain_config(config).train):
+      raise app.UsageError(f"--pretrained={pretrained} holds no finished pretraining "
+                           "(ROOT/pretrain of a tools run)")
+    self.config, self.root, self.pretrained = config, root, pretrained
+    self.variants = tuple(v for v in VARIANTS if v in variants)
     self.data = os.path.join(root, "data")
     self.pretrain_data = os.path.join(root, "pretrain_data")
 
@@ -65,8 +84,12 @@ class Pipeline:
     return os.path.join(self.root, name)
 
   def pretrain_config(self):
+    return self._pretrain_config(self.config)
+
+  @staticmethod
+  def _pretrain_config(config):
     """The towers' data section for pretraining (`config.pretrain`), same model."""
-    c = self.config.copy_and_resolve_references()
+    c = config.copy_and_resolve_references()
     c.data.kind, c.data.backend = "towers", "mjx"
     c.data.num_towers = c.pretrain.num_towers
     c.data.num_blocks, c.data.rotate = c.pretrain.num_blocks, c.pretrain.rotate
@@ -77,7 +100,7 @@ class Pipeline:
     if variant == "pretrain":
       return self.pretrain_config()
     c = common.variant_config(self.config, variant)
-    c.train.init_from = self.workdir("pretrain")
+    c.train.init_from = self.pretrained or self.workdir("pretrain")
     c.train.geometry_steps = c.finetune.geometry_steps
     c.train.joint_steps = c.finetune.joint_steps
     c.train.learning_rate = c.finetune.learning_rate
@@ -90,17 +113,20 @@ class Pipeline:
     return os.path.join(self.workdir(variant), "eval")
 
   def steps(self):
+    pretraining = () if self.pretrained else ("pretrain",)
     out = [("generate:pretrain", lambda: self._generated(self.pretrain_data),
-            lambda: generation.generate(self.pretrain_config(), self.pretrain_data)),
-           ("generate:tools", lambda: self._generated(self.data),
-            lambda: generation.generate(self.config, self.data))]
-    for v in ("pretrain",) + VARIANTS:
+            lambda: generation.generate(self.pretrain_config(), self.pretrain_data))
+           ] if pretraining else []
+    out.append(("generate:tools", lambda: self._generated(self.data),
+                lambda: generation.generate(self.config, self.data)))
+    for v in pretraining + self.variants:
       out.append((f"train:{v}", lambda v=v: loop.trained_steps(self.workdir(v))
                   >= total_steps(self.train_config(v).train), lambda v=v: self.train(v)))
       if v != "pretrain":
         out.append((f"evaluate:{v}", lambda v=v: os.path.exists(
             os.path.join(self.eval_dir(v), "results.json")), lambda v=v: self.evaluate(v)))
-    out.append(("report", lambda: False, self.report))
+    if self.variants == VARIANTS:  # the report needs every model
+      out.append(("report", lambda: False, self.report))
     return out
 
   def needs(self, name: str) -> tuple[str, ...]:
@@ -110,7 +136,7 @@ class Pipeline:
       return ()
     if kind == "train":
       return (("generate:pretrain",) if variant == "pretrain"
-              else ("generate:tools", "train:pretrain"))
+              else ("generate:tools",) + (() if self.pretrained else ("train:pretrain",)))
     if kind == "evaluate":
       return (f"train:{variant}",)
     return tuple(n for n, _, _ in self.steps() if n != "report")
@@ -153,8 +179,9 @@ class Pipeline:
 
 def main(argv):
   del argv
-  sys.exit(pipeline_steps.run_steps(Pipeline(FLAGS.config, FLAGS.root), FLAGS.step,
-                                    FLAGS.jobs, sys.argv, list_only=FLAGS.list))
+  pipe = Pipeline(FLAGS.config, FLAGS.root, FLAGS.variants, FLAGS.pretrained)
+  sys.exit(pipeline_steps.run_steps(pipe, FLAGS.step, FLAGS.jobs, sys.argv,
+                                    list_only=FLAGS.list))
 
 
 if __name__ == "__main__":

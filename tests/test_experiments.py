@@ -455,3 +455,25 @@ def test_tool_push_study_picks_the_truth_when_it_is_a_candidate():
   assert s["best"]["rmse"] == 0 and s["random_rmse"] > 0
   own = s["forces"]["1000"]["own shape"]
   assert own["rmse"] == 0 and own["explained"] == pytest.approx(1.0)
+
+
+@pytest.mark.slow  # three command lines, about 15 s on 2 cores
+def test_tools_study_runs_some_variants_from_another_pretraining(tmp_path):
+  """--variants keeps only those models' steps (no report without all three); --pretrained
+  leaves out the towers and the pretraining, and must hold a finished one."""
+  from ppdjax.training import checkpoints
+  env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+  lister = lambda *a: subprocess.run(  # noqa: E731
+      [sys.executable, "experiments/tools.py", "--list", "--config=ppdjax/configs/tools.py:tiny",
+       f"--root={tmp_path / 'root'}", *a], cwd=ROOT, env=env, capture_output=True, text=True,
+      timeout=300)
+  pretrained = tmp_path / "other" / "pretrain"
+  refused = lister("--variants=full", f"--pretrained={pretrained}")
+  assert refused.returncode != 0 and "no finished pretraining" in refused.stderr
+  os.makedirs(pretrained / checkpoints.LATEST / "1000000")  # a checkpoint past the end
+  done = lister("--variants=full", f"--pretrained={pretrained}")
+  assert done.returncode == 0, done.stderr[-2000:]
+  assert [line.split()[1] for line in done.stdout.splitlines()] == [
+      "generate:tools", "train:full", "evaluate:full"]
+  bad = lister("--variants=full,no_voxels")
+  assert bad.returncode != 0 and "--variants must be some of" in bad.stderr
