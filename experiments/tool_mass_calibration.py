@@ -31,7 +31,7 @@ from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS, density_to_slot, slot_to_density
 from ppdjax.dataset import meshes, tool_scene, tools
 from ppdjax.dataset.mesh_boxes import boxes_of_parts
-from tool_studies import over_tools, study_parser, write
+from tool_studies import over_tools, simulate_candidates, study_parser, write
 
 FACTORS = ("paper (x1)", "calibrated (x1/c)", "oracle (tool's own)")
 HORIZONS = (0, 128, 64, 32, 16)  # steps of 1/300 s the distance reads (0: all 256)
@@ -80,12 +80,7 @@ def study_tool(tool, c: float, count: int, radius: int, rng) -> dict | None:
          "labels": labels[valid].tolist(),  # and what a candidate drawn at random scores:
          "pool": {"square_error": (off ** 2).mean(0).tolist(), "hit": (off == 0).mean(0).tolist()}}
   for name, factor in zip(FACTORS, (1.0, 1.0 / c, tool_mass / box_mass)):
-    dens = slot_to_density(slots) * factor
-    cands = prims.replace(**{f: np.broadcast_to(np.asarray(getattr(prims, f)),
-                                                (count,) + np.shape(getattr(prims, f)))
-                             for f in ("half_size", "pos", "quat", "valid")},
-                          density=dens.astype(np.float32))
-    traj = np.asarray(ppdjax.simulate(cands, tool_scene.tool_pushes(), backend="mujoco"))
+    traj = simulate_candidates(prims, slot_to_density(slots) * factor, tool_scene.tool_pushes())
     dist = np.asarray(metrics.horizon_distances(traj, seen, HORIZONS))  # (count, H)
     for h, d in zip(HORIZONS, dist.T):
       out[_key(name, h)] = {"slots": slots[int(np.argmin(d))][valid].tolist(),

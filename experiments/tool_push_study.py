@@ -29,14 +29,12 @@ import time
 
 import numpy as np
 
-import ppdjax
 from ppdjax import metrics
 from ppdjax.conventions import slot_to_density
 from ppdjax.dataset import meshes, tool_scene
 from ppdjax.dataset.materials import material_slots
 from ppdjax.dataset.mesh_boxes import boxes_of_parts
-from tool_resolution import slot_range
-from tool_studies import over_tools, study_parser, write
+from tool_studies import over_tools, simulate_candidates, slot_range, study_parser, write
 
 READERS = ("own shape", "true boxes")
 NEAR_SLOTS = 5
@@ -64,7 +62,6 @@ def study_tool(tool, forces: list[float], candidates: np.ndarray) -> dict | None
   parts, _ = meshes.normalize(list(tool.parts))
   prims, owner = boxes_of_parts(parts, tool.densities)
   truth = np.asarray(tool.slots)
-  count = len(candidates)
   square = ((candidates - truth) ** 2).astype(float)  # (C, parts)
   best = candidates[int(np.argmin(square.sum(-1)))]
   out = {"category": tool.category, "slots": truth.tolist(),
@@ -81,12 +78,8 @@ def study_tool(tool, forces: list[float], candidates: np.ndarray) -> dict | None
                      candidates, seen)
     dens = np.where(boxed, slot_to_density(candidates[:, np.maximum(owner, 0)]),
                     np.asarray(prims.density)[None])
-    cands = prims.replace(**{f: np.broadcast_to(np.asarray(getattr(prims, f)),
-                                                (count,) + np.shape(getattr(prims, f)))
-                             for f in ("half_size", "pos", "quat", "valid")},
-                          density=dens.astype(np.float32))
-    boxes = np.asarray(metrics.trajectory_distance(
-        np.asarray(ppdjax.simulate(cands, pushes, backend="mujoco")), seen))
+    boxes = np.asarray(metrics.trajectory_distance(simulate_candidates(prims, dens, pushes),
+                                                   seen))
     moved = np.linalg.norm(seen[:, -1, :3] - seen[:, 0, :3], axis=-1)
     out[f"{force:g}"] = {"motion_mm": float(np.sqrt((moved ** 2).mean()) * 1000),
                          "diverged_candidates": int(np.isinf(own).sum()),

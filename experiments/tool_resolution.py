@@ -38,7 +38,7 @@ from ppdjax.dataset import tool_scene
 from ppdjax.dataset.meshes import normalize, voxelize_parts
 from ppdjax.metrics import ROTATION_LENGTH, rotation_vector
 from ppdjax.sim.pushes import default_pushes
-from tool_studies import over_tools, study_parser, write
+from tool_studies import over_tools, slot_range, study_parser, write
 
 STEP = 0.05  # forward difference in log density
 SMOOTH = 0.25  # forward and backward differences this close (relative): a linear response
@@ -66,12 +66,6 @@ def unique_sensitivity(jacobian: np.ndarray) -> np.ndarray:
       col = col - others @ coef
     out.append(float(np.linalg.norm(col)))
   return np.asarray(out)
-
-
-def slot_range(slot: int, material: str) -> str:
-  if material == "metal":
-    return "metal 71-100" if slot >= 70 else "metal 21-35"
-  return material
 
 
 def study_tool(tool, force: float, step: float = STEP):

@@ -1,7 +1,8 @@
 """What the tool studies (`tool_identifiability.py`, `tool_mass_calibration.py`,
-`tool_voxel_body.py`, `tool_resolution.py`) share: their flags, the trajectory distance
-they report, the loop over fresh tools that leaves out those MuJoCo diverges on, and their
-output files."""
+`tool_voxel_body.py`, `tool_resolution.py`, `tool_push_study.py`) share: their flags, the
+trajectory distance they report, the slot ranges they group parts by, the boxes simulated
+under candidate densities, the loop over fresh tools that leaves out those MuJoCo diverges
+on, and their output files."""
 
 from __future__ import annotations
 
@@ -12,7 +13,26 @@ import os
 import numpy as np
 from tqdm import tqdm
 
+import ppdjax
 from ppdjax.dataset import tools
+
+
+def slot_range(slot: int, material: str) -> str:
+  """A part's group: its material, metal split into its two ranges (21-35, 71-100)."""
+  if material == "metal":
+    return "metal 71-100" if slot >= 70 else "metal 21-35"
+  return material
+
+
+def simulate_candidates(prims, densities: np.ndarray, pushes) -> np.ndarray:
+  """(C, P, T, 7) trajectories of one tool's boxes `prims` (K slots) under each row of
+  `densities` (C, K) kg/m³, by MuJoCo C."""
+  count = len(densities)
+  cands = prims.replace(**{f: np.broadcast_to(np.asarray(getattr(prims, f)),
+                                              (count,) + np.shape(getattr(prims, f)))
+                           for f in ("half_size", "pos", "quat", "valid")},
+                        density=np.asarray(densities, np.float32))
+  return np.asarray(ppdjax.simulate(cands, pushes, backend="mujoco"))
 
 
 def distance_mm(a, b) -> float:

@@ -71,11 +71,11 @@ class Pipeline:
     if unknown or not variants:
       raise app.UsageError(f"--variants must be some of {', '.join(VARIANTS)}, got "
                            f"{', '.join(variants) or 'none'}")
+    self.config, self.root, self.pretrained = config, root, pretrained
     if pretrained and loop.trained_steps(pretrained) < total_steps(
-        self._pretrain_config(config).train):
+        self.pretrain_config().train):
       raise app.UsageError(f"--pretrained={pretrained} holds no finished pretraining "
                            "(ROOT/pretrain of a tools run)")
-    self.config, self.root, self.pretrained = config, root, pretrained
     self.variants = tuple(v for v in VARIANTS if v in variants)
     self.data = os.path.join(root, "data")
     self.pretrain_data = os.path.join(root, "pretrain_data")
@@ -84,12 +84,8 @@ class Pipeline:
     return os.path.join(self.root, name)
 
   def pretrain_config(self):
-    return self._pretrain_config(self.config)
-
-  @staticmethod
-  def _pretrain_config(config):
     """The towers' data section for pretraining (`config.pretrain`), same model."""
-    c = config.copy_and_resolve_references()
+    c = self.config.copy_and_resolve_references()
     c.data.kind, c.data.backend = "towers", "mjx"
     c.data.num_towers = c.pretrain.num_towers
     c.data.num_blocks, c.data.rotate = c.pretrain.num_blocks, c.pretrain.rotate
