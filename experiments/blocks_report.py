@@ -84,6 +84,8 @@ def collect(pipe) -> dict:
       "f1_ablations": {name: res[v]["f1"] for v, name in ablations.items()},
       "table4": full["table4"], "table4_evaluated": full.get("table4_evaluated"), "table5": table5, "table5_ci95": table5_ci95,
       "mae_units": full["mae_units"], "objects": full["objects"], "split": full["split"],
+      "intervals_over": full.get("intervals_over", "objects"),
+      "geometries": full.get("geometries"),
       "subset": full.get("subset", "first"), "samples": full["samples"],
       "refine": full["refine"],
       "prior_weight": full.get("prior_weight", 0.0), "prior_sweep": full.get("prior_sweep"),
@@ -116,7 +118,8 @@ def whole_split(r: dict, full: dict, command: str) -> dict:
   keep = ("f1", "shape", "shape_fit", "shape_fit_depth", "face_error_mm", "image_fit", "table4",
           "table4_evaluated",
           "oracle_pick", "prior_sweeps", "refine_stats", "objects", "split", "samples",
-          "refine", "prior_weight", "seconds", "seconds_by_part", "mae_units")
+          "refine", "prior_weight", "seconds", "seconds_by_part", "mae_units", "intervals_over",
+          "geometries")
   return {**{k: full.get(k) for k in keep}, "table2": table2, "table5": table5,
           "table5_ci95": table5_ci95, "command": command}
 
@@ -199,8 +202,8 @@ def report_md(r: dict, command: str) -> str:
             + (f" (the pipeline's own evaluation, {r['objects']} objects"
                + (", with +Joint and the true boxes)" if studies else ")") if ws else ""), ""]
   lines += table2_lines(r["table2"], r["objects"])
-  lines += ["", "Objects evaluated in parentheses; 95 % bootstrap intervals over objects in "
-            "brackets.", "",
+  lines += ["", "Objects evaluated in parentheses; " + markdown.intervals_note(r)
+            + " in brackets.", "",
             f"Shape F1 of the full model: **{r['f1']:.1f}** (paper {tables.PAPER_SHAPE_F1})"
             + markdown.shape_line(r) + "; ablations: "
             + ", ".join(f"{k} {v:.1f}" for k, v in r["f1_ablations"].items()) + ".", "",

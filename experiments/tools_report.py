@@ -16,7 +16,7 @@ from ppdjax import make_decompose_fn, plots
 from ppdjax.conventions import slot_to_density
 from ppdjax.configs import tools as tools_preset
 from ppdjax.dataset import storage, tool_generation
-from ppdjax.infer.markdown import oracle_pick_md, prior_sweep_md, table2_md
+from ppdjax.infer.markdown import intervals_note, oracle_pick_md, prior_sweep_md, table2_md
 from ppdjax.training import checkpoints
 
 FIGURE_TOOLS = 4
@@ -46,6 +46,8 @@ def collect(pipe) -> dict:
       rows[extra.replace("PPD", "PPD (full)")] = full["table2"][extra]
   return {"rows": rows, "shape": full["shape"], "shape_fit": full.get("shape_fit"),
           "objects": full["objects"], "frequent_slot": full.get("frequent_slot"),
+          "intervals_over": full.get("intervals_over", "objects"),
+          "geometries": full.get("geometries"),
           "configs_per_tool": tool_generation.configs_per_tool(pipe.config.data),
           "push_force": tool_generation.push_force(pipe.config.data),
           "samples": full["samples"], "mae_units": full.get("mae_units", "mm"),
@@ -91,8 +93,9 @@ def markdown(r: dict, command: str) -> str:
            + (f"; {r['objects'] // r['configs_per_tool']} tools x {r['configs_per_tool']} "
               "density configurations" if r.get("configs_per_tool", 1) > 1 else "") + "), "
            + (f"pushes of {r['push_force']:g} N, " if r.get("push_force") else "")
-           + f"{r['samples']} density samples for +Sample; 95 % bootstrap intervals in "
-           f"brackets; trajectory MAE in {r['mae_units']}.", ""]
+           + f"{r['samples']} density samples for +Sample; "
+           + intervals_note(r) + f" in brackets; trajectory MAE in {r['mae_units']}.",
+           ""]
   if r.get("rerun"):
     lines += [f"The full model's rows (the baselines, PPD (full) and every +Fit, +Sample and "
               f"true-box row) come from a later evaluation of the shipped model on the same "

@@ -157,16 +157,21 @@ def summarize(counts: dict) -> dict:
 
 
 def bootstrap_interval(stat, num_objects: int, *, resamples: int = 1000, level: float = 0.95,
-                       seed: int = 0) -> tuple[float, float]:
+                       seed: int = 0, groups=None) -> tuple[float, float]:
   """Percentile bootstrap interval of a dataset-level statistic over objects.
 
   Args:
     stat: maps an index array into the evaluated objects (with repeats) to a float, e.g.
       F1 from the per-object counts it selects.
     num_objects: how many objects were evaluated.
-    resamples: bootstrap resamples (objects drawn with replacement).
+    resamples: bootstrap resamples.
     level: the interval's coverage.
     seed: of the resampling.
+    groups: None (objects drawn with replacement), or a (num_objects,) array of group
+      ids: then whole groups are drawn with replacement (a cluster bootstrap), as many as
+      there are groups. The configurations of a tower or tool share its shape, so their
+      scores are not independent: resampling them one by one narrows the interval.
+      Groups of one object each draw exactly what the object bootstrap draws.
 
   Returns:
     (low, high), the (1 − level)/2 and (1 + level)/2 quantiles of the resampled statistic.
@@ -174,7 +179,23 @@ def bootstrap_interval(stat, num_objects: int, *, resamples: int = 1000, level: 
   if num_objects < 1:
     raise ValueError(f"a bootstrap needs at least one object, got {num_objects}")
   rng = np.random.default_rng(seed)
-  values = np.array([stat(rng.integers(0, num_objects, num_objects))
-                     for _ in range(resamples)], np.float64)
+  if groups is None:
+    draw = lambda: rng.integers(0, num_objects, num_objects)
+  else:
+    groups = np.asarray(groups)
+    if groups.shape != (num_objects,):
+      raise ValueError(f"groups must hold one id per object, shape ({num_objects},), got "
+                       f"{groups.shape}")
+    _, inverse = np.unique(groups, return_inverse=True)
+    sizes = np.bincount(inverse)
+    members = np.full((len(sizes), sizes.max()), -1)  # (groups, largest), -1 padded
+    order = np.argsort(inverse, kind="stable")
+    members[inverse[order], np.arange(num_objects) - np.repeat(np.cumsum(sizes) - sizes,
+                                                               sizes)] = order
+
+    def draw():
+      idx = members[rng.integers(0, len(sizes), len(sizes))].ravel()
+      return idx[idx >= 0]
+  values = np.array([stat(draw()) for _ in range(resamples)], np.float64)
   lo, hi = np.quantile(values, [(1 - level) / 2, (1 + level) / 2])
   return float(lo), float(hi)

@@ -1,6 +1,5 @@
 """Inference: density sampling and refinement through MJX, decompose, evaluate CLI, errors."""
 
-import collections
 import json
 import os
 import subprocess
@@ -393,9 +392,14 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
     assert set(r) == {"1", "8", str(SAMPLES)} and all(0 < v < 2000 for v in r.values())
   assert results["table4"]["PPD"]["1"] == pytest.approx(rows["PPD"]["mae"])
   assert results["objects"] == 8 and results["samples"] == SAMPLES
+  # the intervals resample whole towers (their configurations share a shape)
+  test = storage.open_dataset(tiny_dataset, "test")
+  towers = np.unique(test.take(np.arange(len(test)), keys=("tower_id",))["tower_id"])
+  assert results["intervals_over"] == "geometries" and results["geometries"] == len(towers)
   assert results["prior_weight"] == tiny.get_config().eval.prior_weight
   text = open(os.path.join(out, "results.md")).read()
   assert "Table 2" in text and "Table 4" in text and "| PPD+Sample |" in text
+  assert f"intervals over the {len(towers)} towers or tools" in text
   assert os.path.exists(os.path.join(out, "confusion.png"))
   # the oracle's pick among the same samples: at most +Sample's RMSE, top-1 within coverage
   o = results["oracle_pick"]["PPD+Sample"]
@@ -860,6 +864,28 @@ def test_bootstrap_interval_covers_a_proportion():
   assert metrics.bootstrap_interval(lambda i: 1.0, 5) == (1.0, 1.0)
   with pytest.raises(ValueError, match="at least one object"):
     metrics.bootstrap_interval(lambda i: 0.0, 0)
+
+
+def test_bootstrap_over_groups_widens_for_shared_outcomes():
+  """A tower's or tool's configurations share its shape: a cluster bootstrap draws them
+  together. Outcomes that a group shares give a wider interval than objects drawn one by
+  one; groups of one object each draw exactly what the object bootstrap draws."""
+  rng = np.random.default_rng(0)
+  group = np.repeat(np.arange(100), 8)  # 100 tools x 8 configurations
+  hits = np.repeat(rng.random(100) < 0.3, 8).astype(float)  # one outcome a tool
+  stat = lambda i: 100.0 * hits[i].mean()  # noqa: E731
+  lo, hi = metrics.bootstrap_interval(stat, len(hits))
+  glo, ghi = metrics.bootstrap_interval(stat, len(hits), groups=group)
+  assert glo < lo and ghi > hi and (ghi - glo) > 2 * (hi - lo)  # about sqrt(8) wider
+  v = rng.random(40)
+  mean = lambda i: float(v[i].mean())  # noqa: E731
+  assert (metrics.bootstrap_interval(mean, 40, groups=np.arange(40))
+          == metrics.bootstrap_interval(mean, 40))
+  uneven = rng.integers(0, 7, 40)  # groups of any sizes, ids in any order
+  lo, hi = metrics.bootstrap_interval(mean, 40, groups=uneven * 10 + 3)
+  assert lo < mean(np.arange(40)) < hi
+  with pytest.raises(ValueError, match="one id per object"):
+    metrics.bootstrap_interval(mean, 40, groups=np.arange(39))
 
 
 def test_scale_to_mass_keeps_the_split_and_matches_the_total():

@@ -295,7 +295,10 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
         raise partial.EvaluationPaused(start + keep, n, partial_dir)
     collect()
   bar.close()
-  results = summarize(model_switches(config), {k: np.concatenate(v) for k, v in records.items()})
+  # intervals resample whole towers or tools: their configurations share one shape
+  geometries = test.take(objects, keys=("tower_id",))["tower_id"]
+  results = summarize(model_switches(config), {k: np.concatenate(v) for k, v in records.items()},
+                      geometries)
   results["table4_evaluated"] = sum(len(r) for r in records.get(("prefix", "PPD", prefixes[0]), []))
   results.update({
       "workdir": trained if isinstance(trained, str) else None, "data": data_dir,

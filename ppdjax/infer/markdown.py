@@ -39,6 +39,15 @@ def _sign(on: bool) -> str:
   return "+" if on else "–"
 
 
+def intervals_note(results: dict) -> str:
+  """What the 95 % intervals resample: single objects (results of before 2026-11-27) or
+  whole towers and tools (`tables.summarize`'s `geometries`)."""
+  if results.get("intervals_over") != "geometries":
+    return "95 % bootstrap intervals over objects"
+  return (f"95 % bootstrap intervals over the {results['geometries']} towers or tools (each "
+          "drawn with all its density configurations, which share its shape)")
+
+
 def with_ci(row: dict, key: str, digits: int = 1) -> str:
   """'12.3 [11.0, 13.5]' (a value and its 95 % interval when the row has one)."""
   ci = row.get("ci95", {}).get(key)
@@ -160,7 +169,8 @@ def results_md(results: dict, command: str = "") -> str:
             + (f", refinement {results['refine_steps']} LM steps" if results["refine"] else "")
             + f"; {results['seconds']:.0f} s in all" + seconds_by_part(results)
             + f". Shape F1: **{results['f1']:.1f}** "
-            f"(paper, block towers: {PAPER_SHAPE_F1})" + shape_line(results) + ".", "",
+            f"(paper, block towers: {PAPER_SHAPE_F1})" + shape_line(results) + ". "
+            + intervals_note(results) + ".", "",
             "## Table 2: density and trajectory", ""]
   lines += table2_md(results["table2"], observes)
   lines += ["", "Paper (block towers): " + paper_line(PAPER_TABLE2_ONE_MODEL) + ".", ""]

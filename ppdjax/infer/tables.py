@@ -71,39 +71,44 @@ def np_metrics(counts: dict, idx) -> dict:
   return out
 
 
-def intervals(counts: dict, mae, resamples: int = 1000) -> dict:
-  """95 % bootstrap intervals over objects of a row's top-k, RMSE and MAE."""
+def intervals(counts: dict, mae, resamples: int = 1000, groups=None) -> dict:
+  """95 % bootstrap intervals of a row's top-k, RMSE and MAE, over objects or, with
+  `groups` (an id per object), over whole groups (`metrics.bootstrap_interval`)."""
   n = len(counts["count"])
   out = {}
   for k in [k for k in counts if k.startswith("top")] + ["rmse"]:
     out[k] = metrics.bootstrap_interval(lambda i, k=k: np_metrics(counts, i)[k], n,
-                                        resamples=resamples)
+                                        resamples=resamples, groups=groups)
   if mae is not None:
     out["mae"] = metrics.bootstrap_interval(lambda i: float(np.mean(mae[i])), n,
-                                            resamples=resamples)
+                                            resamples=resamples, groups=groups)
   return out
 
 
-def by_blocks(counts: dict, blocks) -> tuple[dict, dict]:
+def by_blocks(counts: dict, blocks, groups=None) -> tuple[dict, dict]:
   """Table 5 of one row: density RMSE of the objects of each block count from 2 up, and
-  its 95 % bootstrap interval, keyed by the count as a string."""
+  its 95 % bootstrap interval (over `groups` if given), keyed by the count as a string."""
   present = [b for b in range(2, blocks.max() + 1) if np.any(blocks == b)]
   rmse = {str(b): metrics.summarize({k: v[blocks == b] for k, v in counts.items()})["rmse"]
           for b in present}
-  ci95 = {str(b): metrics.bootstrap_interval(
-      lambda i, sel=np.flatnonzero(blocks == b): np_metrics(counts, sel[i])["rmse"],
-      int(np.sum(blocks == b))) for b in present}
+  ci95 = {}
+  for b in present:
+    sel = np.flatnonzero(blocks == b)
+    ci95[str(b)] = metrics.bootstrap_interval(
+        lambda i, sel=sel: np_metrics(counts, sel[i])["rmse"], len(sel),
+        groups=None if groups is None else groups[sel])
   return rmse, ci95
 
 
-def _f1(rec, kind):
+def _f1(rec, kind, groups=None):
   c = [np.asarray(rec[(kind, k)]) for k in ("matched", "predicted", "true")]
   f1 = lambda i: metrics.f1_from_counts(c[0][i], c[1][i], c[2][i])
   exact = lambda i: 100.0 * float(np.mean(c[1][i] == c[2][i]))
   everyone = np.arange(len(c[0]))
-  return {"f1": f1(everyone), "f1_ci95": metrics.bootstrap_interval(f1, len(everyone)),
+  return {"f1": f1(everyone),
+          "f1_ci95": metrics.bootstrap_interval(f1, len(everyone), groups=groups),
           "count_exact": exact(everyone),
-          "count_exact_ci95": metrics.bootstrap_interval(exact, len(everyone))}
+          "count_exact_ci95": metrics.bootstrap_interval(exact, len(everyone), groups=groups)}
 
 
 def face_summary(errors_BxKx6) -> dict:
@@ -118,19 +123,24 @@ def face_summary(errors_BxKx6) -> dict:
           "p90": float(np.percentile(flat, 90)), "max": float(flat.max()), "median_by_face": per}
 
 
-def summarize(switches: dict, rec: dict) -> dict:
+def summarize(switches: dict, rec: dict, geometries=None) -> dict:
   """Tables 2, 4, 5, F1, the τ sweep, refinement statistics and confusion matrices from
-  the concatenated per-object records of `rows.batch_records`, with 95 %
-  bootstrap intervals over objects ("ci95") for Table 2's rows, Table 5 and F1."""
+  the concatenated per-object records of `rows.batch_records`, with 95 % bootstrap
+  intervals ("ci95") for Table 2's rows, Table 5 and F1. `geometries` (an id per object,
+  the dataset's "tower_id"): the intervals resample whole towers or tools, whose density
+  configurations share a shape; None: single objects (`metrics.bootstrap_interval`)."""
   group = lambda *prefix: {k[len(prefix)]: v for k, v in rec.items()
                            if k[:len(prefix)] == prefix and len(k) == len(prefix) + 1}
   nb = rec[("blocks",)]
-  shape = _f1(rec, "shape")
+  g = None if geometries is None else np.asarray(geometries)
+  shape = _f1(rec, "shape", g)
   results = {"model": switches, "mae_units": "mm", "table2": {}, "table4": {}, "table5": {},
-             "table5_ci95": {}, "f1": shape["f1"], "shape": shape}
+             "table5_ci95": {}, "f1": shape["f1"], "shape": shape,
+             "intervals_over": "objects" if g is None else "geometries",
+             "geometries": None if g is None else int(len(np.unique(g)))}
   for fit in FIT_ROWS:  # "shape_fit" / "f1_fit", "shape_fit_depth" / "f1_fit_depth"
     if ("shape_" + fit, "matched") in rec:
-      results["shape_" + fit] = _f1(rec, "shape_" + fit)
+      results["shape_" + fit] = _f1(rec, "shape_" + fit, g)
       results["f1_" + fit] = results["shape_" + fit]["f1"]
   names = {k[1] for k in rec if k[0] == "counts"}
   for name in [r for r in BASELINES + PPD_ROWS if r in names]:
@@ -138,9 +148,9 @@ def summarize(switches: dict, rec: dict) -> dict:
     row = metrics.summarize(counts)
     mae = rec.get(("mae", name))  # None for a row that simulates nothing (Estimator)
     row["mae"] = None if mae is None else float(np.mean(mae))
-    row["ci95"] = intervals(counts, None if mae is None else np.asarray(mae))
+    row["ci95"] = intervals(counts, None if mae is None else np.asarray(mae), groups=g)
     results["table2"][name] = row
-    results["table5"][name], results["table5_ci95"][name] = by_blocks(counts, nb)
+    results["table5"][name], results["table5_ci95"][name] = by_blocks(counts, nb, g)
     results["table5"][name]["overall"] = row["rmse"]
   # face error (mm) of the network's ("ppd"), fitted ("fit") and depth-fitted boxes
   results["face_error_mm"] = {g[1]: face_summary(rec[g]) for g in rec if g[0] == "faces"}
@@ -164,7 +174,7 @@ def summarize(switches: dict, rec: dict) -> dict:
     for t in POSTERIOR_TEMPERATURES:
       counts = {k: np.asarray(v) for k, v in group("posterior", row, t).items()}
       mae = counts.pop("mae")
-      table5, table5_ci95 = by_blocks(counts, nb)
+      table5, table5_ci95 = by_blocks(counts, nb, g)
       results["posterior_sweeps"].setdefault(row, {})[str(t)] = {
           **metrics.summarize(counts), "mae": float(np.mean(mae)), "table5": table5,
           "table5_ci95": table5_ci95}
@@ -173,7 +183,7 @@ def summarize(switches: dict, rec: dict) -> dict:
     counts = group("oracle_pick", row)
     cover, valid = rec[("coverage", row)], rec[("true_valid",)]
     results["oracle_pick"][row] = {
-        **metrics.summarize(counts), "ci95": intervals(counts, None),
+        **metrics.summarize(counts), "ci95": intervals(counts, None, groups=g),
         "coverage": 100.0 * float(cover.sum()) / max(float(valid.sum()), 1.0)}
   results["screens"] = {}  # +Sample row -> "steps:keep" -> metrics and agreement
   for row, steps, keep in sorted({k[1:4] for k in rec if k[0] == "screen"},
@@ -184,7 +194,7 @@ def summarize(switches: dict, rec: dict) -> dict:
         **metrics.summarize(counts), "mae": float(np.mean(mae)),
         "same_pick": 100.0 * float(np.mean(same)),
         "same_pick_ci95": metrics.bootstrap_interval(
-            lambda i, same=same: 100.0 * float(np.mean(same[i])), len(same))}
+            lambda i, same=same: 100.0 * float(np.mean(same[i])), len(same), groups=g)}
   for k, v in rec.items():
     if k[0] == "prefix":
       results["table4"].setdefault(k[1], {})[str(k[2])] = float(np.mean(v))
