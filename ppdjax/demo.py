@@ -5,7 +5,7 @@
    (each box's density and overlap beside the truth).
 2. One random tower under the paper's four pushes, in MJX and MuJoCo C:
    OUT/trajectories.png, OUT/summary.md.
-3. A smoke run of the training pipeline on the preset (tiny: 16 towers, 120 steps):
+3. A smoke run of the training pipeline on the preset (tiny: 16 towers, 60 steps):
    OUT/smoke/blocks (dataset and card), OUT/smoke/train (checkpoints, learning curve),
    OUT/smoke/eval (Tables 2, 4, 5) and OUT/smoke/decomposition.png. It shows the pipeline
    runs end to end; a model this small and this briefly trained decomposes nothing well.

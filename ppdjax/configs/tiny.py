@@ -62,8 +62,8 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.warmup_steps = 0  # > 0: the rate rises linearly from 0 over these steps
   config.train.clip_norm = 0.0  # > 0: gradients clipped to this global norm before Adam
   config.train.stream_steps = 0  # phase 0: voxels of fresh towers only (dataset.stream)
-  config.train.geometry_steps = 40  # phase 1: geometry only (w = 0)
-  config.train.joint_steps = 80  # phase 2: geometry + w x density
+  config.train.geometry_steps = 20  # phase 1: geometry only (w = 0)
+  config.train.joint_steps = 40  # phase 2: geometry + w x density
   config.train.density_weight = 0.5  # w of Eq. 4-5 (docs/training.md says why 0.5)
   config.train.density_ramp_steps = 0  # > 0: w rises linearly over the joint phase's first steps
   config.train.end_weight = 1.0  # the end token's loss, in every phase (losses.loss_fn)
@@ -72,7 +72,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.augment = True  # stream batches under random symmetries of the square about z
   config.train.init_from = ""  # a workdir whose matching parameters start this run
   config.train.log_every = 10
-  config.train.eval_every = 60  # validation and checkpoint
+  config.train.eval_every = 30  # validation and checkpoint
   config.train.eval_batches = 4  # validation batches per evaluation (0: the whole split)
   config.train.keep_checkpoints = 3
   config.train.prefetch = 2  # batches read ahead in a background thread
