@@ -48,7 +48,9 @@ def test_heads_stay_in_range(net, rng):
 def test_decoding_stops_at_the_end_token(rng):
   """Bias the density head towards END: one box (the first step always yields one);
   towards a slot: all five boxes; the slot is the box's density."""
-  net = model.PPD(tiny.get_config().model, rngs=nnx.Rngs(1))
+  cfg = tiny.get_config().model
+  cfg.use_image = cfg.use_voxels = False  # the generator alone decides; the encoders'
+  net = model.PPD(cfg, rngs=nnx.Rngs(1))  # compilation is what makes this test slow
   obs = _obs(rng)
   decode = nnx.jit(lambda m, o: m.decode(o))  # compiled once: eager decoding is slower
   net.density_head.bias.value = jnp.zeros(102).at[model.END].set(100.0).at[41].set(50.0)

@@ -298,6 +298,7 @@ def test_box_plane_backend_takes_its_own_settings(prims):
     ppdjax.simulate(index(prims, 0), backend="mjx", settings=BoxPlaneSettings())
 
 
+@pytest.mark.slow  # interpreted on the CPU: about 30 s on 2 cores; `make test-all`
 def test_box_plane_kernel_is_the_reference_step(prims, box_plane_traj):
   """The Pallas kernel (interpreted on the CPU; on a GPU it is one launch) runs the same
   physics as box_plane's step: every rollout of the nested vmaps in one call."""
