@@ -477,3 +477,21 @@ def test_tools_study_runs_some_variants_from_another_pretraining(tmp_path):
       "generate:tools", "train:full", "evaluate:full"]
   bad = lister("--variants=full,no_voxels")
   assert bad.returncode != 0 and "--variants must be some of" in bad.stderr
+
+
+def test_confusion_by_slot_reads_errors_by_true_slot_range():
+  """Wood boxes (slot 5) all predicted exactly but one far off: exact and within-2 shares,
+  mean error and RMSE by hand; heavy metal (slot 80) off by 8 and 10 slots."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import confusion_by_slot  # pylint: disable=import-outside-toplevel
+  m = np.zeros((100, 100), int)
+  m[4, 4], m[4, 84] = 9, 1  # slot 5 (index 4): nine exact, one 80 slots off
+  m[79, 87], m[79, 89] = 1, 1  # slot 80: 8 and 10 off
+  wood, heavy = confusion_by_slot.by_range(m)
+  assert (wood["range"], wood["boxes"], heavy["range"], heavy["boxes"]) == ("1-10", 10, "71-100", 2)
+  assert wood["exact"] == 90.0 and wood["within_2"] == 90.0
+  assert wood["mean_abs_slots"] == pytest.approx(8.0) and wood["rmse"] == pytest.approx(np.sqrt(640))
+  assert heavy["exact"] == 0.0 and heavy["mean_abs_slots"] == pytest.approx(9.0)
+  assert heavy["mean_abs_relative"] == pytest.approx(100 * 9 / 80)
+  with pytest.raises(ValueError, match="square"):
+    confusion_by_slot.by_range(np.zeros((100, 99)))
