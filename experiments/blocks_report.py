@@ -84,8 +84,7 @@ def collect(pipe) -> dict:
       "f1_ablations": {name: res[v]["f1"] for v, name in ablations.items()},
       "table4": full["table4"], "table4_evaluated": full.get("table4_evaluated"), "table5": table5, "table5_ci95": table5_ci95,
       "mae_units": full["mae_units"], "objects": full["objects"], "split": full["split"],
-      "intervals_over": full.get("intervals_over", "objects"),
-      "geometries": full.get("geometries"),
+      **{k: full.get(k) for k in tables.INTERVAL_KEYS},
       "subset": full.get("subset", "first"), "samples": full["samples"],
       "refine": full["refine"],
       "prior_weight": full.get("prior_weight", 0.0), "prior_sweep": full.get("prior_sweep"),
@@ -118,8 +117,8 @@ def whole_split(r: dict, full: dict, command: str) -> dict:
   keep = ("f1", "shape", "shape_fit", "shape_fit_depth", "face_error_mm", "image_fit", "table4",
           "table4_evaluated",
           "oracle_pick", "prior_sweeps", "refine_stats", "objects", "split", "samples",
-          "refine", "prior_weight", "seconds", "seconds_by_part", "mae_units", "intervals_over",
-          "geometries")
+          "refine", "prior_weight", "seconds", "seconds_by_part", "mae_units",
+          *tables.INTERVAL_KEYS)
   return {**{k: full.get(k) for k in keep}, "table2": table2, "table5": table5,
           "table5_ci95": table5_ci95, "command": command}
 

@@ -16,6 +16,7 @@ from ppdjax import make_decompose_fn, plots
 from ppdjax.conventions import slot_to_density
 from ppdjax.configs import tools as tools_preset
 from ppdjax.dataset import storage, tool_generation
+from ppdjax.infer import tables
 from ppdjax.infer.markdown import intervals_note, oracle_pick_md, prior_sweep_md, table2_md
 from ppdjax.training import checkpoints
 
@@ -46,8 +47,7 @@ def collect(pipe) -> dict:
       rows[extra.replace("PPD", "PPD (full)")] = full["table2"][extra]
   return {"rows": rows, "shape": full["shape"], "shape_fit": full.get("shape_fit"),
           "objects": full["objects"], "frequent_slot": full.get("frequent_slot"),
-          "intervals_over": full.get("intervals_over", "objects"),
-          "geometries": full.get("geometries"),
+          **{k: full.get(k) for k in tables.INTERVAL_KEYS},
           "configs_per_tool": tool_generation.configs_per_tool(pipe.config.data),
           "push_force": tool_generation.push_force(pipe.config.data),
           "samples": full["samples"], "mae_units": full.get("mae_units", "mm"),

@@ -188,10 +188,10 @@ def bootstrap_interval(stat, num_objects: int, *, resamples: int = 1000, level: 
                        f"{groups.shape}")
     _, inverse = np.unique(groups, return_inverse=True)
     sizes = np.bincount(inverse)
-    members = np.full((len(sizes), sizes.max()), -1)  # (groups, largest), -1 padded
+    starts = np.cumsum(sizes) - sizes  # of each group in the objects sorted by group
     order = np.argsort(inverse, kind="stable")
-    members[inverse[order], np.arange(num_objects) - np.repeat(np.cumsum(sizes) - sizes,
-                                                               sizes)] = order
+    members = np.full((len(sizes), sizes.max()), -1)  # (groups, largest), -1 padded
+    members[inverse[order], np.arange(num_objects) - starts[inverse[order]]] = order
 
     def draw():
       idx = members[rng.integers(0, len(sizes), len(sizes))].ravel()

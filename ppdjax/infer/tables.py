@@ -123,6 +123,9 @@ def face_summary(errors_BxKx6) -> dict:
           "p90": float(np.percentile(flat, 90)), "max": float(flat.max()), "median_by_face": per}
 
 
+INTERVAL_KEYS = ("intervals_over", "geometries")  # what summarize's intervals resample
+
+
 def summarize(switches: dict, rec: dict, geometries=None) -> dict:
   """Tables 2, 4, 5, F1, the τ sweep, refinement statistics and confusion matrices from
   the concatenated per-object records of `rows.batch_records`, with 95 % bootstrap
