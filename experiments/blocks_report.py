@@ -201,7 +201,7 @@ def report_md(r: dict, command: str) -> str:
             + (f" (the pipeline's own evaluation, {r['objects']} objects"
                + (", with +Joint and the true boxes)" if studies else ")") if ws else ""), ""]
   lines += table2_lines(r["table2"], r["objects"])
-  lines += ["", "Objects evaluated in parentheses; " + markdown.intervals_note(r)
+  lines += ["", "Objects evaluated in parentheses; " + markdown.intervals_note(r, "towers")
             + " in brackets.", "",
             f"Shape F1 of the full model: **{r['f1']:.1f}** (paper {tables.PAPER_SHAPE_F1})"
             + markdown.shape_line(r) + "; ablations: "

@@ -94,7 +94,7 @@ def markdown(r: dict, command: str) -> str:
               "density configurations" if r.get("configs_per_tool", 1) > 1 else "") + "), "
            + (f"pushes of {r['push_force']:g} N, " if r.get("push_force") else "")
            + f"{r['samples']} density samples for +Sample; "
-           + intervals_note(r) + f" in brackets; trajectory MAE in {r['mae_units']}.",
+           + intervals_note(r, "tools") + f" in brackets; trajectory MAE in {r['mae_units']}.",
            ""]
   if r.get("rerun"):
     lines += [f"The full model's rows (the baselines, PPD (full) and every +Fit, +Sample and "

@@ -34,7 +34,7 @@ _SEED = flags.DEFINE_integer("seed", 0, "Sampling and texture seed.")
 _FIT = flags.DEFINE_bool("fit", None, "Replace the network's boxes by boxes fitted to the "
                          "voxels (`ppdjax.fit_boxes`). Default: off for a mesh observed as "
                          "a tool (on the tools' test split the tools model's own boxes reach "
-                         "shape F1 66.0, the fit 49.8: a fitted box is at least a voxel "
+                         "shape F1 63.1, the fit 49.2: a fitted box is at least a voxel "
                          "thick), on with --trajectory (block towers: the fit is exact).")
 _TRAJECTORY = flags.DEFINE_string(
     "trajectory", "", "A tracked trajectory (python -m ppdjax.track's .npz) to read instead "

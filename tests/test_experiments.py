@@ -495,3 +495,22 @@ def test_confusion_by_slot_reads_errors_by_true_slot_range():
   assert heavy["mean_abs_relative"] == pytest.approx(100 * 9 / 80)
   with pytest.raises(ValueError, match="square"):
     confusion_by_slot.by_range(np.zeros((100, 99)))
+
+
+def test_tools_by_category_checks_the_records_order_against_rebuilt_tools():
+  """Records made from two rebuilt tools (2 configurations each) pass the order check; the
+  same records with the tools swapped fail it for both, so a wrong order is never read
+  as categories."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import tools_by_category as tbc  # pylint: disable=import-outside-toplevel
+  ids = tbc.test_tools(0, 40, (0.8, 0.1, 0.1))
+  from ppdjax.dataset import storage  # pylint: disable=import-outside-toplevel
+  assert len(ids) and all(storage.split_of(ids) == 2)
+  truths = [tbc.tool_truth(0, int(i)) for i in ids[:2]]
+  assert all(c in tbc.tools.CATEGORIES for c, _ in truths)
+  slots = np.stack([s for _, s in truths])  # (tools, K)
+  assert (slots[0] >= 0).sum() != (slots[1] >= 0).sum() or not np.array_equal(*slots)
+  rec = {("true_slot",): np.repeat(slots, 2, axis=0), ("true_valid",): np.repeat(slots >= 0, 2, axis=0)}
+  assert tbc.check_order(rec, truths, configs=2) == []
+  swapped = {k: v[[2, 3, 0, 1]] for k, v in rec.items()}
+  assert tbc.check_order(swapped, truths, configs=2) == [0, 1]

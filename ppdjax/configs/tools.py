@@ -28,7 +28,8 @@ def get_config(size: str = "paper"):
   # gives no count): a tool's densities are drawn apart from its shape, so one sample per
   # tool let the network tie densities to shapes it had seen (issue 18's runs); the extra
   # configurations cost a simulation each (the image, voxels and boxes are shared).
-  # 8 as towers: with 1,400 joint steps, test top-1 30.6 against 28.4 with 4 and 700
+  # 8 as towers: with 1,400 joint steps, test top-1 30.6 (29.6 in a second run of the
+  # preset) against 28.4 with 4 and 700
   # (experiments/results/tools_steps_study/)
   config.data.configs_per_tool = 8 if size == "paper" else 2
   config.data.backend = "mujoco"  # tools are simulated by MuJoCo C from their own parts

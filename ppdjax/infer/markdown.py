@@ -39,12 +39,12 @@ def _sign(on: bool) -> str:
   return "+" if on else "–"
 
 
-def intervals_note(results: dict) -> str:
+def intervals_note(results: dict, geometries: str = "towers or tools") -> str:
   """What the 95 % intervals resample: single objects (results of before 2026-11-27) or
-  whole towers and tools (`tables.summarize`'s `geometries`)."""
+  whole `geometries` ("towers", "tools"; `tables.summarize`'s `geometries`)."""
   if results.get("intervals_over") != "geometries":
     return "95 % bootstrap intervals over objects"
-  return (f"95 % bootstrap intervals over the {results['geometries']} towers or tools (each "
+  return (f"95 % bootstrap intervals over the {results['geometries']} {geometries} (each "
           "drawn with all its density configurations, which share its shape)")
 
 
