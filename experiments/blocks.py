@@ -337,7 +337,10 @@ class Pipeline:
         + (f" --table4_objects={s['table4_objects']}" if s["table4_objects"] else "")
         + (f" --refine_jacobian={s['refine_jacobian']}" if s["refine"] else "")
         + (f" --max_objects={n} --subset={FLAGS.subset}" if n else ""))
-    shutil.rmtree(saved, ignore_errors=True)
+    if variant == "full":  # its per-object records, kept for studies away from the GPU
+      partial.compact(saved)
+    else:
+      shutil.rmtree(saved, ignore_errors=True)
 
   def report(self) -> None:
     # the side-by-side runner adds --step= to its children's command lines

@@ -164,6 +164,8 @@ class Pipeline:
                + ("" if full else " --nobaselines") + (" --fit" if results["fit"] else "")
                + (" --true_shapes" if results["true_shapes"] else ""))
     markdown.write_results(results, self.eval_dir(variant), command)
+    if full:  # its per-object records in one compressed file, for studies away from the GPU
+      partial.compact(os.path.join(self.eval_dir(variant), "partial"))
 
   def report(self) -> None:
     import tools_report  # pylint: disable=import-outside-toplevel

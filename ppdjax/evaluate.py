@@ -85,8 +85,9 @@ _MAX_SECONDS = flags.DEFINE_float("max_seconds", 0, "Stop after the batch that p
                                   "are kept in OUT/partial until the results are written, so "
                                   "an interrupted evaluation resumes where it stopped.")
 _KEEP_RECORDS = flags.DEFINE_bool("keep_records", False, "Keep OUT/partial, the per-object "
-                                  "records, after the results are written (for studies of "
-                                  "single objects, e.g. experiments/table5_errors.py).")
+                                  "records, after the results are written, compacted into one "
+                                  "compressed file (for studies of single objects, e.g. "
+                                  "experiments/table5_errors.py).")
 
 
 def main(argv):
@@ -146,6 +147,8 @@ def main(argv):
   paths = markdown.write_results(results, out, command)
   if not _KEEP_RECORDS.value:
     shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)  # written: not needed
+  else:  # one compressed file, small enough to keep with the results
+    print(f"records kept in {partial.compact(os.path.join(out, 'partial'))}")
   rows = results["table2"]
   best = next(rows[r] for r in ("PPD+Fit(depth)+Est+Sample+Refine", "PPD+Fit+Est+Sample+Refine",
                                 "PPD+Fit(depth)+Sample+Refine", "PPD+Fit+Sample+Refine",

@@ -59,6 +59,8 @@ def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
                "blocks_decomposition.png"):
     assert os.path.exists(os.path.join(results, name)), name
   assert os.path.exists(os.path.join(assets, "blocks_model", "export.json"))
+  kept = os.path.join(root, "full", "eval_partial")  # the full model's records, compacted
+  assert sorted(os.listdir(kept)) == ["records.npz", "settings.json"]
   logs = sorted(os.listdir(os.path.join(results, "blocks_runs")))
   assert logs == ["data_card.md", "full.metrics.jsonl", "no_image.metrics.jsonl",
                   "no_trajectory.metrics.jsonl", "no_voxels.metrics.jsonl", "steps.jsonl"]
@@ -172,6 +174,10 @@ def test_tools_pipeline_runs_and_reports_table3(tmp_path):
   assert os.path.exists(os.path.join(results, "tools_decomposition.png"))
   assert os.path.exists(os.path.join(results, "tools_learning_curves.png"))
   assert os.path.exists(os.path.join(assets, "tools_model", "config.json"))
+  from ppdjax.infer import partial  # pylint: disable=import-outside-toplevel
+  kept = os.path.join(root, "full", "eval", "partial")  # the full model's records, compacted
+  assert sorted(os.listdir(kept)) == ["records.npz", "settings.json"]
+  assert len(partial.saved_records(kept)[("blocks",)]) == table["objects"]
   listed = subprocess.run([sys.executable, "experiments/tools.py", "--list",
                            "--config=ppdjax/configs/tools.py:tiny", f"--root={root}"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)

@@ -901,3 +901,30 @@ def test_scale_to_mass_keeps_the_split_and_matches_the_total():
   np.testing.assert_allclose(out.density[0], [2000.0, 6000.0, 100.0], rtol=1e-6)
   assert float(out.density[1, 1]) == 10000.0  # clipped at the slot range's top
   np.testing.assert_allclose(sampling.total_mass(out)[0], target[0], rtol=1e-6)
+
+
+def test_compacted_records_read_back_whole_and_resume_nothing(tmp_path):
+  """`partial.compact` folds the batches into one compressed file that `saved_records`
+  reads back equal; the batch files are gone, so an evaluation would recompute them, and
+  batches saved after it are read and compacted in its place."""
+  folder = str(tmp_path / "partial")
+  store = partial.PartialRecords(folder, {"test": 1})
+  for start in (0, 3):
+    store.save(start, {("blocks",): np.arange(start, start + 3),
+                       ("guess", "PPD"): np.full((3, 5), start, np.int32)})
+  before = partial.saved_records(folder)
+  path = partial.compact(folder)
+  assert os.path.basename(path) == partial.RECORDS_FILE and store.count() == 0
+  after = partial.saved_records(folder)
+  assert set(after) == set(before)
+  for k, v in before.items():
+    np.testing.assert_array_equal(after[k], v)
+  assert store.load(0) is None
+  store.save(0, {("blocks",): np.arange(2), ("guess", "PPD"): np.zeros((2, 5), np.int32)})
+  assert len(partial.saved_records(folder)[("blocks",)]) == 2  # batches again: they count
+  partial.compact(folder)
+  assert len(partial.saved_records(folder)[("blocks",)]) == 2  # and replace the file
+  with open(path, "wb") as f:
+    f.write(b"not a zip")
+  with pytest.raises(ValueError, match="cannot be read"):
+    partial.saved_records(folder)

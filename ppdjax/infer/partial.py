@@ -82,16 +82,42 @@ class PartialRecords:
     return len(_batch_files(self.folder))
 
 
+RECORDS_FILE = "records.npz"  # a folder's batches in one compressed file (`compact`)
+
+
 def saved_records(folder: str) -> dict:
-  """Every batch saved in `folder`, concatenated in object order (the per-object records
-  of an evaluation kept with `--keep_records`); ValueError if none or one is unreadable."""
+  """Every batch saved in `folder`, concatenated in object order, or, where it holds no
+  batch, its compacted RECORDS_FILE (the per-object records of an evaluation kept with
+  `--keep_records`); ValueError if none or one is unreadable."""
   files = _batch_files(folder)
+  if not files and os.path.exists(os.path.join(folder, RECORDS_FILE)):
+    records = _read(os.path.join(folder, RECORDS_FILE))
+    if records is None:
+      raise ValueError(f"{os.path.join(folder, RECORDS_FILE)} cannot be read")
+    return records
   batches = [_read(os.path.join(folder, f)) for f in files]
   if not batches or any(b is None for b in batches):
     raise ValueError(f"{folder} holds no readable batch records"
                      + (f" ({sum(b is None for b in batches)} unreadable)" if batches else ""))
   keys = set.intersection(*(set(b) for b in batches))
   return {k: np.concatenate([b[k] for b in batches]) for k in keys}
+
+
+def compact(folder: str) -> str:
+  """Replaces `folder`'s batch files by one compressed RECORDS_FILE (about a tenth of their
+  size: records small enough to keep beside the results) and returns its path;
+  `saved_records` reads it, settings.json stays. A compacted folder resumes nothing: an
+  evaluation run on it again computes every batch, and compacting those replaces the file."""
+  records = saved_records(folder)
+  keys = list(records)
+  buf = io.BytesIO()
+  np.savez_compressed(buf, __keys__=np.asarray(json.dumps([list(k) for k in keys])),
+                      **{f"a{i}": np.asarray(records[k]) for i, k in enumerate(keys)})
+  path = os.path.join(folder, RECORDS_FILE)
+  _write_atomic(path, buf.getvalue())
+  for f in _batch_files(folder):
+    os.remove(os.path.join(folder, f))
+  return path
 
 
 def _batch_files(folder: str) -> list[str]:
