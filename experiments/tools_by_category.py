@@ -5,8 +5,8 @@
       --results=experiments/results/tools_runs/eval_full/results.json \
       --out=experiments/results/tools_by_category
 
-The tools test split is a pure function of the dataset's seed (`tools.sample_tool`,
-`storage.split_of`), so the records' objects are the test tools in index order, each
+A tool is a pure function of the dataset's seed and its index (`tools.sample_tool`) and
+its split of the index alone (`storage.split_of`), so the records' objects are the test tools in index order, each
 with its `configs_per_tool` configurations in a row (`tool_generation.generate_shard`).
 The script rebuilds each test tool's category and, before trusting that order, checks it:
 every record's true box count, and for the first configuration of each tool (the tool's own
@@ -36,8 +36,9 @@ from ppdjax.infer import partial, tables
 ROWS = ("PPD", "PPD+Sample", "Nearest")
 
 
-def test_tools(seed: int, num_tools: int, fractions) -> np.ndarray:
-  """Indices of the test split's tools, in the dataset's order."""
+def test_tools(num_tools: int, fractions) -> np.ndarray:
+  """Indices of the test split's tools, in the dataset's order (the split hashes the
+  index: it is the same for every seed)."""
   ids = np.arange(num_tools)
   return ids[storage.split_of(ids, tuple(fractions)) == 2]
 
@@ -149,7 +150,7 @@ def main():
   rec = partial.saved_records(a.records)
   with open(a.results) as f:
     switches = json.load(f)["model"]
-  ids = test_tools(seed, data.num_tools, data.split_fractions)
+  ids = test_tools(data.num_tools, data.split_fractions)
   n = len(rec[("blocks",)])
   if n != len(ids) * configs:
     raise SystemExit(f"{n} records, but the preset's test split has {len(ids)} tools x "

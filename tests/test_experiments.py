@@ -504,19 +504,30 @@ def test_confusion_by_slot_reads_errors_by_true_slot_range():
 
 
 def test_tools_by_category_checks_the_records_order_against_rebuilt_tools():
-  """Records made from two rebuilt tools (2 configurations each) pass the order check; the
-  same records with the tools swapped fail it for both, so a wrong order is never read
-  as categories."""
+  """A rebuilt tool's slots are those the dataset stores for its first configuration (as
+  an evaluation records them); records that match pass the order check, and a tool whose
+  records hold other slots (same box count) or another tool's fails it, so a wrong order
+  is never read as categories."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   import tools_by_category as tbc  # pylint: disable=import-outside-toplevel
-  ids = tbc.test_tools(0, 40, (0.8, 0.1, 0.1))
-  from ppdjax.dataset import storage  # pylint: disable=import-outside-toplevel
-  assert len(ids) and all(storage.split_of(ids) == 2)
+  from ppdjax import primitives  # pylint: disable=import-outside-toplevel
+  from ppdjax.dataset import storage, tool_generation  # pylint: disable=import-outside-toplevel
+  from ppdjax.infer import baselines  # pylint: disable=import-outside-toplevel
+  ids = tbc.test_tools(40, (0.8, 0.1, 0.1))
+  assert len(ids) >= 2 and all(storage.split_of(ids) == 2)
   truths = [tbc.tool_truth(0, int(i)) for i in ids[:2]]
   assert all(c in tbc.tools.CATEGORIES for c, _ in truths)
+  stored = tool_generation.tool_samples(0, int(ids[0]), image_size=16, steps=4)[0]
+  as_evaluated = baselines.true_slots(primitives.Primitives(  # the records' true slots
+      *[stored[f][None] for f in primitives.FIELDS]))[0]
+  np.testing.assert_array_equal(as_evaluated, truths[0][1])
   slots = np.stack([s for _, s in truths])  # (tools, K)
-  assert (slots[0] >= 0).sum() != (slots[1] >= 0).sum() or not np.array_equal(*slots)
-  rec = {("true_slot",): np.repeat(slots, 2, axis=0), ("true_valid",): np.repeat(slots >= 0, 2, axis=0)}
+  rec = {("true_slot",): np.repeat(slots, 2, axis=0),
+         ("true_valid",): np.repeat(slots >= 0, 2, axis=0)}
   assert tbc.check_order(rec, truths, configs=2) == []
-  swapped = {k: v[[2, 3, 0, 1]] for k, v in rec.items()}
-  assert tbc.check_order(swapped, truths, configs=2) == [0, 1]
+  other = {k: v.copy() for k, v in rec.items()}
+  other[("true_slot",)][2, 0] += 1  # the second tool's own configuration, one slot off
+  assert tbc.check_order(other, truths, configs=2) == [1]
+  mixed = {k: v[[2, 3, 0, 1]] for k, v in rec.items()}
+  assert tbc.check_order(mixed, truths, configs=2) == ([0, 1] if not np.array_equal(*slots)
+                                                        else [])

@@ -905,8 +905,8 @@ def test_scale_to_mass_keeps_the_split_and_matches_the_total():
 
 def test_compacted_records_read_back_whole_and_resume_nothing(tmp_path):
   """`partial.compact` folds the batches into one compressed file that `saved_records`
-  reads back equal; the batch files are gone, so an evaluation would recompute them, and
-  batches saved after it are read and compacted in its place."""
+  reads back equal; the batch files are gone, so an evaluation would recompute them;
+  batches saved after it make the folder ambiguous until they are compacted in its place."""
   folder = str(tmp_path / "partial")
   store = partial.PartialRecords(folder, {"test": 1})
   for start in (0, 3):
@@ -921,10 +921,18 @@ def test_compacted_records_read_back_whole_and_resume_nothing(tmp_path):
     np.testing.assert_array_equal(after[k], v)
   assert store.load(0) is None
   store.save(0, {("blocks",): np.arange(2), ("guess", "PPD"): np.zeros((2, 5), np.int32)})
-  assert len(partial.saved_records(folder)[("blocks",)]) == 2  # batches again: they count
-  partial.compact(folder)
-  assert len(partial.saved_records(folder)[("blocks",)]) == 2  # and replace the file
+  with pytest.raises(ValueError, match="both"):  # run again on it: which is whole?
+    partial.saved_records(folder)
+  partial.compact(folder)  # the finished rerun's batches replace the file
+  assert len(partial.saved_records(folder)[("blocks",)]) == 2 and store.count() == 0
   with open(path, "wb") as f:
     f.write(b"not a zip")
   with pytest.raises(ValueError, match="cannot be read"):
     partial.saved_records(folder)
+
+
+def test_intervals_note_says_what_was_resampled():
+  """Results before the cluster bootstrap say objects; later ones name the geometries."""
+  assert markdown.intervals_note({}) == "95 % bootstrap intervals over objects"
+  note = markdown.intervals_note({"intervals_over": "geometries", "geometries": 300}, "tools")
+  assert note.startswith("95 % bootstrap intervals over the 300 tools (each drawn with all")

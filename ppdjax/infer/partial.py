@@ -86,11 +86,18 @@ RECORDS_FILE = "records.npz"  # a folder's batches in one compressed file (`comp
 
 
 def saved_records(folder: str) -> dict:
-  """Every batch saved in `folder`, concatenated in object order, or, where it holds no
-  batch, its compacted RECORDS_FILE (the per-object records of an evaluation kept with
-  `--keep_records`); ValueError if none or one is unreadable."""
+  """Every batch saved in `folder`, concatenated in object order, or its compacted
+  RECORDS_FILE (the per-object records of an evaluation kept with `--keep_records`);
+  ValueError if none or one is unreadable, or if the folder holds both (an evaluation
+  run again on a compacted folder, perhaps interrupted: which records are whole is not
+  known)."""
   files = _batch_files(folder)
-  if not files and os.path.exists(os.path.join(folder, RECORDS_FILE)):
+  compacted = os.path.exists(os.path.join(folder, RECORDS_FILE))
+  if files and compacted:
+    raise ValueError(f"{folder} holds both {RECORDS_FILE} and {len(files)} batch files of an "
+                     "evaluation run on it again: finish that evaluation (it compacts its "
+                     f"batches in place of {RECORDS_FILE}) or delete one of them")
+  if compacted:
     records = _read(os.path.join(folder, RECORDS_FILE))
     if records is None:
       raise ValueError(f"{os.path.join(folder, RECORDS_FILE)} cannot be read")
@@ -107,13 +114,16 @@ def compact(folder: str) -> str:
   """Replaces `folder`'s batch files by one compressed RECORDS_FILE (about a tenth of their
   size: records small enough to keep beside the results) and returns its path;
   `saved_records` reads it, settings.json stays. A compacted folder resumes nothing: an
-  evaluation run on it again computes every batch, and compacting those replaces the file."""
+  evaluation run on it again computes every batch, and compacting those replaces the file
+  (call it once an evaluation has written its results: its batches are then whole)."""
+  path = os.path.join(folder, RECORDS_FILE)
+  if _batch_files(folder) and os.path.exists(path):
+    os.remove(path)  # superseded by the batches of the evaluation run again
   records = saved_records(folder)
   keys = list(records)
   buf = io.BytesIO()
   np.savez_compressed(buf, __keys__=np.asarray(json.dumps([list(k) for k in keys])),
                       **{f"a{i}": np.asarray(records[k]) for i, k in enumerate(keys)})
-  path = os.path.join(folder, RECORDS_FILE)
   _write_atomic(path, buf.getvalue())
   for f in _batch_files(folder):
     os.remove(os.path.join(folder, f))
