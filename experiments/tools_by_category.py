@@ -6,8 +6,9 @@
       --out=experiments/results/tools_by_category
 
 A tool is a pure function of the dataset's seed and its index (`tools.sample_tool`) and
-its split of the index alone (`storage.split_of`), so the records' objects are the test tools in index order, each
-with its `configs_per_tool` configurations in a row (`tool_generation.generate_shard`).
+its split of the index alone (`storage.split_of`), so the records' objects are the test
+tools in index order, each with its `configs_per_tool` configurations in a row
+(`tool_generation.generate_shard`).
 The script rebuilds each test tool's category and, before trusting that order, checks it:
 every record's true box count, and for the first configuration of each tool (the tool's own
 slots) its true slots, must equal those of the rebuilt tool's ground-truth boxes
