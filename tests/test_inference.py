@@ -399,7 +399,8 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   assert results["prior_weight"] == tiny.get_config().eval.prior_weight
   text = open(os.path.join(out, "results.md")).read()
   assert "Table 2" in text and "Table 4" in text and "| PPD+Sample |" in text
-  assert f"intervals over the {len(towers)} towers or tools" in text
+  assert results["data_kind"] == "towers"
+  assert f"intervals over the {len(towers)} towers (each" in text
   assert os.path.exists(os.path.join(out, "confusion.png"))
   # the oracle's pick among the same samples: at most +Sample's RMSE, top-1 within coverage
   o = results["oracle_pick"]["PPD+Sample"]

@@ -170,7 +170,9 @@ def results_md(results: dict, command: str = "") -> str:
             + f"; {results['seconds']:.0f} s in all" + seconds_by_part(results)
             + f". Shape F1: **{results['f1']:.1f}** "
             f"(paper, block towers: {PAPER_SHAPE_F1})" + shape_line(results) + ". "
-            + intervals_note(results) + ".", "",
+            + intervals_note(results, "tools" if results.get("data_kind") == "tools"
+                             else "towers" if results.get("data_kind") else "towers or tools")
+            + ".", "",
             "## Table 2: density and trajectory", ""]
   lines += table2_md(results["table2"], observes)
   lines += ["", "Paper (block towers): " + paper_line(PAPER_TABLE2_ONE_MODEL) + ".", ""]
