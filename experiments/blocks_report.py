@@ -85,6 +85,7 @@ def collect(pipe) -> dict:
       "table4": full["table4"], "table4_evaluated": full.get("table4_evaluated"), "table5": table5, "table5_ci95": table5_ci95,
       "mae_units": full["mae_units"], "objects": full["objects"], "split": full["split"],
       **{k: full.get(k) for k in tables.INTERVAL_KEYS},
+      "data_kind": "towers",  # also for evaluations from before they recorded it
       "subset": full.get("subset", "first"), "samples": full["samples"],
       "refine": full["refine"],
       "prior_weight": full.get("prior_weight", 0.0), "prior_sweep": full.get("prior_sweep"),
@@ -201,7 +202,7 @@ def report_md(r: dict, command: str) -> str:
             + (f" (the pipeline's own evaluation, {r['objects']} objects"
                + (", with +Joint and the true boxes)" if studies else ")") if ws else ""), ""]
   lines += table2_lines(r["table2"], r["objects"])
-  lines += ["", "Objects evaluated in parentheses; " + markdown.intervals_note(r, "towers")
+  lines += ["", "Objects evaluated in parentheses; " + markdown.intervals_note(r)
             + " in brackets.", "",
             f"Shape F1 of the full model: **{r['f1']:.1f}** (paper {tables.PAPER_SHAPE_F1})"
             + markdown.shape_line(r) + "; ablations: "

@@ -12,7 +12,7 @@ tools in index order, each with its `configs_per_tool` configurations in a row
 The script rebuilds each test tool's category and, before trusting that order, checks it:
 every record's true box count, and for the first configuration of each tool (the tool's own
 slots) its true slots, must equal those of the rebuilt tool's ground-truth boxes
-(`mesh_boxes.boxes_of_parts`; about 0.5 s a tool on a CPU). A tool whose generation fell
+(`mesh_boxes.primitives_from_mesh`; about 0.5 s a tool on a CPU). A tool whose generation fell
 back to another draw (its simulation diverged, `tool_generation.ATTEMPTS`) fails the check
 and is reported, not guessed. Then `tables.summarize` runs on each category's objects, with
 intervals over its tools. Writes OUT/results.md, results.json and by_category.png.
@@ -30,9 +30,9 @@ from tqdm import tqdm
 from ppdjax.configs import tools as tools_preset
 from ppdjax.conventions import density_to_slot
 from ppdjax.dataset import storage, tools
-from ppdjax.dataset.mesh_boxes import boxes_of_parts
-from ppdjax.dataset.meshes import normalize
+from ppdjax.dataset.mesh_boxes import primitives_from_mesh
 from ppdjax.infer import partial, tables
+from ppdjax.infer.markdown import with_ci
 
 ROWS = ("PPD", "PPD+Sample", "Nearest")
 
@@ -48,8 +48,7 @@ def tool_truth(seed: int, index: int) -> tuple[str, np.ndarray]:
   """(category, true slots of its boxes bottom to top, -1 padded) of attempt 0 of tool
   `index`, as the dataset's first configuration labels it."""
   tool = tools.sample_tool(seed, index)
-  parts, _ = normalize(list(tool.parts))
-  prims, owner = boxes_of_parts(parts, tool.densities)
+  prims, _ = primitives_from_mesh(list(tool.parts), densities=tool.densities)
   slots = np.where(np.asarray(prims.valid), density_to_slot(np.asarray(prims.density)), -1)
   return tool.category, np.asarray(slots)
 
@@ -86,10 +85,6 @@ def by_category(rec: dict, categories: np.ndarray, tool_ids: np.ndarray, switche
   return out
 
 
-def _ci(pair) -> str:
-  return "" if not pair else f" [{pair[0]:.1f}, {pair[1]:.1f}]"
-
-
 def markdown(table: dict, command: str, total: int, dropped: int) -> str:
   lines = ["# Table 3 by tool category", "", "```", command, "```", "",
            f"{total} test objects; {dropped} left out (tools whose records did not match the "
@@ -100,12 +95,11 @@ def markdown(table: dict, command: str, total: int, dropped: int) -> str:
            "|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
   for name, c in table.items():
     ppd, smp, nn = (c["rows"].get(r, {}) for r in ROWS)
-    ci = lambda row, k: _ci(row.get("ci95", {}).get(k))  # noqa: E731
+    f1 = with_ci({"f1": c["f1"], "ci95": {"f1": c["f1_ci95"]}}, "f1")
     lines.append(
-        f"| {name} | {c['tools']} | {c['objects']} | {c['f1']:.1f}{_ci(c['f1_ci95'])} | "
-        f"{ppd['top1']:.1f}{ci(ppd, 'top1')} | {ppd['top5']:.1f} | "
-        f"{ppd['rmse']:.1f}{ci(ppd, 'rmse')} | {smp['top1']:.1f} | {smp['rmse']:.1f} | "
-        f"{smp['mae']:.1f} | {nn['top1']:.1f} |")
+        f"| {name} | {c['tools']} | {c['objects']} | {f1} | {with_ci(ppd, 'top1')} | "
+        f"{ppd['top5']:.1f} | {with_ci(ppd, 'rmse')} | {smp['top1']:.1f} | "
+        f"{smp['rmse']:.1f} | {smp['mae']:.1f} | {nn['top1']:.1f} |")
   return "\n".join(lines) + "\n"
 
 

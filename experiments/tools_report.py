@@ -48,6 +48,7 @@ def collect(pipe) -> dict:
   return {"rows": rows, "shape": full["shape"], "shape_fit": full.get("shape_fit"),
           "objects": full["objects"], "frequent_slot": full.get("frequent_slot"),
           **{k: full.get(k) for k in tables.INTERVAL_KEYS},
+          "data_kind": "tools",  # also for evaluations from before they recorded it
           "configs_per_tool": tool_generation.configs_per_tool(pipe.config.data),
           "push_force": tool_generation.push_force(pipe.config.data),
           "samples": full["samples"], "mae_units": full.get("mae_units", "mm"),
@@ -94,7 +95,7 @@ def markdown(r: dict, command: str) -> str:
               "density configurations" if r.get("configs_per_tool", 1) > 1 else "") + "), "
            + (f"pushes of {r['push_force']:g} N, " if r.get("push_force") else "")
            + f"{r['samples']} density samples for +Sample; "
-           + intervals_note(r, "tools") + f" in brackets; trajectory MAE in {r['mae_units']}.",
+           + intervals_note(r) + f" in brackets; trajectory MAE in {r['mae_units']}.",
            ""]
   if r.get("rerun"):
     lines += [f"The full model's rows (the baselines, PPD (full) and every +Fit, +Sample and "

@@ -935,5 +935,6 @@ def test_compacted_records_read_back_whole_and_resume_nothing(tmp_path):
 def test_intervals_note_says_what_was_resampled():
   """Results before the cluster bootstrap say objects; later ones name the geometries."""
   assert markdown.intervals_note({}) == "95 % bootstrap intervals over objects"
-  note = markdown.intervals_note({"intervals_over": "geometries", "geometries": 300}, "tools")
+  note = markdown.intervals_note({"intervals_over": "geometries", "geometries": 300,
+                                  "data_kind": "tools"})
   assert note.startswith("95 % bootstrap intervals over the 300 tools (each drawn with all")

@@ -182,6 +182,12 @@ class Dataset:
     return camera.check_camera(cam)
 
   @property
+  def kind(self) -> str:
+    """What the objects are: "towers", "tools" or "pendulum" (`generation.kind_of`; older
+    manifests, which did not record it, held towers)."""
+    return self.manifest.get("kind", "towers")
+
+  @property
   def engine(self) -> str | None:
     """The backend that simulated the trajectories ("mjx", "box_plane", "mujoco")."""
     return self.manifest.get("engine", {}).get("backend")

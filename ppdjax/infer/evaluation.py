@@ -303,8 +303,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   results.update({
       "workdir": trained if isinstance(trained, str) else None, "data": data_dir,
       "split": split, "objects": int(n), **settings,
-      # what a geometry is here, for the reports: "towers" (also "pendulum") or "tools"
-      "data_kind": test.manifest["config"]["data"].get("kind", "towers"),
+      "data_kind": test.kind,  # what a geometry is, for the reports' interval notes
       "refine_steps": refine_steps if refine else 0, "subset": subset,
       "devices": num_devices, "seconds": round(time.perf_counter() - t_start, 1),
       "seconds_by_part": {"read": round(read.waited, 1),

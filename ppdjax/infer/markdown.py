@@ -39,12 +39,14 @@ def _sign(on: bool) -> str:
   return "+" if on else "–"
 
 
-def intervals_note(results: dict, geometries: str = "towers or tools") -> str:
+def intervals_note(results: dict) -> str:
   """What the 95 % intervals resample: single objects (results of before 2026-11-27) or
-  whole `geometries` ("towers", "tools"; `tables.summarize`'s `geometries`)."""
+  whole towers or tools (`tables.INTERVAL_KEYS`: their count, and the data's kind)."""
   if results.get("intervals_over") != "geometries":
     return "95 % bootstrap intervals over objects"
-  return (f"95 % bootstrap intervals over the {results['geometries']} {geometries} (each "
+  kind = results.get("data_kind")
+  noun = "tools" if kind == "tools" else "towers" if kind else "towers or tools"
+  return (f"95 % bootstrap intervals over the {results['geometries']} {noun} (each "
           "drawn with all its density configurations, which share its shape)")
 
 
@@ -170,9 +172,7 @@ def results_md(results: dict, command: str = "") -> str:
             + f"; {results['seconds']:.0f} s in all" + seconds_by_part(results)
             + f". Shape F1: **{results['f1']:.1f}** "
             f"(paper, block towers: {PAPER_SHAPE_F1})" + shape_line(results) + ". "
-            + intervals_note(results, "tools" if results.get("data_kind") == "tools"
-                             else "towers" if results.get("data_kind") else "towers or tools")
-            + ".", "",
+            + intervals_note(results) + ".", "",
             "## Table 2: density and trajectory", ""]
   lines += table2_md(results["table2"], observes)
   lines += ["", "Paper (block towers): " + paper_line(PAPER_TABLE2_ONE_MODEL) + ".", ""]

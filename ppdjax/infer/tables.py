@@ -123,7 +123,8 @@ def face_summary(errors_BxKx6) -> dict:
           "p90": float(np.percentile(flat, 90)), "max": float(flat.max()), "median_by_face": per}
 
 
-INTERVAL_KEYS = ("intervals_over", "geometries")  # what summarize's intervals resample
+# what the intervals resample (summarize's keys) and what a geometry is (the evaluation's)
+INTERVAL_KEYS = ("intervals_over", "geometries", "data_kind")
 
 
 def summarize(switches: dict, rec: dict, geometries=None) -> dict:
