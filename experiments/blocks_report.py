@@ -118,8 +118,8 @@ def whole_split(r: dict, full: dict, command: str) -> dict:
   keep = ("f1", "shape", "shape_fit", "shape_fit_depth", "face_error_mm", "image_fit", "table4",
           "table4_evaluated",
           "oracle_pick", "prior_sweeps", "refine_stats", "objects", "split", "samples",
-          "refine", "prior_weight", "seconds", "seconds_by_part", "mae_units",
-          *tables.INTERVAL_KEYS)
+          "refine", "prior_weight", "selection_horizon", "seconds", "seconds_by_part",
+          "mae_units", *tables.INTERVAL_KEYS)
   return {**{k: full.get(k) for k in keep}, "table2": table2, "table5": table5,
           "table5_ci95": table5_ci95, "command": command}
 
@@ -196,7 +196,7 @@ def report_md(r: dict, command: str) -> str:
   lines += [f"| {w} | {o:.2f} | {rel} {t} | {'yes' if ok else '**no**'} |"
             for w, o, rel, t, ok in targets(r)]
   if ws:
-    lines += whole_split_md(ws)
+    lines += whole_split_md(ws, ablations_by_objects=r.get("intervals_over") != "geometries")
   studies = any("Joint" in k or "True boxes" in k for k in r["table2"])
   lines += ["", "## Table 2: density and trajectory"
             + (f" (the pipeline's own evaluation, {r['objects']} objects"
@@ -247,15 +247,21 @@ def table2_lines(table2: dict, objects: int) -> list[str]:
   return lines
 
 
-def whole_split_md(ws: dict) -> list[str]:
+def whole_split_md(ws: dict, ablations_by_objects: bool = False) -> list[str]:
   """Markdown lines: Tables 2 and 5 of the full model on the whole test split, and what
-  +Sample could reach on its own candidates."""
+  +Sample could reach on its own candidates. `ablations_by_objects`: the ablations' rows
+  (the pipeline's own evaluations) have intervals over objects, unlike the full model's."""
+  horizon = ws.get("selection_horizon") or 0
   lines = ["", f"## Table 2 on the whole test split ({ws['objects']} objects)", "", "```",
            ws["command"], "```", "",
            f"{ws['samples']} density samples, LM refinement from the closest sample, "
-           f"+Sample at τ = {ws['prior_weight']}; {ws['seconds']:.0f} s on "
+           f"+Sample at τ = {ws['prior_weight']}"
+           + (f" on the distance over the first {horizon} steps" if horizon else "")
+           + f"; {ws['seconds']:.0f} s on "
            f"{ws.get('machine', 'the machine in blocks_whole_split/README.md')}. Objects in "
-           "parentheses, 95 % intervals in brackets.", ""]
+           f"parentheses, {markdown.intervals_note(ws)} in brackets"
+           + ("; the ablations' rows come from the pipeline's own evaluations, whose "
+              "intervals resample single objects" if ablations_by_objects else "") + ".", ""]
   lines += table2_lines(ws["table2"], ws["objects"])
   lines += ["", f"Shape F1 **{ws['f1']:.1f}**" + markdown.shape_line(ws) + ".", "",
             "Table 5 on the whole split (density RMSE in slots; Texture and Physics: the "

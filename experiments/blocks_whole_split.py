@@ -10,16 +10,20 @@ blocks.json's "whole_split", which the targets then read, and rewrites blocks.md
         --data_command="python -m ppdjax.generate ..."
 
 The evaluation's results.md, results.json and confusion.png are copied to
-RESULTS/blocks_whole_split/.
+RESULTS/blocks_whole_split/, and its kept per-object records (`--keep_records`:
+partial/records.npz and settings.json) if it has them.
 """
 
 import json
 import os
+import shutil
 
 from absl import app, flags
 
 import blocks_common as common
 import blocks_report
+
+from ppdjax.infer import partial
 
 _EVAL = flags.DEFINE_string("eval", None, "The whole-split evaluation's output folder.",
                             required=True)
@@ -41,13 +45,22 @@ def main(argv):
                          "not the whole test split")
   out = os.path.join(_RESULTS.value, "blocks_whole_split")
   common.copy_evaluation(_EVAL.value, out)
+  kept = os.path.join(_EVAL.value, "partial")
+  if os.path.exists(os.path.join(kept, partial.RECORDS_FILE)):
+    os.makedirs(os.path.join(out, "partial"), exist_ok=True)
+    for name in (partial.RECORDS_FILE, "settings.json"):
+      shutil.copyfile(os.path.join(kept, name), os.path.join(out, "partial", name))
+  records = os.path.exists(os.path.join(out, "partial", partial.RECORDS_FILE))
   with open(os.path.join(out, "README.md"), "w") as f:
     f.write(f"# The full model on the whole test split ({full['objects']} objects)\n\n"
             f"Machine: {_MACHINE.value}. Commands:\n\n```\n"
             + (f"{_DATA_COMMAND.value}\n" if _DATA_COMMAND.value else "")
             + f"{full['command']}\n```\n\n"
             "Tables in `results.md`; blocks.json's \"whole_split\" and blocks.md's targets "
-            "read them (`python experiments/blocks_whole_split.py`).\n")
+            "read them (`python experiments/blocks_whole_split.py`).\n"
+            + ("\nThe per-object records (`partial/records.npz`, read by "
+               "`ppdjax.infer.partial.saved_records`) let the tables be read again without a "
+               "GPU, e.g. `experiments/selection_horizon_study.py`.\n" if records else ""))
   command = ((_DATA_COMMAND.value + "\n") if _DATA_COMMAND.value else "") + full["command"]
   r["whole_split"] = blocks_report.whole_split(r, full, command)
   r["whole_split"]["machine"] = _MACHINE.value

@@ -102,6 +102,7 @@ def run(mesh: str, materials, densities, model: str, out: str, samples: int = 51
   fit = bool(trajectory) if fit is None else fit
   decompose = make_decompose_fn(trained, num_samples=samples, fit=fit,
                                 prior_weight=float(config.eval.get("prior_weight", 0.0)),
+                                selection_horizon=int(config.eval.get("selection_horizon", 0)),
                                 pushes=None if trajectory else pushes,
                                 settings=settings_for(engine) if engine else None)
   print(f"decomposing with {model} ({samples} density candidates; the first call compiles)")

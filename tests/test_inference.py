@@ -162,6 +162,35 @@ def test_screened_selection_keeps_the_survivors_scores_and_the_winner(tower):
   assert float(screened.score) == pytest.approx(float(full.score), abs=1e-7)
 
 
+
+def test_selection_over_a_horizon_picks_the_candidate_closest_over_its_first_steps():
+  """`selection_horizon`: the winner is the closest over the first steps, not over the
+  whole trajectory; the scores returned stay whole-trajectory. The observation here is
+  the tower's own first 8 steps followed by those of the tower at three times its
+  densities, so the two rules pick different candidates."""
+  prims = jax.tree.map(jnp.asarray, towers.sample_towers(3, 1, num_blocks=2))
+  true = np.asarray(jnp.rint(prims.density[0] / 100.0) - 1).astype(int)
+  early, late = _simulate(prims)[0], _simulate(prims.replace(density=prims.density * 3.0))[0]
+  observed = jnp.concatenate([early[:, :8], late[:, 8:]], 1)
+  prims = jax.tree.map(lambda x: x[0], prims)
+  logits = jnp.full((5, 100), -1e9)
+  for k in range(2):  # each box: its own slot or the one of three times its density
+    logits = logits.at[k, true[k]].set(0.0).at[k, min(3 * true[k] + 2, 99)].set(0.0)
+  sel = jax.jit(lambda p, lg, o, key: sampling.select_densities(
+      p, lg, o, PUSHES, num_samples=8, key=key, selection_horizon=8))(prims, logits, observed,
+                                                                     jax.random.key(0))
+  prefix, _ = jax.jit(lambda b, o: sampling.score_candidates(b, o, PUSHES))(sel.boxes,
+                                                                       observed[:, :8])
+  assert int(sel.best) == int(np.argmin(prefix)) != int(np.argmin(sel.scores))
+  np.testing.assert_allclose(sel.density[:2], prims.density[:2])
+  assert float(sel.score) == pytest.approx(float(sel.scores[int(sel.best)]))
+  for bad in (-1, 2.5):
+    with pytest.raises(ValueError, match="selection_horizon must be a whole number"):
+      sampling.select_densities(prims, logits, observed, PUSHES, num_samples=8,
+                                key=jax.random.key(0), selection_horizon=bad)
+    with pytest.raises(ValueError, match="selection_horizon must be a whole number"):
+      ppdjax.make_decompose_fn((None, tiny.get_config()), selection_horizon=bad)
+
 def test_the_refinement_horizon_doubles_then_covers_the_trajectory():
   h = refine.horizon_schedule(12, 8, 256)
   assert h.tolist() == [8, 8, 16, 32, 64, 128] + [256] * 7  # 12 iterations: 13 passes

@@ -98,7 +98,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       refine_steps: int = 12, prior_weight: float = 0.0,
                       mass_match: bool = False, screen_steps: int | None = None,
                       screen_keep: int = 64, face_spread: float = 0.0,
-                      refine_prior: float = 0.0, refine_jacobian: str = "forward",
+                      selection_horizon: int = 0, refine_prior: float = 0.0, refine_jacobian: str = "forward",
                       estimator=None,
                       estimator_weight: float = 1.0, pushes: Pushes | None = None,
                       settings: Settings | None = None):
@@ -133,6 +133,10 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
       3.8× the objects/s in batches of 64), else 0 (on coarser boxes it keeps it less
       often: docs/inference.md, "Screened selection").
     screen_keep: survivors of the screen per object.
+    selection_horizon: > 0 picks the candidate closest over the first this many steps
+      (`select_densities`; 0: all steps, the paper's). The paper preset's evaluation uses 32
+      (`config.eval.selection_horizon`: chosen on the validation split, docs/inference.md);
+      the reported score and refinement's start stay whole-trajectory.
     face_spread: > 0 (voxels; needs `fit`) draws each candidate's faces too, within this of
       the fitted ones (`faces.spread_faces`; 0.5: wherever the voxels allow them), and
       returns the winner's boxes: its trajectories come closer, its densities do not
@@ -174,6 +178,7 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
   if screen_steps is None:
     screen_steps = SCREEN_STEPS_WITH_DEPTH if "depth" in fit_with else 0
   sampling.check_screen(screen_steps, screen_keep, num_samples, 0)  # its errors, now
+  sampling.check_selection_horizon(selection_horizon)
   if camera is not None and not fit:
     raise ValueError("camera is for the image and depth fits: it needs fit=True")
   faces.check_spread(face_spread, fit)
@@ -215,7 +220,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     sel = jax.vmap(lambda p, l, o, kk: sampling.select_densities(
         p, l, o, pushes, num_samples=num_samples, key=kk, prior_weight=prior_weight,
         mass_match=mass_match, screen_steps=screen_steps, screen_keep=screen_keep,
-        face_spread=face_spread, settings=settings))(prims, logits, traj, keys)
+        face_spread=face_spread, selection_horizon=selection_horizon,
+        settings=settings))(prims, logits, traj, keys)
     pick = lambda index: jax.tree.map(  # each object's candidate `index` (B,)
         lambda x: jnp.take_along_axis(x, index.reshape((-1,) + (1,) * (x.ndim - 1)), 1)[:, 0],
         sel.boxes)

@@ -88,7 +88,8 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
   obs, true = load_example(example)
   camera = load_camera(example) if "depth" in obs else None  # the depth fit where it can
   tau = trained[1].eval.prior_weight if prior_weight is None else prior_weight
-  decompose = make_decompose_fn(trained, num_samples=samples, prior_weight=tau, camera=camera)
+  decompose = make_decompose_fn(trained, num_samples=samples, prior_weight=tau, camera=camera,
+                                selection_horizon=int(trained[1].eval.get("selection_horizon", 0)))
   key = jax.random.key(seed)
   jax.block_until_ready(decompose(obs, key))  # compiles
   t0 = time.perf_counter()

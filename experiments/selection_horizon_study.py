@@ -1,0 +1,186 @@
+"""+Sample's selection horizon, chosen on validation and checked on test (CPU only).
+
+  python experiments/selection_horizon_study.py \
+      --eval val=DIR_VAL --eval test=DIR_TEST --out=experiments/results/selection_horizon_2026-11-27
+
+Each DIR is an evaluation's output (`python -m ppdjax.evaluate ... --horizon_sweep
+--keep_records --out=DIR`): its results.json and the per-object records in DIR/partial
+(`partial.saved_records`). The horizon sweep records every +Sample row's pick at each τ
+for the distance over the first 16, 32, 64, 128 or all 256 steps, from the same simulated
+candidates (`rows._sweep`), so no horizon costs a rollout. This reads them at the
+evaluation's own τ and writes, per split, row and horizon: top-1/5/10, RMSE, MAE, Table 5
+by block count, with 95 % intervals over whole towers; the choice (the best top-1 on the
+first split, ties to the lower RMSE); OUT/results.md, results.json and horizons.png.
+
+A split's objects are its towers' configurations in a row (`generation.generate_shard`
+repeats each tower `configs_per_tower` times, and a split keeps their order), so the
+records' k-th tower is objects [k·c, (k+1)·c) with c = objects / towers from results.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # pylint: disable=wrong-import-position
+import numpy as np  # pylint: disable=wrong-import-position
+
+from ppdjax import metrics  # pylint: disable=wrong-import-position
+from ppdjax.infer import partial, tables  # pylint: disable=wrong-import-position
+from ppdjax.infer.markdown import with_ci  # pylint: disable=wrong-import-position
+
+ROWS = ("PPD+Fit+Sample", "PPD+Sample")
+COUNTS = ("top1", "top5", "top10", "sq_err", "count")
+
+
+def tower_groups(results: dict, n: int) -> np.ndarray:
+  """(n,) tower index of each record: configurations of a tower are contiguous."""
+  towers = int(results.get("geometries") or 0)
+  if towers <= 0 or n % towers:
+    raise ValueError(f"{n} records cannot be {towers} towers of equal configurations: "
+                     "is this a whole-split evaluation with intervals over towers?")
+  return np.arange(n) // (n // towers)
+
+
+def horizon_rows(rec: dict, groups: np.ndarray, tau: float, resamples: int = 1000) -> dict:
+  """{row: {horizon: metrics with ci95 and Table 5}} from the records' horizon sweep."""
+  horizons = sorted({k[2] for k in rec if k[0] == "hsweep"}, key=lambda h: h or 10**9)
+  if not horizons:
+    raise ValueError("the records hold no horizon sweep: evaluate with --horizon_sweep")
+  blocks = np.asarray(rec[("blocks",)])
+  out = {}
+  for row in ROWS:
+    if ("hsweep", row, horizons[0], tau, "top1") not in rec:
+      continue
+    out[row] = {}
+    for h in horizons:
+      counts = {k: np.asarray(rec[("hsweep", row, h, tau, k)]) for k in COUNTS}
+      mae = np.asarray(rec[("hsweep", row, h, tau, "mae")], np.float64)
+      m = tables.np_metrics(counts, np.arange(len(blocks)))
+      m["mae"] = float(mae.mean())
+      m["ci95"] = {k: list(v) for k, v in
+                   tables.intervals(counts, mae, resamples=resamples, groups=groups).items()}
+      m["table5"], t5_ci = tables.by_blocks(counts, blocks, groups=groups)
+      m["table5_ci95"] = {b: list(v) for b, v in t5_ci.items()}
+      out[row][str(h)] = m
+  return out
+
+
+def paired_change(rec: dict, groups: np.ndarray, row: str, tau: float, horizon: int,
+                  resamples: int = 1000) -> dict:
+  """top-1 and RMSE at `horizon` minus at all steps, on the same objects, with 95 %
+  intervals from one tower bootstrap drawing both (the change's own uncertainty, narrower
+  than the two rows' intervals side by side)."""
+  counts = {h: {k: np.asarray(rec[("hsweep", row, h, tau, k)]) for k in COUNTS}
+            for h in (horizon, 0)}
+  n = len(groups)
+  diff = lambda key: lambda i: (tables.np_metrics(counts[horizon], i)[key]
+                                - tables.np_metrics(counts[0], i)[key])
+  out = {}
+  for key in ("top1", "rmse"):
+    out[key] = diff(key)(np.arange(n))
+    out["ci95_" + key] = list(metrics.bootstrap_interval(diff(key), n, resamples=resamples,
+                                                         groups=groups))
+  return out
+
+
+def choose(rows: dict) -> str:
+  """The horizon with the best top-1 (ties: the lower RMSE)."""
+  return min(rows, key=lambda h: (-round(rows[h]["top1"], 1), rows[h]["rmse"]))
+
+
+def markdown(study: dict) -> str:
+  lines = ["# +Sample's selection horizon: the distance over the first N steps", "",
+           "```", *study["commands"], "```", "",
+           f"Chosen on `{study['choose_on']}` ({study['row']}, best top-1, ties to the lower "
+           f"RMSE): **{study['chosen']} steps** (0: all 256). τ = {study['tau']}. "
+           "95 % bootstrap intervals over whole towers.", ""]
+  lines += [f"{study['row']} at {study['chosen']} steps minus all steps, same objects (paired "
+            "tower bootstrap):", ""]
+  for split, s in study["splits"].items():
+    c = s["change"]
+    lines.append(f"- `{split}`: top-1 {c['top1']:+.2f} [{c['ci95_top1'][0]:+.2f}, "
+                 f"{c['ci95_top1'][1]:+.2f}] points, RMSE {c['rmse']:+.3f} "
+                 f"[{c['ci95_rmse'][0]:+.3f}, {c['ci95_rmse'][1]:+.3f}] slots")
+  lines.append("")
+  for split, s in study["splits"].items():
+    lines += [f"## `{split}` ({s['objects']} objects, {s['towers']} towers)", ""]
+    for row, by_h in s["rows"].items():
+      lines += [f"### {row}", "",
+                "| steps | top-1 | top-5 | top-10 | RMSE | MAE (mm) | Table 5: 2 / 3 / 4 / 5 "
+                "blocks | 2 blocks, 95 % |", "|--:|--:|--:|--:|--:|--:|---|--:|"]
+      for h, m in by_h.items():
+        t5 = " / ".join(f"{m['table5'][b]:.2f}" for b in sorted(m["table5"]))
+        two = m["table5_ci95"].get("2")
+        lines.append(f"| {h or 'all'} | {with_ci(m, 'top1')} | {m['top5']:.1f} | "
+                     f"{m['top10']:.1f} | {with_ci(m, 'rmse', 2)} | {m['mae']:.2f} | {t5} | "
+                     + (f"[{two[0]:.2f}, {two[1]:.2f}]" if two else "–") + " |")
+      lines.append("")
+  return "\n".join(lines)
+
+
+def plot(study: dict, path: str) -> None:
+  fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+  for split, s in study["splits"].items():
+    by_h = s["rows"][study["row"]]
+    hs = list(by_h)
+    x = np.arange(len(hs))
+    for ax, key in zip(axes, ("top1", "rmse")):
+      y = [by_h[h][key] for h in hs]
+      ci = np.array([by_h[h]["ci95"][key] for h in hs])
+      ax.errorbar(x, y, yerr=[np.array(y) - ci[:, 0], ci[:, 1] - np.array(y)], marker="o",
+                  capsize=3, label=split)
+      ax.set_xticks(x, [h if h != "0" else "all" for h in hs])
+  axes[0].set(xlabel="steps the distance covers", ylabel="top-1 (%)", title=study["row"])
+  axes[1].set(xlabel="steps the distance covers", ylabel="density RMSE (slots)")
+  axes[0].legend()
+  fig.tight_layout()
+  fig.savefig(path, dpi=120)
+  plt.close(fig)
+
+
+def main():
+  ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  ap.add_argument("--eval", action="append", required=True, metavar="NAME=DIR",
+                  help="an evaluation's output folder; the first chooses the horizon")
+  ap.add_argument("--row", default="PPD+Fit+Sample", choices=ROWS)
+  ap.add_argument("--out", required=True)
+  args = ap.parse_args()
+  study = {"row": args.row, "splits": {}, "commands": []}
+  for item in args.eval:
+    name, _, folder = item.partition("=")
+    if not folder:
+      ap.error(f"--eval expects NAME=DIR, got {item!r}")
+    with open(os.path.join(folder, "results.json")) as f:
+      results = json.load(f)
+    rec = partial.saved_records(os.path.join(folder, "partial"))
+    n = len(rec[("blocks",)])
+    tau = float(results["prior_weight"])
+    study.setdefault("tau", tau)
+    if tau != study["tau"]:
+      raise SystemExit(f"{folder} selects at τ = {tau}, the first evaluation at {study['tau']}")
+    study["commands"].append(results["command"])
+    groups = tower_groups(results, n)
+    study["splits"][name] = {"objects": n, "towers": int(results["geometries"]),
+                             "rows": horizon_rows(rec, groups, tau)}
+    if "chosen" not in study:  # the first split chooses
+      study["choose_on"] = name
+      study["chosen"] = int(choose(study["splits"][name]["rows"][args.row]))
+    study["splits"][name]["change"] = paired_change(rec, groups, args.row, tau, study["chosen"])
+    print(f"{name}: {n} objects read from {folder}", flush=True)
+  first = study["choose_on"]
+  os.makedirs(args.out, exist_ok=True)
+  with open(os.path.join(args.out, "results.json"), "w") as f:
+    json.dump(study, f, indent=1)
+  with open(os.path.join(args.out, "results.md"), "w") as f:
+    f.write(markdown(study))
+  plot(study, os.path.join(args.out, "horizons.png"))
+  print(f"chosen on {first}: {study['chosen']} steps -> {args.out}")
+
+
+if __name__ == "__main__":
+  main()
