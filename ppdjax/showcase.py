@@ -143,7 +143,8 @@ def evaluate_and_decompose(config, blocks: str, workdir: str, out: str) -> dict:
   print("  decomposing one test tower with the jitted decompose()...", flush=True)
   sample = storage.open_dataset(blocks, "test")[0]
   decompose = make_decompose_fn(trained, num_samples=cfg.samples, refine=cfg.refine,
-                                refine_steps=cfg.refine_steps, prior_weight=cfg.prior_weight)
+                                refine_steps=cfg.refine_steps, prior_weight=cfg.prior_weight,
+                                fit=bool(cfg.get("fit", False)))  # as the evaluation above
   got = decompose({k: sample[k] for k in OBS_KEYS}, jax.random.key(config.seed))
   prims = jax.device_get(got.primitives)
   plot_decomposition(sample["image"], prims, os.path.join(out, "decomposition.png"),

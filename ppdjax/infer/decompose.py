@@ -24,6 +24,10 @@ from ppdjax.training import estimator as estimator_module
 
 # The screen `make_decompose_fn` uses with the depth fit (experiments/results/screen_study)
 SCREEN_STEPS_WITH_DEPTH = 32
+# the default screen runs only where it keeps at most this fraction of the candidates:
+# with fewer (e.g. the demo's 128 samples, 64 kept) it simulates almost as many steps and
+# compiles a second rollout (about 20 s of tracing and 40 s of compiling on a 2-core CPU)
+SCREEN_MIN_RATIO = 4
 
 
 @struct.dataclass
@@ -128,9 +132,10 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     screen_steps: > 0 simulates every candidate over its first `screen_steps` steps only
       and the `screen_keep` closest over that prefix whole; the answer is the best of those
       (`select_densities`; 0: every candidate whole, the paper's). Candidates screened
-      out have score inf. None: 32 with `camera` (on depth-fitted boxes the screen of 32
-      steps to 64 survivors kept the exhaustive answer for 98.8 % of 2,400 test towers, at
-      3.8× the objects/s in batches of 64), else 0 (on coarser boxes it keeps it less
+      out have score inf. None: 32 with the depth fit and at least 4 × `screen_keep`
+      candidates (on depth-fitted boxes the screen of 32 steps to 64 survivors kept the
+      exhaustive answer for 98.8 % of 2,400 test towers, at 3.8× the objects/s in batches
+      of 64 at 512 samples), else 0 (on coarser boxes it keeps it less
       often: docs/inference.md, "Screened selection").
     screen_keep: survivors of the screen per object.
     selection_horizon: > 0 picks the candidate closest over the first this many steps
@@ -175,8 +180,9 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     raise ValueError(f"fit_with: expected any of ('image', 'depth'), got {fit_with}")
   if fit_with and camera is None:
     raise ValueError(f"fit_with={fit_with} needs the images' camera (camera=)")
-  if screen_steps is None:
-    screen_steps = SCREEN_STEPS_WITH_DEPTH if "depth" in fit_with else 0
+  if screen_steps is None:  # a screen keeping a quarter or more saves little, compiles twice
+    screen_steps = (SCREEN_STEPS_WITH_DEPTH if "depth" in fit_with
+                    and num_samples >= SCREEN_MIN_RATIO * screen_keep else 0)
   sampling.check_screen(screen_steps, screen_keep, num_samples, 0)  # its errors, now
   sampling.check_selection_horizon(selection_horizon)
   if camera is not None and not fit:
