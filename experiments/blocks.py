@@ -100,11 +100,12 @@ class Pipeline:
               "refine_prior": e.refine_prior, "joint": FLAGS.joint,
               "true_shapes": FLAGS.true_shapes, "table4_objects": e.get("table4_objects", 0),
               "refine_jacobian": e.get("refine_jacobian", "forward"),
-              "image_fit": e.get("image_fit", False) and e.fit}
+              "image_fit": e.get("image_fit", False) and e.fit,
+              "selection_horizon": e.get("selection_horizon", 0)}
     return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0,
             "fit": False, "depth": False, "refine_prior": 0.0, "joint": False,
             "true_shapes": False, "table4_objects": 0, "refine_jacobian": "forward",
-            "image_fit": False}
+            "image_fit": False, "selection_horizon": 0}
 
   def evaluation_args(self, variant: str) -> dict:
     """`evaluation.evaluate`'s settings for a variant's test-split evaluation (and for
@@ -296,12 +297,13 @@ class Pipeline:
         self.workdir("full"), self.data, split="val", samples=s["samples"], refine=False,
         batch_size=e.batch_size, max_objects=FLAGS.val_objects, subset="spread",
         with_baselines=False, prior_weight=s["prior_weight"], fit=s["fit"], depth=s["depth"],
-        image_fit=s["image_fit"])
+        image_fit=s["image_fit"], selection_horizon=s["selection_horizon"])
     results["max_objects"] = FLAGS.val_objects
     markdown.write_results(
         results, os.path.dirname(self.val_path()),
         f"python -m ppdjax.evaluate --workdir=full --data=data --split=val "
         f"--samples={s['samples']} --norefine --nobaselines --prior_weight={s['prior_weight']}"
+        + (f" --selection_horizon={s['selection_horizon']}" if s["selection_horizon"] else "")
         + (" --fit" if s["fit"] else "") + (" --image_fit" if s["image_fit"] else "")
         + (" --depth" if s["depth"] else "")
         + f" --max_objects={FLAGS.val_objects} --subset=spread")
@@ -329,6 +331,7 @@ class Pipeline:
         results, os.path.dirname(self.eval_path(variant)),
         f"python -m ppdjax.evaluate --workdir={variant} --data=data --samples={s['samples']}"
         + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"
+        + (f" --selection_horizon={s['selection_horizon']}" if s["selection_horizon"] else "")
         + ("" if s["with_baselines"] else " --nobaselines")
         + (" --fit" if s["fit"] else "") + (" --image_fit" if s["image_fit"] else "")
         + (" --depth" if s["depth"] else "")

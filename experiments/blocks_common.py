@@ -81,10 +81,12 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
     e = config.eval
     if (results["samples"], results["refine"], results.get("max_objects", 0),
         results.get("prior_weight", 0.0), results.get("table4_objects", 0),
-        results.get("refine_jacobian", "forward"), results.get("image_fit", False)) == (
+        results.get("refine_jacobian", "forward"), results.get("image_fit", False),
+        results.get("selection_horizon", 0)) == (
             samples, refine, max_objects, e.prior_weight, e.get("table4_objects", 0),
             e.get("refine_jacobian", "forward") if refine else "forward",
-            evaluation.eval_settings(config)["image_fit"]):
+            evaluation.eval_settings(config)["image_fit"],
+            evaluation.eval_settings(config)["selection_horizon"]):
       return results
   print(f"[{variant}] evaluating ({samples} samples{', refine' if refine else ''})", flush=True)
   t0 = time.perf_counter()
