@@ -97,6 +97,8 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
                          f"--data={data_dir} --samples={samples}"
                          + (" --refine" if refine else "")
                          + f" --prior_weight={config.eval.prior_weight}"
+                         + (f" --selection_horizon={settings['selection_horizon']}"
+                            if settings["selection_horizon"] else "")
                          + (f" --max_objects={max_objects}" if max_objects else ""))
   pipeline_steps.log_call(root, f"evaluate {variant}", time.perf_counter() - t0, True)
   return results

@@ -176,14 +176,25 @@ def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
   return out
 
 
+def steps_note(horizon) -> str:
+  """What +Sample's distance covers (`eval.selection_horizon`; 0 or None: all steps)."""
+  return (f"the distance over the first {horizon} steps" if horizon
+          else "the distance over all steps")
+
+
 def report_md(r: dict, command: str) -> str:
   devices = sorted({s["device"] for s in r["steps"].values()})
+  ws_horizon = (r.get("whole_split") or {}).get("selection_horizon") or 0
   lines = ["# Block towers at paper scale: Tables 2, 4 and 5", "", "```", command, "```", "",
            f"Machine: {', '.join(devices)}. Test split, "
            + (f"first {r['objects']} objects; " if r.get("subset", "first") == "first"
               else f"{r['objects']} objects spread over the split; ")
            + f"{r['samples']} density samples" + (", LM refinement" if r["refine"] else "")
-           + f"; +Sample selects by distance − {r['prior_weight']} · log prior. Density "
+           + f"; +Sample selects by distance − {r['prior_weight']} · log prior, "
+           + steps_note(r.get("selection_horizon"))
+           + (f" (the whole-split table below: {steps_note(ws_horizon)})"
+              if ws_horizon != (r.get("selection_horizon") or 0) else "")
+           + ". Density "
            f"top-k in %, RMSE in slots (×100 kg/m³), trajectory MAE in {r['mae_units']}.", "",
            "What each change (encoder, geometry stream, losses, fit, depth, MAP refinement) "
            "did, measured, and what is still missing: `docs/experiments.md`.", "",

@@ -14,7 +14,9 @@ first split, ties to the lower RMSE); OUT/results.md, results.json and horizons.
 
 A split's objects are its towers' configurations in a row (`generation.generate_shard`
 repeats each tower `configs_per_tower` times, and a split keeps their order), so the
-records' k-th tower is objects [k·c, (k+1)·c) with c = objects / towers from results.json.
+records' k-th tower is objects [k·c, (k+1)·c) with c = objects / towers from results.json;
+the script checks it: at the evaluation's own horizon its intervals must be those of
+results.json, which the evaluation drew over the dataset's tower ids.
 """
 
 from __future__ import annotations
@@ -86,6 +88,20 @@ def paired_change(rec: dict, groups: np.ndarray, row: str, tau: float, horizon: 
     out["ci95_" + key] = list(metrics.bootstrap_interval(diff(key), n, resamples=resamples,
                                                          groups=groups))
   return out
+
+
+def check_grouping(rows: dict, results: dict) -> None:
+  """Raises ValueError unless the rows' intervals at the evaluation's own horizon are the
+  evaluation's (the same bootstrap over the same towers: `tower_group`'s order holds)."""
+  horizon = str(results.get("selection_horizon") or 0)
+  for row, by_h in rows.items():
+    theirs = results["table2"].get(row, {}).get("ci95", {})
+    for key in ("top1", "rmse"):
+      ours = by_h[horizon]["ci95"][key]
+      if key in theirs and not np.allclose(ours, theirs[key], rtol=0, atol=1e-9):
+        raise ValueError(f"{row} {key} at {horizon} steps: interval {ours} from the records, "
+                         f"{theirs[key]} in results.json: the records are not in the "
+                         "evaluation's tower order")
 
 
 def choose(rows: dict) -> str:
@@ -165,8 +181,9 @@ def main():
       raise SystemExit(f"{folder} selects at τ = {tau}, the first evaluation at {study['tau']}")
     study["commands"].append(results["command"])
     groups = tower_groups(results, n)
-    study["splits"][name] = {"objects": n, "towers": int(results["geometries"]),
-                             "rows": horizon_rows(rec, groups, tau)}
+    rows = horizon_rows(rec, groups, tau)
+    check_grouping(rows, results)
+    study["splits"][name] = {"objects": n, "towers": int(results["geometries"]), "rows": rows}
     if "chosen" not in study:  # the first split chooses
       study["choose_on"] = name
       study["chosen"] = int(choose(study["splits"][name]["rows"][args.row]))

@@ -50,6 +50,7 @@ def decompose_test(config, workdir: str, test_file: str, out_file: str,
   fn = make_decompose_fn(trained, num_samples=int(e.samples), fit=True,
                          camera=camera.camera_dict(size, size), refine=refine,
                          refine_steps=int(e.refine_steps), prior_weight=float(e.prior_weight),
+                         selection_horizon=int(e.get("selection_horizon", 0)),
                          pushes=generation.pushes_of(cfg.data),
                          screen_steps=0)  # as measured: the screen is unmeasured on tracking
   d = dict(np.load(test_file))

@@ -534,30 +534,42 @@ def test_tools_by_category_checks_the_records_order_against_rebuilt_tools():
 
 
 def test_selection_horizon_study_reads_the_sweep_by_hand_and_chooses_on_the_first_split():
-  """Four towers of two configurations: at 32 steps every box is exact, at all steps the
-  second tower's boxes are 3 slots off. The study's rows, its choice and the paired change
-  are those numbers; records without a horizon sweep, or not whole towers, are refused."""
+  """Four towers of two configurations (two boxes each). At 32 steps towers 0, 1 and 3 are
+  exact and tower 2 is 3 slots off; at all steps tower 1 is off too. The rows, the choice
+  and the paired change are those numbers; intervals draw whole towers (a tower's boxes hit
+  or miss together, so every draw is a multiple of 25 %) and both rules together (the
+  change is never negative); records without a horizon sweep, not whole towers, or in
+  another order than the evaluation's intervals say, are refused."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   import selection_horizon_study as shs  # pylint: disable=import-outside-toplevel
   n = 8
   rec = {("blocks",): np.full(n, 2)}
-  for h, off in ((32, np.zeros(n)), (0, np.array([0, 0, 3, 3, 0, 0, 0, 0]))):
-    hit = (off == 0).astype(int) * 2
-    for k, v in (("top1", hit), ("top5", np.full(n, 2)), ("top10", np.full(n, 2)),
-                 ("sq_err", (2 * off * off).astype(int)), ("count", np.full(n, 2)),
-                 ("mae", off.astype(np.float32))):
+  for h, off_by_tower in ((32, [0, 0, 3, 0]), (0, [0, 3, 3, 0])):
+    off = np.repeat(np.array(off_by_tower, float), 2)
+    for k, v in (("top1", (off == 0).astype(int) * 2), ("top5", np.full(n, 2)),
+                 ("top10", np.full(n, 2)), ("sq_err", (2 * off * off).astype(int)),
+                 ("count", np.full(n, 2)), ("mae", off.astype(np.float32))):
       rec[("hsweep", "PPD+Fit+Sample", h, 0.0, k)] = v
   groups = shs.tower_groups({"geometries": 4}, n)
   np.testing.assert_array_equal(groups, [0, 0, 1, 1, 2, 2, 3, 3])
-  rows = shs.horizon_rows(rec, groups, 0.0, resamples=50)["PPD+Fit+Sample"]
+  rows = shs.horizon_rows(rec, groups, 0.0, resamples=200)["PPD+Fit+Sample"]
   assert list(rows) == ["32", "0"]  # all steps last
-  assert rows["32"]["top1"] == 100.0 and rows["0"]["top1"] == 75.0
-  assert rows["0"]["rmse"] == pytest.approx(np.sqrt(4 * 9 / 16))
-  assert rows["0"]["table5"] == {"2": pytest.approx(1.5)}
+  assert rows["32"]["top1"] == 75.0 and rows["0"]["top1"] == 50.0
+  assert rows["0"]["rmse"] == pytest.approx(np.sqrt(8 * 9 / 16))
+  assert rows["0"]["table5"] == {"2": pytest.approx(np.sqrt(8 * 9 / 16))}
+  for bound in rows["32"]["ci95"]["top1"] + rows["0"]["ci95"]["top1"]:
+    assert bound % 25.0 == pytest.approx(0.0)  # whole towers drawn
   assert shs.choose(rows) == "32"
-  change = shs.paired_change(rec, groups, "PPD+Fit+Sample", 0.0, 32, resamples=50)
-  assert change["top1"] == 25.0 and change["rmse"] == pytest.approx(-1.5)
-  assert change["ci95_top1"][0] >= 0.0  # no resample can make the exact horizon worse
+  change = shs.paired_change(rec, groups, "PPD+Fit+Sample", 0.0, 32, resamples=200)
+  assert change["top1"] == 25.0 and change["rmse"] == pytest.approx(
+      np.sqrt(4 * 9 / 16) - np.sqrt(8 * 9 / 16))
+  assert change["ci95_top1"][0] >= 0.0 and change["ci95_top1"][1] > 0.0  # paired draws
+  results = {"selection_horizon": 32, "table2": {"PPD+Fit+Sample": {"ci95": {
+      "top1": rows["32"]["ci95"]["top1"], "rmse": rows["32"]["ci95"]["rmse"]}}}}
+  shs.check_grouping({"PPD+Fit+Sample": rows}, results)
+  results["table2"]["PPD+Fit+Sample"]["ci95"]["top1"] = [0.0, 100.0]
+  with pytest.raises(ValueError, match="not in the evaluation's tower order"):
+    shs.check_grouping({"PPD+Fit+Sample": rows}, results)
   with pytest.raises(ValueError, match="cannot be 3 towers"):
     shs.tower_groups({"geometries": 3}, n)
   with pytest.raises(ValueError, match="no horizon sweep"):

@@ -131,6 +131,16 @@ def test_faces_drawn_with_the_densities_are_returned_with_the_winner(tower):
   assert float(sel.score) == pytest.approx(float(np.min(sel.scores)), abs=1e-9)
 
 
+def test_decompose_screens_by_default_only_with_depth_and_four_times_the_survivors():
+  from ppdjax.infer.decompose import default_screen_steps  # pylint: disable=import-outside-toplevel
+  assert default_screen_steps(("depth",), 512, 64) == 32
+  assert default_screen_steps(("depth",), 256, 64) == 32
+  assert default_screen_steps(("depth",), 128, 64) == 0  # the demo's: would keep half
+  assert default_screen_steps(("image",), 512, 64) == 0
+  assert default_screen_steps(("image", "depth"), 512, 128) == 32
+  assert default_screen_steps(("image", "depth"), 511, 128) == 0
+
+
 def test_the_screen_refuses_bad_settings_and_knows_when_it_is_off():
   assert sampling.check_screen(32, 64, 512, 256)
   assert not sampling.check_screen(0, 64, 512, 256)  # off
@@ -162,7 +172,6 @@ def test_screened_selection_keeps_the_survivors_scores_and_the_winner(tower):
   assert float(screened.score) == pytest.approx(float(full.score), abs=1e-7)
 
 
-
 def test_selection_over_a_horizon_picks_the_candidate_closest_over_its_first_steps():
   """`selection_horizon`: the winner is the closest over the first steps, not over the
   whole trajectory; the scores returned stay whole-trajectory. The observation here is
@@ -190,6 +199,7 @@ def test_selection_over_a_horizon_picks_the_candidate_closest_over_its_first_ste
                                 key=jax.random.key(0), selection_horizon=bad)
     with pytest.raises(ValueError, match="selection_horizon must be a whole number"):
       ppdjax.make_decompose_fn((None, tiny.get_config()), selection_horizon=bad)
+
 
 def test_the_refinement_horizon_doubles_then_covers_the_trajectory():
   h = refine.horizon_schedule(12, 8, 256)

@@ -96,13 +96,22 @@ def is_paper_pushes(pushes: Pushes) -> bool:
           and all(np.allclose(a, b) for a, b in zip(pushes.arrays()[:3], paper.arrays()[:3])))
 
 
+def default_screen_steps(fit_with: tuple[str, ...], num_samples: int, screen_keep: int) -> int:
+  """`make_decompose_fn`'s screen when none is given: SCREEN_STEPS_WITH_DEPTH with the
+  depth fit and at least SCREEN_MIN_RATIO × `screen_keep` candidates, else 0 (a screen
+  keeping a quarter or more saves little and compiles a second rollout)."""
+  return (SCREEN_STEPS_WITH_DEPTH if "depth" in fit_with
+          and num_samples >= SCREEN_MIN_RATIO * screen_keep else 0)
+
+
 def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
                       camera: dict | None = None, fit_with: tuple[str, ...] | None = None,
                       refine: bool = False,
                       refine_steps: int = 12, prior_weight: float = 0.0,
                       mass_match: bool = False, screen_steps: int | None = None,
                       screen_keep: int = 64, face_spread: float = 0.0,
-                      selection_horizon: int = 0, refine_prior: float = 0.0, refine_jacobian: str = "forward",
+                      selection_horizon: int = 0, refine_prior: float = 0.0,
+                      refine_jacobian: str = "forward",
                       estimator=None,
                       estimator_weight: float = 1.0, pushes: Pushes | None = None,
                       settings: Settings | None = None):
@@ -180,9 +189,8 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     raise ValueError(f"fit_with: expected any of ('image', 'depth'), got {fit_with}")
   if fit_with and camera is None:
     raise ValueError(f"fit_with={fit_with} needs the images' camera (camera=)")
-  if screen_steps is None:  # a screen keeping a quarter or more saves little, compiles twice
-    screen_steps = (SCREEN_STEPS_WITH_DEPTH if "depth" in fit_with
-                    and num_samples >= SCREEN_MIN_RATIO * screen_keep else 0)
+  if screen_steps is None:
+    screen_steps = default_screen_steps(fit_with, num_samples, screen_keep)
   sampling.check_screen(screen_steps, screen_keep, num_samples, 0)  # its errors, now
   sampling.check_selection_horizon(selection_horizon)
   if camera is not None and not fit:
@@ -233,7 +241,10 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
         sel.boxes)
     prims = pick(sel.best).replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
-    if refine:  # from the closest candidate whatever τ chose, as the evaluation's +Refine
+    # from the candidate closest over all steps whatever τ and the horizon chose, as the
+    # evaluation's +Refine; where refinement is not closer, +Sample's answer stays (the
+    # evaluation's row keeps the start: the same answer at τ = 0 and selection_horizon = 0)
+    if refine:
       start = pick(jnp.argmin(sel.scores, -1))
       ref = jax.vmap(lambda p, lg, o, d: refine_if_closer(
           p, o, d, pushes, steps=refine_steps,

@@ -226,10 +226,11 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
     face_spread: > 0 draws each candidate's faces too, uniform within this many voxels of
       the given ones (`faces.spread_faces`; candidate 0 keeps them): for boxes fitted to
       voxels, which place a face only within half a voxel (`faces.VOXEL_TOLERANCE`).
-    selection_horizon: > 0 picks the winner by the distance over the first this many
-      steps (`metrics.trajectory_distance(horizon=)`; 0: all steps, the paper's). The
+    selection_horizon: > 0 picks the winner (and, with `mass_match`, the mass it matches)
+      by the distance over the first this many steps (`metrics.trajectory_distance(
+      horizon=)`; 0, or the trajectory's length or more: all steps, the paper's). The
       returned scores stay whole-trajectory distances. With a screen, the winner is the
-      best of its survivors over this horizon.
+      best of its survivors over this horizon. A Python int (it shapes the program).
     settings: the engine's settings (those the dataset was simulated with: MJX or box-plane).
 
   Returns:
@@ -248,13 +249,14 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   kept = jax.tree.map(lambda x: x[survivors], candidates) if screened else candidates
   dist, err, sims = score_candidates(kept, observed, pushes, settings, keep_trajectories=True)
   kept_logp = logp[survivors] if screened else logp
-  if mass_match:
-    kept = match_closest_mass(kept, dist)
+  over_horizon = lambda d, s: (jax.vmap(lambda sim: metrics.trajectory_distance(
+      sim, observed, horizon=selection_horizon))(s) if selection_horizon else d)
+  if mass_match:  # the mass of the closest by the same rule as the winner's
+    kept = match_closest_mass(kept, over_horizon(dist, sims))
     dist, err, sims = score_candidates(kept, observed, pushes, settings,
                                        keep_trajectories=True)
     kept_logp = log_prior(density_logits, density_to_slot_jax(kept.density), prims.valid)
-  selection_dist = (jax.vmap(lambda sim: metrics.trajectory_distance(
-      sim, observed, horizon=selection_horizon))(sims) if selection_horizon else dist)
+  selection_dist = over_horizon(dist, sims)
   best = jnp.argmin(selection_objective(selection_dist, kept_logp, prior_weight))
   everyone = lambda x: (jnp.full((num_samples,), jnp.inf, x.dtype).at[survivors].set(x)
                         if screened else x)
