@@ -92,7 +92,7 @@ def paired_change(rec: dict, groups: np.ndarray, row: str, tau: float, horizon: 
 
 def check_grouping(rows: dict, results: dict) -> None:
   """Raises ValueError unless the rows' intervals at the evaluation's own horizon are the
-  evaluation's (the same bootstrap over the same towers: `tower_group`'s order holds)."""
+  evaluation's (the same bootstrap over the same towers: `tower_groups`' order holds)."""
   horizon = str(results.get("selection_horizon") or 0)
   for row, by_h in rows.items():
     theirs = results["table2"].get(row, {}).get("ci95", {})
@@ -132,7 +132,7 @@ def markdown(study: dict) -> str:
       for h, m in by_h.items():
         t5 = " / ".join(f"{m['table5'][b]:.2f}" for b in sorted(m["table5"]))
         two = m["table5_ci95"].get("2")
-        lines.append(f"| {h or 'all'} | {with_ci(m, 'top1')} | {m['top5']:.1f} | "
+        lines.append(f"| {'all' if h == '0' else h} | {with_ci(m, 'top1')} | {m['top5']:.1f} | "
                      f"{m['top10']:.1f} | {with_ci(m, 'rmse', 2)} | {m['mae']:.2f} | {t5} | "
                      + (f"[{two[0]:.2f}, {two[1]:.2f}]" if two else "–") + " |")
       lines.append("")
@@ -171,6 +171,10 @@ def main():
     name, _, folder = item.partition("=")
     if not folder:
       ap.error(f"--eval expects NAME=DIR, got {item!r}")
+    for need in ("results.json", os.path.join("partial", partial.RECORDS_FILE)):
+      if not os.path.exists(os.path.join(folder, need)):
+        raise SystemExit(f"{folder} has no {need}: an evaluation's output with "
+                         "--horizon_sweep --keep_records is expected")
     with open(os.path.join(folder, "results.json")) as f:
       results = json.load(f)
     rec = partial.saved_records(os.path.join(folder, "partial"))
