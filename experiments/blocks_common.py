@@ -75,6 +75,7 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
   workdir = ensure_trained(config, data_dir, root, variant)
   out = os.path.join(workdir, "eval")
   path = os.path.join(out, "results.json")
+  settings = evaluation.eval_settings(config, samples=samples, refine=refine)
   if os.path.exists(path):
     with open(path) as f:
       results = json.load(f)
@@ -85,12 +86,10 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
         results.get("selection_horizon", 0)) == (
             samples, refine, max_objects, e.prior_weight, e.get("table4_objects", 0),
             e.get("refine_jacobian", "forward") if refine else "forward",
-            evaluation.eval_settings(config)["image_fit"],
-            evaluation.eval_settings(config)["selection_horizon"]):
+            settings["image_fit"], settings["selection_horizon"]):
       return results
   print(f"[{variant}] evaluating ({samples} samples{', refine' if refine else ''})", flush=True)
   t0 = time.perf_counter()
-  settings = evaluation.eval_settings(config, samples=samples, refine=refine)
   results = evaluation.evaluate(workdir, data_dir, max_objects=max_objects, **settings)
   results["max_objects"] = max_objects
   markdown.write_results(results, out, f"python -m ppdjax.evaluate --workdir={workdir} "

@@ -262,12 +262,10 @@ def whole_split_md(ws: dict, ablations_by_objects: bool = False) -> list[str]:
   """Markdown lines: Tables 2 and 5 of the full model on the whole test split, and what
   +Sample could reach on its own candidates. `ablations_by_objects`: the ablations' rows
   (the pipeline's own evaluations) have intervals over objects, unlike the full model's."""
-  horizon = ws.get("selection_horizon") or 0
   lines = ["", f"## Table 2 on the whole test split ({ws['objects']} objects)", "", "```",
            ws["command"], "```", "",
            f"{ws['samples']} density samples, LM refinement from the closest sample, "
-           f"+Sample at τ = {ws['prior_weight']}"
-           + (f" on the distance over the first {horizon} steps" if horizon else "")
+           f"+Sample at τ = {ws['prior_weight']} on {steps_note(ws.get('selection_horizon'))}"
            + f"; {ws['seconds']:.0f} s on "
            f"{ws.get('machine', 'the machine in blocks_whole_split/README.md')}. Objects in "
            f"parentheses, {markdown.intervals_note(ws)} in brackets"

@@ -139,8 +139,8 @@ def main():
   for path in (a.records, a.results):
     if not os.path.exists(path):
       raise SystemExit(f"not found: {path}")
-  data = tools_preset.get_config(a.size).data
-  seed = tools_preset.get_config(a.size).seed
+  preset = tools_preset.get_config(a.size)
+  data, seed = preset.data, preset.seed
   configs = int(data.configs_per_tool)
   rec = partial.saved_records(a.records)
   with open(a.results) as f:
@@ -166,10 +166,11 @@ def main():
   with open(os.path.join(a.out, "results.json"), "w") as f:
     json.dump({"command": command, "objects": n, "left_out_tools": [int(ids[b]) for b in bad],
                "categories": table}, f, indent=1)
+  md = markdown(table, command, n, int((~keep).sum()))
   with open(os.path.join(a.out, "results.md"), "w") as f:
-    f.write(markdown(table, command, n, int((~keep).sum())))
+    f.write(md)
   figure(table, os.path.join(a.out, "by_category.png"))
-  print(open(os.path.join(a.out, "results.md")).read())
+  print(md)
 
 
 if __name__ == "__main__":

@@ -72,11 +72,7 @@ class PartialRecords:
     settings = os.path.join(self.folder, "settings.json")
     if not os.path.exists(settings):
       _write_atomic(settings, json.dumps(self.settings, indent=1).encode())
-    keys = list(records)
-    buf = io.BytesIO()
-    np.savez(buf, __keys__=np.asarray(json.dumps([list(k) for k in keys])),
-             **{f"a{i}": np.asarray(records[k]) for i, k in enumerate(keys)})
-    _write_atomic(self._path(start), buf.getvalue())
+    _write_records(self._path(start), records, compressed=False)
 
   def count(self) -> int:
     return len(_batch_files(self.folder))
@@ -119,12 +115,7 @@ def compact(folder: str) -> str:
   path = os.path.join(folder, RECORDS_FILE)
   if _batch_files(folder) and os.path.exists(path):
     os.remove(path)  # superseded by the batches of the evaluation run again
-  records = saved_records(folder)
-  keys = list(records)
-  buf = io.BytesIO()
-  np.savez_compressed(buf, __keys__=np.asarray(json.dumps([list(k) for k in keys])),
-                      **{f"a{i}": np.asarray(records[k]) for i, k in enumerate(keys)})
-  _write_atomic(path, buf.getvalue())
+  _write_records(path, saved_records(folder), compressed=True)
   for f in _batch_files(folder):
     os.remove(os.path.join(folder, f))
   return path
@@ -134,6 +125,17 @@ def _batch_files(folder: str) -> list[str]:
   if not os.path.isdir(folder):
     return []
   return sorted(f for f in os.listdir(folder) if f.startswith("batch-") and f.endswith(".npz"))
+
+
+def _write_records(path: str, records: dict, compressed: bool) -> None:
+  """Records keyed by tuples as one .npz (`_read` reads it back), written whole or not at
+  all: the keys as JSON, the arrays as a0, a1, ..."""
+  keys = list(records)
+  buf = io.BytesIO()
+  (np.savez_compressed if compressed else np.savez)(
+      buf, __keys__=np.asarray(json.dumps([list(k) for k in keys])),
+      **{f"a{i}": np.asarray(records[k]) for i, k in enumerate(keys)})
+  _write_atomic(path, buf.getvalue())
 
 
 def _read(path: str) -> dict | None:

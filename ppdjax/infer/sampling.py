@@ -247,17 +247,17 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   survivors = (screen_survivors(candidates, observed, pushes, settings, steps=screen_steps,
                                 keep=screen_keep) if screened else jnp.arange(num_samples))
   kept = jax.tree.map(lambda x: x[survivors], candidates) if screened else candidates
-  dist, err, sims = score_candidates(kept, observed, pushes, settings, keep_trajectories=True)
+  # each candidate's distance over all steps (column 0) and over the selection horizon
+  score = lambda boxes: score_candidates(boxes, observed, pushes, settings,
+                                         keep_trajectories=True, horizons=(0, selection_horizon))
+  dists, err, sims = score(kept)
   kept_logp = logp[survivors] if screened else logp
-  over_horizon = lambda d, s: (jax.vmap(lambda sim: metrics.trajectory_distance(
-      sim, observed, horizon=selection_horizon))(s) if selection_horizon else d)
   if mass_match:  # the mass of the closest by the same rule as the winner's
-    kept = match_closest_mass(kept, over_horizon(dist, sims))
-    dist, err, sims = score_candidates(kept, observed, pushes, settings,
-                                       keep_trajectories=True)
+    kept = match_closest_mass(kept, dists[:, 1])
+    dists, err, sims = score(kept)
     kept_logp = log_prior(density_logits, density_to_slot_jax(kept.density), prims.valid)
-  selection_dist = over_horizon(dist, sims)
-  best = jnp.argmin(selection_objective(selection_dist, kept_logp, prior_weight))
+  dist = dists[:, 0]
+  best = jnp.argmin(selection_objective(dists[:, 1], kept_logp, prior_weight))
   everyone = lambda x: (jnp.full((num_samples,), jnp.inf, x.dtype).at[survivors].set(x)
                         if screened else x)
   return Selection(density=kept.density[best], score=dist[best], scores=everyone(dist),
