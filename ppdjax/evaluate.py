@@ -30,6 +30,10 @@ _PRIOR_WEIGHT = flags.DEFINE_float("prior_weight", None, "+Sample selects by dis
 _SELECTION_HORIZON = flags.DEFINE_integer(
     "selection_horizon", None, "+Sample's distance covers the first N steps (one of "
     "16, 32, 64, 128; 0: all, the paper's; default: eval.selection_horizon).")
+_REFINE_HORIZON = flags.DEFINE_integer(
+    "refine_horizon", None, "+Refine starts from the candidate closest over the first N steps "
+    "(one of 16, 32, 64, 128; 0: all; default: eval.refine_horizon); it still fits the "
+    "whole trajectory.")
 _HORIZON_SWEEP = flags.DEFINE_bool(
     "horizon_sweep", False, "Also sweep τ at every horizon of --selection_horizon's choices "
     "(results.md's 'by τ and by the steps the distance covers'; about 0.4 s more per batch).")
@@ -99,9 +103,10 @@ def main(argv):
                       os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   from ppdjax.dataset.storage import DatasetError
   from ppdjax.infer import evaluation, faces, markdown, partial, tables
-  if _SELECTION_HORIZON.value not in (None,) + tables.SELECTION_HORIZONS:
-    sys.exit(f"error: --selection_horizon must be one of {tables.SELECTION_HORIZONS} "
-             f"(0: all steps), got {_SELECTION_HORIZON.value}")
+  for flag in (_SELECTION_HORIZON, _REFINE_HORIZON):
+    if flag.value not in (None,) + tables.SELECTION_HORIZONS:
+      sys.exit(f"error: --{flag.name} must be one of {tables.SELECTION_HORIZONS} "
+               f"(0: all steps), got {flag.value}")
   from ppdjax.training import checkpoints
   try:
     model, config = checkpoints.load(_WORKDIR.value)
@@ -114,6 +119,7 @@ def main(argv):
                                         estimator_weight=_ESTIMATOR_WEIGHT.value,
                                         joint=_JOINT.value, true_shapes=_TRUE_SHAPES.value,
                                         selection_horizon=_SELECTION_HORIZON.value,
+                                        refine_horizon=_REFINE_HORIZON.value,
                                         refine_jacobian=_REFINE_JACOBIAN.value,
                                         table4_objects=_TABLE4_OBJECTS.value,
                                         face_spread=_FACE_SPREAD.value,

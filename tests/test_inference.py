@@ -588,6 +588,32 @@ def test_the_selection_horizon_picks_by_the_distance_over_its_steps():
     rows.batch_records(out, slot, slot >= 0, base, selection_horizon=33, **kw)
 
 
+def test_refinement_starts_from_the_candidate_closest_over_its_horizon():
+  """`Evaluator._best_sample`: the start is the candidate closest over the first
+  `refine_horizon` steps; the distance handed on is its whole trajectory's (refinement
+  compares its answer with the start on the whole trajectory)."""
+  from types import SimpleNamespace
+  from ppdjax.infer.evaluator import Evaluator, slot_to_density
+  out, _, _, layout = _fake_batch_output(b=4, s=16)
+  fit = out["hdist"][:, layout["fit"]]  # a view: edits reach out["hdist"]
+  h32, h0 = tables.SELECTION_HORIZONS.index(32), tables.SELECTION_HORIZONS.index(0)
+  fit[:, 3, h0] = -1.0   # candidate 3 is the closest over all steps,
+  fit[:, 7, h32] = -1.0  # candidate 7 over the first 32
+  out["dist"] = out["hdist"][..., h0]
+  boxes = SimpleNamespace(replace=lambda density: density)  # the start's densities
+  decoded = {"fitted": {"fit": boxes}, "group_logits": {"fit": out["group_logits"]["fit"]}}
+  starts = {}
+  for horizon in (0, 32):
+    ev = SimpleNamespace(layout=layout, refine_horizon=horizon)
+    starts[horizon] = Evaluator._best_sample(ev, out, decoded, "fit", 0.0)
+  for horizon, pick in ((0, 3), (32, 7)):
+    density, _, d0, m0 = starts[horizon]
+    expect = slot_to_density(out["fit_slots"]["fit"][:, pick])
+    np.testing.assert_allclose(np.asarray(density), np.asarray(expect, np.float32))
+    np.testing.assert_array_equal(d0, out["dist"][:, layout["fit"]][:, pick])
+    np.testing.assert_array_equal(m0, out["mae"][:, layout["fit"]][:, pick])
+
+
 def test_the_screen_replay_keeps_the_winner_only_when_it_survives_the_prefix():
   """`rows.screen_records`: the pick is the best by the row's objective among the `keep`
   closest over the first `steps` steps; 'same' says whether that is the exhaustive pick."""
@@ -670,6 +696,8 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
     evaluation.evaluate(tiny_run[0], tiny_dataset, face_spread=0.5)
   with pytest.raises(ValueError, match=r"image_fit refines the \+Fit rows' boxes: it needs fit"):
     evaluation.evaluate(tiny_run[0], tiny_dataset, image_fit=True)
+  with pytest.raises(ValueError, match="refine_horizon must be one of"):
+    evaluation.evaluate(tiny_run[0], tiny_dataset, refine=True, refine_horizon=33)
   from ppdjax.infer.evaluator import Evaluator
   with pytest.raises(ValueError, match="refine from the depth fit"):
     Evaluator(*checkpoints.load(tiny_run[0]), samples=2, refine=True, fit=True,

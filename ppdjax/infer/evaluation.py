@@ -69,7 +69,7 @@ def _weights_hash(model) -> str:
 EVAL_SETTINGS = ("samples", "refine", "refine_steps", "batch_size", "prior_weight", "fit",
                  "depth", "refine_prior", "estimator", "estimator_weight", "joint",
                  "true_shapes", "selection_horizon", "refine_jacobian", "table4_objects",
-                 "face_spread", "image_fit")
+                 "face_spread", "image_fit", "refine_horizon")
 
 
 def eval_settings(config, **overrides) -> dict:
@@ -78,7 +78,8 @@ def eval_settings(config, **overrides) -> dict:
               "estimator_weight": 1.0, "joint": False,
               "true_shapes": False, "selection_horizon": 0,
               "refine_jacobian": "forward", "table4_objects": 0,
-              "face_spread": 0.0, "image_fit": False}  # older presets lack them
+              "face_spread": 0.0, "image_fit": False,
+              "refine_horizon": 0}  # older presets lack them
   out = {k: config.eval.get(k, defaults.get(k)) for k in EVAL_SETTINGS}
   unknown = sorted(set(overrides) - set(EVAL_SETTINGS))
   if unknown:
@@ -97,7 +98,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
              estimator_weight: float = 1.0, joint: bool = False, true_shapes: bool = False,
              selection_horizon: int = 0, horizon_sweep: bool = False,
              refine_jacobian: str = "forward", table4_objects: int = 0,
-             face_spread: float = 0.0, image_fit: bool = False, progress: bool = True,
+             face_spread: float = 0.0, image_fit: bool = False, refine_horizon: int = 0,
+             progress: bool = True,
              partial_dir: str = "", max_seconds: float = 0.0, prefetch: bool = True,
              devices=None, ahead: bool = False) -> dict:
   """Evaluates a trained model (a workdir or (model, config)); returns the results dict.
@@ -108,7 +110,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   the candidates are simulated once). +Sample's rows select on the distance over the first
   `selection_horizon` steps (0: all, the paper's); `horizon_sweep` also records the τ
   sweep at every horizon of SELECTION_HORIZONS (`results["selection_sweeps"][row][h][τ]`).
-  Choose τ and the horizon on the validation split. `results["oracle_pick"][row]`: the
+  Choose τ and the horizon on the validation split. +Refine starts from the candidate
+  closest over the first `refine_horizon` steps (0: all; `Evaluator`). `results["oracle_pick"][row]`: the
   row's ceiling on its own candidates (`rows.oracle_pick`). `results["seconds_by_part"]`:
   where this call's time went (waiting for batches to be read, the baselines' scores, the
   jitted calls with their compilation, the records, which a background thread makes while
@@ -165,7 +168,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "horizon_sweep": horizon_sweep,
               "refine_jacobian": refine_jacobian if refine else "forward",
               "table4_objects": table4_objects if with_baselines else 0,
-              "face_spread": face_spread if fit else 0.0, "image_fit": image_fit}
+              "face_spread": face_spread if fit else 0.0, "image_fit": image_fit,
+              "refine_horizon": refine_horizon if refine else 0}
   check_jacobian(refine_jacobian)
   faces.check_spread(face_spread, fit)
   if image_fit and not fit:
@@ -173,9 +177,10 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   starts = range(0, n, batch_size)
   table4_starts = {starts[i] for i in table4_batches(
       [min(batch_size, n - x) for x in starts], table4_objects)}
-  if selection_horizon not in SELECTION_HORIZONS:
-    raise ValueError(f"selection_horizon must be one of {SELECTION_HORIZONS} (0: all steps), "
-                     f"got {selection_horizon}")
+  for name, h in (("selection_horizon", selection_horizon),
+                  ("refine_horizon", refine_horizon)):
+    if h not in SELECTION_HORIZONS:
+      raise ValueError(f"{name} must be one of {SELECTION_HORIZONS} (0: all steps), got {h}")
   if max_seconds and not partial_dir:
     raise ValueError("max_seconds needs partial_dir: where the batches done are kept")
   saved = (partial.PartialRecords(partial_dir, {
@@ -258,7 +263,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
                          true_shapes=true_shapes, pushes=test.pushes,
                          settings=settings_for(test.engine), refine_jacobian=refine_jacobian,
                          table4_every_batch=table4_starts == set(starts),
-                         face_spread=face_spread, image_fit=image_fit, devices=devices)
+                         face_spread=face_spread, image_fit=image_fit,
+                         refine_horizon=settings["refine_horizon"], devices=devices)
           t = clock()  # the first batch's device time includes compiling every stage
           if ahead:  # compiled ahead of time into JAX's persistent cache, and no more
             ev.compile(batch, jax.random.fold_in(key, start), pool, execute=False)

@@ -94,7 +94,8 @@ def _simulate_table4(true, pool, obs_traj, keys, *, samples, chunk, pushes, sett
 
 # +Refine and +Joint start from the sample closest in trajectory, whatever τ the +Sample
 # rows use: on the validation split of unseen towers that start refined best (top-1 62.6 %
-# against 59.9 % from τ = 0.05; experiments/results/prior_study_val.md).
+# against 59.9 % from τ = 0.05; experiments/results/prior_study_val.md). Which steps that
+# distance covers is the Evaluator's `refine_horizon` (0: all).
 REFINE_FROM_TAU = 0.0
 
 
@@ -116,7 +117,8 @@ class Evaluator:
                estimator=None, estimator_weight: float = 1.0, joint: bool = False,
                true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS,
                refine_jacobian: str = "forward", table4_every_batch: bool = False,
-               face_spread: float = 0.0, image_fit: bool = False, devices=None):
+               face_spread: float = 0.0, image_fit: bool = False, refine_horizon: int = 0,
+               devices=None):
     """`devices`: the local devices each batch splits over (None: all of them).
     `table4_every_batch`: Table 4's sampling baselines run on every batch, inside the
     sampling call (one program to compile: on a CPU that is a minute less); otherwise in a
@@ -124,13 +126,20 @@ class Evaluator:
     `face_spread` (voxels): > 0 draws the faces of the "fit" group's candidates too, within
     this of the fitted ones (`faces.spread_faces`; the voxels place a face within half a
     voxel). `image_fit`: the "fit" group's boxes are then refined against the images'
-    edges (`infer.image_fit`; needs fit and the images' camera)."""
+    edges (`infer.image_fit`; needs fit and the images' camera). `refine_horizon`: +Refine
+    and +Joint start from the candidate closest over the first this many steps (one of
+    SELECTION_HORIZONS; 0: all); they still fit, and compare their answer with the start
+    on, the whole trajectory."""
     if samples < 1:
       raise ValueError(f"samples must be >= 1, got {samples}")
     if depth and camera is None:
       raise ValueError("the +Fit(depth) rows need the depth images' camera "
                        "(storage.Dataset.camera)")
     self.config, self.samples, self.refine, self.joint = config, samples, refine, joint
+    if refine_horizon not in SELECTION_HORIZONS:
+      raise ValueError(f"refine_horizon must be one of {SELECTION_HORIZONS} (0: all steps), "
+                       f"got {refine_horizon}")
+    self.refine_horizon = refine_horizon
     if image_fit and not fit:
       raise ValueError("image_fit refines the +Fit rows' boxes: it needs fit")
     if image_fit and camera is None:
@@ -323,14 +332,16 @@ class Evaluator:
     return out
 
   def _best_sample(self, out: dict, decoded: dict, group: str, tau: float):
-    """A group's best candidate (by the +Sample objective at `tau`) as boxes with its
-    densities, the group's logits (the MAP prior), and its distance and MAE."""
+    """A group's best candidate (by the +Sample objective at `tau` on the distance over the
+    first `refine_horizon` steps) as boxes with its densities, the group's logits (the MAP
+    prior), and its distance over the whole trajectory and its MAE."""
     fitted = group != "ppd"
     boxes = decoded["fitted"][group] if fitted else decoded["pred"]
     cand_slots = out["fit_slots"][group] if fitted else out["slots"]
     d, m = out["dist"][:, self.layout[group]], out["mae"][:, self.layout[group]]
+    hd = out["hdist"][:, self.layout[group], SELECTION_HORIZONS.index(self.refine_horizon)]
     logp = out["fit_logp"][group] if fitted else out["logp"]
-    best = np.argmin(sampling.selection_objective(d, logp, tau), -1)
+    best = np.argmin(sampling.selection_objective(hd, logp, tau), -1)
     start = np.take_along_axis(cand_slots, best[:, None, None], 1)[:, 0]
     prims = boxes.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
     rows = np.arange(len(best))
