@@ -574,3 +574,42 @@ def test_selection_horizon_study_reads_the_sweep_by_hand_and_chooses_on_the_firs
     shs.tower_groups({"geometries": 3}, n)
   with pytest.raises(ValueError, match="no horizon sweep"):
     shs.horizon_rows({("blocks",): np.full(n, 2)}, groups, 0.0)
+
+
+def test_refine_start_study_pairs_two_evaluations_of_the_same_candidates():
+  """Four towers of two configurations (two boxes each). Refined from all steps, towers 1
+  and 2 are 3 slots off; from 32 steps only tower 2. The rows and the paired change are
+  those numbers, drawn by whole towers and both starts together; two evaluations whose
+  +Sample picks differ are refused, and a spread subset's towers are its objects' own."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import refine_start_study as rss  # pylint: disable=import-outside-toplevel
+  n = 8
+  def records(off_by_tower):
+    off = np.repeat(np.array(off_by_tower, float), 2)
+    rec = {("blocks",): np.full(n, 2), ("true_slot",): np.zeros((n, 2), int),
+           ("guess", rss.SAMPLE): np.ones((n, 2), int), ("mae", rss.SAMPLE): np.ones(n)}
+    for row in (rss.SAMPLE, rss.REFINE):
+      for k, v in (("top1", (off == 0).astype(int) * 2), ("top5", np.full(n, 2)),
+                   ("top10", np.full(n, 2)), ("sq_err", (2 * off * off).astype(int)),
+                   ("count", np.full(n, 2))):
+        rec[("counts", row, k)] = v
+    rec[("mae", rss.REFINE)] = off
+    return rec
+  first, second = records([0, 3, 3, 0]), records([0, 0, 3, 0])
+  groups = rss.tower_ids({"geometries": 4}, n, configs_per_tower=2)
+  np.testing.assert_array_equal(groups, [0, 0, 1, 1, 2, 2, 3, 3])
+  rss.check_same_candidates(first, second, "here")
+  row = rss.row_of(second, rss.REFINE, groups)
+  assert row["top1"] == 75.0 and row["rmse"] == pytest.approx(np.sqrt(4 * 9 / 16))
+  for bound in row["ci95"]["top1"]:
+    assert bound % 25.0 == pytest.approx(0.0)  # whole towers drawn
+  change = rss.paired_change(first, second, groups, rss.REFINE, resamples=200)
+  assert change["top1"] == 25.0 and change["mae"] == pytest.approx(-0.75)
+  assert change["rmse"] == pytest.approx(np.sqrt(4 * 9 / 16) - np.sqrt(8 * 9 / 16))
+  assert change["ci95_top1"][0] >= 0.0 and change["ci95_top1"][1] > 0.0  # paired draws
+  other = {**second, ("guess", rss.SAMPLE): np.zeros((n, 2), int)}
+  with pytest.raises(ValueError, match="did not simulate the same candidates"):
+    rss.check_same_candidates(first, other, "here")
+  # 4 objects spread over 4 towers of 2: objects 0, 2, 5, 7 of the split
+  spread = rss.tower_ids({"geometries": 4, "subset": "spread"}, 4, configs_per_tower=2)
+  np.testing.assert_array_equal(spread, [0, 1, 2, 3])
