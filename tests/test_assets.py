@@ -96,6 +96,15 @@ def test_shipped_model_recovers_the_example_tower():
   np.testing.assert_allclose(prims.pos[0, :4], true.pos[:4], atol=0.05)
 
 
+def test_shipped_model_evaluates_with_the_presets_rules():
+  """The shipped model's saved evaluation settings are the paper preset's (what
+  `python -m ppdjax.evaluate --workdir=assets/blocks_model` and `make_decompose_fn` read,
+  and what experiments/results/blocks.md measured): no stale default."""
+  from ppdjax.configs import paper  # pylint: disable=import-outside-toplevel
+  _, config = ppdjax.load(MODEL)
+  assert config.eval.to_dict() == paper.get_config().eval.to_dict()
+
+
 @pytest.mark.slow
 def test_physics_sampling_finds_the_heavy_blocks(tmp_path):
   """Blocks 2 and 4 of the example are metal (9,800 and 9,700 kg/m³), 1 and 3 light; 64
