@@ -101,11 +101,12 @@ class Pipeline:
               "true_shapes": FLAGS.true_shapes, "table4_objects": e.get("table4_objects", 0),
               "refine_jacobian": e.get("refine_jacobian", "forward"),
               "image_fit": e.get("image_fit", False) and e.fit,
-              "selection_horizon": e.get("selection_horizon", 0)}
+              "selection_horizon": e.get("selection_horizon", 0),
+              "refine_horizon": e.get("refine_horizon", 0)}
     return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0,
             "fit": False, "depth": False, "refine_prior": 0.0, "joint": False,
             "true_shapes": False, "table4_objects": 0, "refine_jacobian": "forward",
-            "image_fit": False, "selection_horizon": 0}
+            "image_fit": False, "selection_horizon": 0, "refine_horizon": 0}
 
   def evaluation_args(self, variant: str) -> dict:
     """`evaluation.evaluate`'s settings for a variant's test-split evaluation (and for
@@ -332,6 +333,7 @@ class Pipeline:
         f"python -m ppdjax.evaluate --workdir={variant} --data=data --samples={s['samples']}"
         + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"
         + (f" --selection_horizon={s['selection_horizon']}" if s["selection_horizon"] else "")
+        + (f" --refine_horizon={s['refine_horizon']}" if s["refine_horizon"] else "")
         + ("" if s["with_baselines"] else " --nobaselines")
         + (" --fit" if s["fit"] else "") + (" --image_fit" if s["image_fit"] else "")
         + (" --depth" if s["depth"] else "")

@@ -83,10 +83,11 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
     if (results["samples"], results["refine"], results.get("max_objects", 0),
         results.get("prior_weight", 0.0), results.get("table4_objects", 0),
         results.get("refine_jacobian", "forward"), results.get("image_fit", False),
-        results.get("selection_horizon", 0)) == (
+        results.get("selection_horizon", 0), results.get("refine_horizon", 0)) == (
             samples, refine, max_objects, e.prior_weight, e.get("table4_objects", 0),
             e.get("refine_jacobian", "forward") if refine else "forward",
-            settings["image_fit"], settings["selection_horizon"]):
+            settings["image_fit"], settings["selection_horizon"],
+            settings["refine_horizon"] if refine else 0):
       return results
   print(f"[{variant}] evaluating ({samples} samples{', refine' if refine else ''})", flush=True)
   t0 = time.perf_counter()
@@ -98,6 +99,8 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
                          + f" --prior_weight={config.eval.prior_weight}"
                          + (f" --selection_horizon={settings['selection_horizon']}"
                             if settings["selection_horizon"] else "")
+                         + (f" --refine_horizon={settings['refine_horizon']}"
+                            if refine and settings["refine_horizon"] else "")
                          + (f" --max_objects={max_objects}" if max_objects else ""))
   pipeline_steps.log_call(root, f"evaluate {variant}", time.perf_counter() - t0, True)
   return results

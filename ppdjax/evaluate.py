@@ -31,9 +31,9 @@ _SELECTION_HORIZON = flags.DEFINE_integer(
     "selection_horizon", None, "+Sample's distance covers the first N steps (one of "
     "16, 32, 64, 128; 0: all, the paper's; default: eval.selection_horizon).")
 _REFINE_HORIZON = flags.DEFINE_integer(
-    "refine_horizon", None, "+Refine starts from the candidate closest over the first N steps "
-    "(one of 16, 32, 64, 128; 0: all; default: eval.refine_horizon); it still fits the "
-    "whole trajectory.")
+    "refine_horizon", None, "+Refine (and +Joint) start from the candidate closest over the "
+    "first N steps (one of 16, 32, 64, 128; 0: all; default: eval.refine_horizon); they "
+    "still fit the whole trajectory.")
 _HORIZON_SWEEP = flags.DEFINE_bool(
     "horizon_sweep", False, "Also sweep τ at every horizon of --selection_horizon's choices "
     "(results.md's 'by τ and by the steps the distance covers'; about 0.4 s more per batch).")

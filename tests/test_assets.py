@@ -97,9 +97,10 @@ def test_shipped_model_recovers_the_example_tower():
 
 
 def test_shipped_model_evaluates_with_the_presets_rules():
-  """The shipped model's saved evaluation settings are the paper preset's (what
-  `python -m ppdjax.evaluate --workdir=assets/blocks_model` and `make_decompose_fn` read,
-  and what experiments/results/blocks.md measured): no stale default."""
+  """The shipped model's saved evaluation settings are the paper preset's (the defaults of
+  `python -m ppdjax.evaluate --workdir=assets/blocks_model`, and the selection horizon
+  the example and `python -m ppdjax.decompose` pass; what experiments/results/blocks.md
+  measured): no stale default."""
   from ppdjax.configs import paper  # pylint: disable=import-outside-toplevel
   _, config = ppdjax.load(MODEL)
   assert config.eval.to_dict() == paper.get_config().eval.to_dict()

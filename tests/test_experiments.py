@@ -610,6 +610,12 @@ def test_refine_start_study_pairs_two_evaluations_of_the_same_candidates():
   other = {**second, ("guess", rss.SAMPLE): np.zeros((n, 2), int)}
   with pytest.raises(ValueError, match="did not simulate the same candidates"):
     rss.check_same_candidates(first, other, "here")
-  # 4 objects spread over 4 towers of 2: objects 0, 2, 5, 7 of the split
-  spread = rss.tower_ids({"geometries": 4, "subset": "spread"}, 4, configs_per_tower=2)
-  np.testing.assert_array_equal(spread, [0, 1, 2, 3])
+  # 6 objects spread over 4 towers of 2: objects 0, 1, 3, 4, 6, 7 of the split
+  spread = rss.tower_ids({"geometries": 4, "subset": "spread"}, 6, configs_per_tower=2)
+  np.testing.assert_array_equal(spread, [0, 0, 1, 2, 3, 3])
+  # the same picks simulated in batches of another size: MAEs a few float32 ulps apart pass
+  nudged = {**second, ("mae", rss.SAMPLE): second[("mae", rss.SAMPLE)] + 1e-5}
+  rss.check_same_candidates(first, nudged, "here")
+  moved = {**second, ("mae", rss.SAMPLE): second[("mae", rss.SAMPLE)] + 0.01}
+  with pytest.raises(ValueError, match="mae"):
+    rss.check_same_candidates(first, moved, "here")

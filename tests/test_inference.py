@@ -413,8 +413,10 @@ def _evaluate_cli(tiny_run, tiny_dataset, tmp_path, *extra):
 
 
 def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
-  """Samples, batch size and τ come from the run's preset."""
-  results, out = _evaluate_cli(tiny_run, tiny_dataset, tmp_path)
+  """Samples, batch size and τ come from the run's preset; refinement's start is recorded
+  only where there is a refinement."""
+  results, out = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--refine_horizon=16")
+  assert results["refine"] is False and results["refine_horizon"] == 0
   rows = results["table2"]
   assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample"}
   lo, hi = rows["PPD"]["ci95"]["rmse"]

@@ -110,8 +110,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   the candidates are simulated once). +Sample's rows select on the distance over the first
   `selection_horizon` steps (0: all, the paper's); `horizon_sweep` also records the τ
   sweep at every horizon of SELECTION_HORIZONS (`results["selection_sweeps"][row][h][τ]`).
-  Choose τ and the horizon on the validation split. +Refine starts from the candidate
-  closest over the first `refine_horizon` steps (0: all; `Evaluator`). `results["oracle_pick"][row]`: the
+  Choose τ and the horizon on the validation split. +Refine and +Joint start from the
+  candidate closest over the first `refine_horizon` steps (0: all; `Evaluator`). `results["oracle_pick"][row]`: the
   row's ceiling on its own candidates (`rows.oracle_pick`). `results["seconds_by_part"]`:
   where this call's time went (waiting for batches to be read, the baselines' scores, the
   jitted calls with their compilation, the records, which a background thread makes while
@@ -169,7 +169,7 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
               "refine_jacobian": refine_jacobian if refine else "forward",
               "table4_objects": table4_objects if with_baselines else 0,
               "face_spread": face_spread if fit else 0.0, "image_fit": image_fit,
-              "refine_horizon": refine_horizon if refine else 0}
+              "refine_horizon": refine_horizon if refine or joint else 0}
   check_jacobian(refine_jacobian)
   faces.check_spread(face_spread, fit)
   if image_fit and not fit:
