@@ -142,7 +142,7 @@ def markdown(study: dict) -> str:
     for label, r in s["rows"].items():
       cells = [with_ci(r, "top1"), f"{r['top5']:.1f}", f"{r['top10']:.1f}",
                with_ci(r, "rmse", 2), f"{r['mae']:.2f}",
-          " / ".join(f"{v:.2f}" for v in r["table5"].values())]
+               " / ".join(f"{v:.2f}" for v in r["table5"].values())]
       lines.append(f"| {label} | " + " | ".join(cells) + " |")
     c = s["change"]
     lines += ["", f"Paired change, +Refine from {s['horizon']} steps minus from all steps "

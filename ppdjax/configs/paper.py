@@ -64,8 +64,9 @@ def get_config():
   # +Fit+Sample top-1 26.5 -> 28.7 %, RMSE 6.22 -> 5.82 slots against all steps; 16, 64
   # and 128 steps were no better (experiments/results/selection_horizon_2026-11-27)
   config.eval.selection_horizon = 32
-  # +Refine still starts from the candidate closest over all steps, the trajectory it fits:
-  # from the 32-step pick, no different on validation (experiments/results/refine_start_2026-11-27)
+  # +Refine still starts from the candidate closest over all steps, the trajectory it
+  # fits: from the 32-step pick it was no different on validation
+  # (experiments/results/refine_start_2026-11-27)
   config.eval.refine_horizon = 0
   config.eval.fit = True  # the +Fit rows (boxes fitted to the voxels, infer.fit)
   # The +Fit(depth) rows (boxes refined against the dataset's depth images, depth_fit; not
