@@ -222,7 +222,7 @@ def results_md(results: dict, command: str = "") -> str:
   if "refine_stats" in results:
     r = results["refine_stats"]
     lines += ["## Refinement", "",
-              f"Lowered the trajectory distance of the closest sample"
+              "Lowered the trajectory distance of the closest sample"
               + (f" (closest over the first {results['refine_horizon']} steps)"
                  if results.get("refine_horizon") else "")
               + f" on {100 * r['improved_fraction']:.0f}% of objects; median ratio refined / "
