@@ -113,9 +113,10 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   Choose τ and the horizon on the validation split. +Refine and +Joint start from the
   candidate closest over the first `refine_horizon` steps (0: all; `Evaluator`).
   `results["oracle_pick"][row]`: the row's ceiling on its own candidates
-  (`rows.oracle_pick`). `results["seconds_by_part"]`: where this call's time went (waiting for batches to be read, the baselines' scores, the
-  jitted calls with their compilation, the records, which a background thread makes while
-  the next batch computes, and the time waited for them). With
+  (`rows.oracle_pick`). `results["seconds_by_part"]`: where this call's time went
+  (waiting for batches to be read, the baselines' scores, the jitted calls with their
+  compilation, the records, which a background thread makes while the next batch
+  computes, and the time waited for them). With
   `max_objects`, `subset` picks the first N objects ("first") or N spread evenly over the
   split ("spread": many towers, since a tower's 8 configurations are stored together).
   `fit` adds the +Fit rows (boxes fitted to the voxels, and with `image_fit` then to the

@@ -226,8 +226,8 @@ def results_md(results: dict, command: str = "") -> str:
               + (f" (closest over the first {results['refine_horizon']} steps)"
                  if results.get("refine_horizon") else "")
               + f" on {100 * r['improved_fraction']:.0f}% of objects; median ratio refined / "
-              f"sampled {r['median_distance_ratio']:.3f}; mean distance {r['mean_distance_sample_m']:.4f}"
-              f" → {r['mean_distance_refined_m']:.4f} m.", ""]
+              f"sampled {r['median_distance_ratio']:.3f}; mean distance "
+              f"{r['mean_distance_sample_m']:.4f} → {r['mean_distance_refined_m']:.4f} m.", ""]
   return "\n".join(lines)
 
 
