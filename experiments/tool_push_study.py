@@ -38,6 +38,7 @@ from tool_studies import over_tools, simulate_candidates, slot_range, study_pars
 
 READERS = ("own shape", "true boxes")
 NEAR_SLOTS = 5
+WITHIN = (0, 2, 4)  # the picks' shares of parts this many slots or fewer off (0: exact)
 
 
 def _distances(simulate, candidates: np.ndarray, seen: np.ndarray) -> np.ndarray:
@@ -56,9 +57,10 @@ def draw_candidates(tool, count: int, rng) -> np.ndarray:
   return np.stack([rng.choice(material_slots(m), count) for m in tool.materials], -1)
 
 
-def study_tool(tool, forces: list[float], candidates: np.ndarray) -> dict | None:
-  """The picks among `candidates` (C, parts) at each magnitude; None where MuJoCo diverges
-  on the tool itself."""
+def study_tool(tool, forces: list[float], candidates: np.ndarray,
+               readers: tuple[str, ...] = READERS) -> dict | None:
+  """The picks among `candidates` (C, parts) at each magnitude by each of `readers`; None
+  where MuJoCo diverges on the tool itself."""
   parts, _ = meshes.normalize(list(tool.parts))
   prims, owner = boxes_of_parts(parts, tool.densities)
   truth = np.asarray(tool.slots)
@@ -74,23 +76,28 @@ def study_tool(tool, forces: list[float], candidates: np.ndarray) -> dict | None
       seen = tool_scene.simulate_tool(parts, tool.densities, pushes)
     except RuntimeError:
       return None
-    own = _distances(lambda s: tool_scene.simulate_tool(parts, slot_to_density(s), pushes),
-                     candidates, seen)
-    dens = np.where(boxed, slot_to_density(candidates[:, np.maximum(owner, 0)]),
-                    np.asarray(prims.density)[None])
-    boxes = np.asarray(metrics.trajectory_distance(simulate_candidates(prims, dens, pushes),
-                                                   seen))
+    distances = {}
+    if "own shape" in readers:
+      distances["own shape"] = _distances(
+          lambda s: tool_scene.simulate_tool(parts, slot_to_density(s), pushes), candidates, seen)
+    if "true boxes" in readers:
+      dens = np.where(boxed, slot_to_density(candidates[:, np.maximum(owner, 0)]),
+                      np.asarray(prims.density)[None])
+      distances["true boxes"] = np.asarray(metrics.trajectory_distance(
+          simulate_candidates(prims, dens, pushes), seen))
     moved = np.linalg.norm(seen[:, -1, :3] - seen[:, 0, :3], axis=-1)
     out[f"{force:g}"] = {"motion_mm": float(np.sqrt((moved ** 2).mean()) * 1000),
-                         "diverged_candidates": int(np.isinf(own).sum()),
+                         "diverged_candidates": int(np.isinf(
+                             distances.get("own shape", np.zeros(1))).sum()),
                          **{reader: candidates[int(np.argmin(d))].tolist()
-                            for reader, d in zip(READERS, (own, boxes))}}
+                            for reader, d in distances.items()}}
   return out
 
 
-def summarize(rows: list[dict], forces: list[float]) -> dict:
+def summarize(rows: list[dict], forces: list[float], readers: tuple[str, ...] = READERS) -> dict:
   """Per magnitude and reader: RMSE (slots) and the share within NEAR_SLOTS, with 95 %
-  intervals from resampling tools; the same by slot range for the picks."""
+  intervals from resampling tools, the shares within WITHIN slots; the same by slot range
+  for the picks."""
   truth = [np.asarray(r["slots"]) for r in rows]
   ranges = np.concatenate([r["ranges"] for r in rows])
   every = np.arange(len(rows))
@@ -102,6 +109,7 @@ def summarize(rows: list[dict], forces: list[float]) -> dict:
     flat = pooled(every)
     return {"rmse": rmse(every), "rmse_ci95": metrics.bootstrap_interval(rmse, len(rows)),
             "near": near(every), "near_ci95": metrics.bootstrap_interval(near, len(rows)),
+            "within": {str(k): 100 * float(np.mean(np.abs(flat) <= k)) for k in WITHIN},
             "rmse_by_range": {g: float(np.sqrt(np.mean(flat[ranges == g] ** 2)))
                               for g in sorted(set(ranges))}}
 
@@ -112,7 +120,7 @@ def summarize(rows: list[dict], forces: list[float]) -> dict:
     key = f"{force:g}"
     per = {"motion_mm_median": float(np.median([r[key]["motion_mm"] for r in rows])),
            "diverged_candidates": int(sum(r[key]["diverged_candidates"] for r in rows))}
-    for reader in READERS:
+    for reader in readers:
       s = scored([np.asarray(r[key][reader]) - t for r, t in zip(rows, truth)])
       s["explained"] = ((random_mse - s["rmse"] ** 2)
                         / max(random_mse - best["rmse"] ** 2, 1e-12))
@@ -132,19 +140,22 @@ def markdown(s: dict, args) -> str:
            f"candidate at random: RMSE {s['random_rmse']:.1f} slots; the pool's best: "
            f"{s['best']['rmse']:.1f}.", "",
            "| push (N) | tool moves (RMS mm, median) | picked with | RMSE (slots) | within "
-           f"{NEAR_SLOTS} slots (%) | explained | " + " | ".join(groups) + " |",
-           "|--:|--:|---|--:|--:|--:|" + "--:|" * len(groups)]
+           f"{NEAR_SLOTS} slots (%) | explained | exact / within 2 / within 4 (% of parts) | "
+           + " | ".join(groups) + " |",
+           "|--:|--:|---|--:|--:|--:|--:|" + "--:|" * len(groups)]
+  within = lambda r: " / ".join(f"{r['within'][str(k)]:.1f}" for k in WITHIN)  # noqa: E731
   for key, per in s["forces"].items():
-    for reader in READERS:
+    for reader in [r for r in READERS if r in per]:
       r = per[reader]
       lines.append(
           f"| {key} | {per['motion_mm_median']:.0f} | {reader} | {r['rmse']:.1f} "
           f"[{r['rmse_ci95'][0]:.1f}, {r['rmse_ci95'][1]:.1f}] | {r['near']:.0f} "
           f"[{r['near_ci95'][0]:.0f}, {r['near_ci95'][1]:.0f}] | {r['explained']:.2f} | "
-          + " | ".join(f"{r['rmse_by_range'][g]:.1f}" for g in groups) + " |")
+          f"{within(r)} | " + " | ".join(f"{r['rmse_by_range'][g]:.1f}" for g in groups) + " |")
   b = s["best"]
   lines.append(f"| – | – | the pool's best | {b['rmse']:.1f} | {b['near']:.0f} | 1 | "
-               + " | ".join(f"{b['rmse_by_range'][g]:.1f}" for g in groups) + " |")
+               f"{within(b)} | " + " | ".join(f"{b['rmse_by_range'][g]:.1f}" for g in groups)
+               + " |")
   lines += ["", "The last columns: RMSE (slots) of the picks by the true slot's range."]
   return "\n".join(lines) + "\n"
 
@@ -153,21 +164,31 @@ def main():
   parser = study_parser(__doc__, "tool_push_study", tools=120, seed=2029)
   parser.add_argument("--forces", default="300,1000,3000", help="push magnitudes (N)")
   parser.add_argument("--candidates", type=int, default=64, help="candidates a tool")
+  parser.add_argument("--readers", default="own,boxes",
+                      help="which bodies simulate the candidates: own (the tool's parts), "
+                           "boxes (its true boxes), or both")
   args = parser.parse_args()
   forces = [float(f) for f in args.forces.split(",") if f]
+  names = {"own": "own shape", "boxes": "true boxes"}
+  wanted = [r for r in args.readers.split(",") if r]
   if args.tools < 1 or args.candidates < 2 or not forces or min(forces) <= 0:
     parser.error("--tools >= 1, --candidates >= 2 and positive --forces")
+  if not wanted or set(wanted) - set(names):
+    parser.error(f"--readers: a comma-separated subset of {sorted(names)}, got {args.readers!r}")
+  readers = tuple(names[r] for r in names if r in wanted)
   t0 = time.perf_counter()
   rng = np.random.default_rng(args.seed)
   rows, diverged = over_tools(args.seed, args.tools,
                               lambda tool: study_tool(tool, forces, draw_candidates(
-                                  tool, args.candidates, rng)))
-  summary = {**summarize(rows, forces), "tools": len(rows), "diverged": diverged,
+                                  tool, args.candidates, rng), readers))
+  summary = {**summarize(rows, forces, readers), "tools": len(rows), "diverged": diverged,
              "parts": int(sum(len(r["slots"]) for r in rows)),
              "seconds": round(time.perf_counter() - t0, 1),
              "command": (f"python experiments/tool_push_study.py --tools={args.tools} "
                          f"--seed={args.seed} --forces={args.forces} "
-                         f"--candidates={args.candidates}")}
+                         f"--candidates={args.candidates}"
+                         + (f" --readers={args.readers}" if args.readers != "own,boxes"
+                            else ""))}
   write(args.out, summary, rows, markdown(summary, args), rows_key="tools_rows")
 
 

@@ -461,6 +461,11 @@ def test_tool_push_study_picks_the_truth_when_it_is_a_candidate():
   assert s["best"]["rmse"] == 0 and s["random_rmse"] > 0
   own = s["forces"]["1000"]["own shape"]
   assert own["rmse"] == 0 and own["explained"] == pytest.approx(1.0)
+  assert own["within"] == {"0": 100.0, "2": 100.0, "4": 100.0}
+  alone = study.study_tool(tool, [1000.0], candidates, readers=("own shape",))
+  assert alone["1000"]["own shape"] == list(tool.slots) and "true boxes" not in alone["1000"]
+  assert set(study.summarize([alone], [1000.0], ("own shape",))["forces"]["1000"]) == {
+      "motion_mm_median", "diverged_candidates", "own shape"}
 
 
 @pytest.mark.slow  # three command lines, about 15 s on 2 cores
