@@ -304,7 +304,7 @@ class Pipeline:
         results, os.path.dirname(self.val_path()),
         f"python -m ppdjax.evaluate --workdir=full --data=data --split=val "
         f"--samples={s['samples']} --norefine --nobaselines --prior_weight={s['prior_weight']}"
-        + (f" --selection_horizon={s['selection_horizon']}" if s["selection_horizon"] else "")
+        + common.horizon_flags({**s, "refine": False})
         + (" --fit" if s["fit"] else "") + (" --image_fit" if s["image_fit"] else "")
         + (" --depth" if s["depth"] else "")
         + f" --max_objects={FLAGS.val_objects} --subset=spread")
@@ -332,8 +332,7 @@ class Pipeline:
         results, os.path.dirname(self.eval_path(variant)),
         f"python -m ppdjax.evaluate --workdir={variant} --data=data --samples={s['samples']}"
         + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"
-        + (f" --selection_horizon={s['selection_horizon']}" if s["selection_horizon"] else "")
-        + (f" --refine_horizon={s['refine_horizon']}" if s["refine_horizon"] else "")
+        + common.horizon_flags(s)
         + ("" if s["with_baselines"] else " --nobaselines")
         + (" --fit" if s["fit"] else "") + (" --image_fit" if s["image_fit"] else "")
         + (" --depth" if s["depth"] else "")

@@ -69,6 +69,15 @@ def ensure_trained(config, data_dir: str, root: str, variant: str) -> str:
   return workdir
 
 
+def horizon_flags(settings: dict) -> str:
+  """The evaluation command's --selection_horizon and --refine_horizon where they are not
+  0 (the refinement's start only where there is a refinement)."""
+  return ((f" --selection_horizon={settings['selection_horizon']}"
+           if settings.get("selection_horizon") else "")
+          + (f" --refine_horizon={settings['refine_horizon']}"
+             if settings.get("refine") and settings.get("refine_horizon") else ""))
+
+
 def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples: int,
                      refine: bool, max_objects: int = 0) -> dict:
   """Evaluates a trained variant unless results with the same settings exist."""
@@ -97,10 +106,7 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
                          f"--data={data_dir} --samples={samples}"
                          + (" --refine" if refine else "")
                          + f" --prior_weight={config.eval.prior_weight}"
-                         + (f" --selection_horizon={settings['selection_horizon']}"
-                            if settings["selection_horizon"] else "")
-                         + (f" --refine_horizon={settings['refine_horizon']}"
-                            if refine and settings["refine_horizon"] else "")
+                         + horizon_flags(settings)
                          + (f" --max_objects={max_objects}" if max_objects else ""))
   pipeline_steps.log_call(root, f"evaluate {variant}", time.perf_counter() - t0, True)
   return results

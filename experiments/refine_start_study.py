@@ -28,11 +28,11 @@ import os
 
 import numpy as np
 
-from ppdjax import metrics
-from ppdjax.infer import partial, tables
+from ppdjax.infer import partial
 from ppdjax.infer.batches import evaluation_objects
 from ppdjax.infer.markdown import with_ci
-from selection_horizon_study import tower_groups
+from selection_horizon_study import (check_intervals, paired_difference, row_metrics,
+                                     tower_groups)
 
 SAMPLE, REFINE = "PPD+Fit+Sample", "PPD+Fit+Sample+Refine"
 COUNTS = ("top1", "top5", "top10", "sq_err", "count")
@@ -58,34 +58,22 @@ def tower_ids(results: dict, n: int, configs_per_tower: int) -> np.ndarray:
   return tower_groups(results, n)
 
 
+def _row(rec: dict, row: str) -> tuple[dict, np.ndarray]:
+  """(counts, MAE) of a Table 2 row in an evaluation's records."""
+  return ({k: np.asarray(rec[("counts", row, k)]) for k in COUNTS},
+          np.asarray(rec[("mae", row)], np.float64))
+
+
 def row_of(rec: dict, row: str, groups: np.ndarray) -> dict:
   """A row's metrics with 95 % intervals over the towers and its Table 5."""
-  counts = {k: np.asarray(rec[("counts", row, k)]) for k in COUNTS}
-  mae = np.asarray(rec[("mae", row)], np.float64)
-  out = tables.np_metrics(counts, np.arange(len(mae)))
-  out["mae"] = float(mae.mean())
-  out["ci95"] = {k: list(v) for k, v in
-                 tables.intervals(counts, mae, groups=groups).items()}
-  out["table5"], _ = tables.by_blocks(counts, np.asarray(rec[("blocks",)]), groups=groups)
-  return out
+  return row_metrics(*_row(rec, row), np.asarray(rec[("blocks",)]), groups)
 
 
 def paired_change(first: dict, second: dict, groups: np.ndarray, row: str,
                   resamples: int = 1000) -> dict:
   """The row's top-k, RMSE and MAE in `second` minus in `first`, on the same objects, with
   95 % intervals from one tower bootstrap drawing both."""
-  counts = [{k: np.asarray(r[("counts", row, k)]) for k in COUNTS} for r in (first, second)]
-  mae = [np.asarray(r[("mae", row)], np.float64) for r in (first, second)]
-  value = lambda key, i, j: (float(mae[j][i].mean()) if key == "mae"
-                             else tables.np_metrics(counts[j], i)[key])
-  n = len(groups)
-  out = {}
-  for key in KEYS:
-    diff = lambda i, key=key: value(key, i, 1) - value(key, i, 0)
-    out[key] = diff(np.arange(n))
-    out["ci95_" + key] = list(metrics.bootstrap_interval(diff, n, resamples=resamples,
-                                                         groups=groups))
-  return out
+  return paired_difference(_row(first, row), _row(second, row), groups, KEYS, resamples)
 
 
 def check_same_candidates(first: dict, second: dict, where: str) -> None:
@@ -99,15 +87,6 @@ def check_same_candidates(first: dict, second: dict, where: str) -> None:
     if not same:
       raise ValueError(f"{where}: the two evaluations' {'/'.join(map(str, key))} differ: "
                        "they did not simulate the same candidates of the same objects")
-
-
-def check_grouping(row: dict, results: dict, name: str) -> None:
-  """Raises ValueError unless the row's intervals are those results.json drew over towers."""
-  theirs = results["table2"][name]["ci95"]
-  for key in ("top1", "rmse"):
-    if not np.allclose(row["ci95"][key], theirs[key], rtol=0, atol=1e-9):
-      raise ValueError(f"{name} {key}: interval {row['ci95'][key]} from the records, "
-                       f"{theirs[key]} in results.json: the tower grouping is wrong")
 
 
 def study_split(first_dir: str, second_dir: str, configs_per_tower: int) -> dict:
@@ -125,7 +104,8 @@ def study_split(first_dir: str, second_dir: str, configs_per_tower: int) -> dict
           f"+Refine from {h_b} steps": row_of(rec_b, REFINE, groups)}
   for (label, results) in (("+Sample", res_a), ("+Refine from all steps", res_a),
                            (f"+Refine from {h_b} steps", res_b)):
-    check_grouping(rows[label], results, SAMPLE if label == "+Sample" else REFINE)
+    name = SAMPLE if label == "+Sample" else REFINE
+    check_intervals(rows[label]["ci95"], results["table2"][name]["ci95"], name)
   return {"objects": n, "towers": int(res_a["geometries"]), "horizon": h_b, "rows": rows,
           "change": paired_change(rec_a, rec_b, groups, REFINE),
           "commands": [res_a["command"], res_b["command"]]}

@@ -58,50 +58,71 @@ def horizon_rows(rec: dict, groups: np.ndarray, tau: float, resamples: int = 100
   for row in ROWS:
     if ("hsweep", row, horizons[0], tau, "top1") not in rec:
       continue
-    out[row] = {}
-    for h in horizons:
-      counts = {k: np.asarray(rec[("hsweep", row, h, tau, k)]) for k in COUNTS}
-      mae = np.asarray(rec[("hsweep", row, h, tau, "mae")], np.float64)
-      m = tables.np_metrics(counts, np.arange(len(blocks)))
-      m["mae"] = float(mae.mean())
-      m["ci95"] = {k: list(v) for k, v in
-                   tables.intervals(counts, mae, resamples=resamples, groups=groups).items()}
-      m["table5"], t5_ci = tables.by_blocks(counts, blocks, groups=groups)
-      m["table5_ci95"] = {b: list(v) for b, v in t5_ci.items()}
-      out[row][str(h)] = m
+    out[row] = {str(h): row_metrics(*_sweep_row(rec, row, h, tau), blocks, groups,
+                                    resamples) for h in horizons}
+  return out
+
+
+def _sweep_row(rec: dict, row: str, horizon: int, tau: float) -> tuple[dict, np.ndarray]:
+  """(counts, MAE) of a row's pick at `horizon` and τ from the records' horizon sweep."""
+  return ({k: np.asarray(rec[("hsweep", row, horizon, tau, k)]) for k in COUNTS},
+          np.asarray(rec[("hsweep", row, horizon, tau, "mae")], np.float64))
+
+
+def row_metrics(counts: dict, mae: np.ndarray, blocks: np.ndarray, groups: np.ndarray,
+                resamples: int = 1000) -> dict:
+  """A row's top-k, RMSE and MAE with 95 % intervals over `groups`, and its Table 5."""
+  m = tables.np_metrics(counts, np.arange(len(mae)))
+  m["mae"] = float(mae.mean())
+  m["ci95"] = {k: list(v) for k, v in
+               tables.intervals(counts, mae, resamples=resamples, groups=groups).items()}
+  m["table5"], t5_ci = tables.by_blocks(counts, blocks, groups=groups)
+  m["table5_ci95"] = {b: list(v) for b, v in t5_ci.items()}
+  return m
+
+
+def paired_difference(first: tuple, second: tuple, groups: np.ndarray, keys,
+                      resamples: int = 1000) -> dict:
+  """`keys` (top-k, "rmse", "mae") of `second` minus `first`, each a row's (counts, MAE)
+  on the same objects, with 95 % intervals from one bootstrap over `groups` drawing both
+  (the change's own uncertainty, narrower than the two rows' intervals side by side)."""
+  value = lambda row, key, i: (float(row[1][i].mean()) if key == "mae"  # noqa: E731
+                               else tables.np_metrics(row[0], i)[key])
+  n = len(groups)
+  out = {}
+  for key in keys:
+    diff = lambda i, key=key: value(second, key, i) - value(first, key, i)  # noqa: E731
+    out[key] = diff(np.arange(n))
+    out["ci95_" + key] = list(metrics.bootstrap_interval(diff, n, resamples=resamples,
+                                                         groups=groups))
   return out
 
 
 def paired_change(rec: dict, groups: np.ndarray, row: str, tau: float, horizon: int,
                   resamples: int = 1000) -> dict:
   """top-1 and RMSE at `horizon` minus at all steps, on the same objects, with 95 %
-  intervals from one tower bootstrap drawing both (the change's own uncertainty, narrower
-  than the two rows' intervals side by side)."""
-  counts = {h: {k: np.asarray(rec[("hsweep", row, h, tau, k)]) for k in COUNTS}
-            for h in (horizon, 0)}
-  n = len(groups)
-  diff = lambda key: lambda i: (tables.np_metrics(counts[horizon], i)[key]
-                                - tables.np_metrics(counts[0], i)[key])
-  out = {}
+  intervals from one tower bootstrap drawing both."""
+  return paired_difference(_sweep_row(rec, row, 0, tau), _sweep_row(rec, row, horizon, tau),
+                           groups, ("top1", "rmse"), resamples)
+
+
+def check_intervals(ours: dict, theirs: dict, what: str) -> None:
+  """Raises ValueError unless the top-1 and RMSE intervals `ours` (from the records) are
+  `theirs` (results.json's, drawn over the dataset's tower ids): the same bootstrap over
+  the same towers, so the records' tower order holds."""
   for key in ("top1", "rmse"):
-    out[key] = diff(key)(np.arange(n))
-    out["ci95_" + key] = list(metrics.bootstrap_interval(diff(key), n, resamples=resamples,
-                                                         groups=groups))
-  return out
+    if key in theirs and not np.allclose(ours[key], theirs[key], rtol=0, atol=1e-9):
+      raise ValueError(f"{what} {key}: interval {ours[key]} from the records, "
+                       f"{theirs[key]} in results.json: the records are not in the "
+                       "evaluation's tower order")
 
 
 def check_grouping(rows: dict, results: dict) -> None:
-  """Raises ValueError unless the rows' intervals at the evaluation's own horizon are the
-  evaluation's (the same bootstrap over the same towers: `tower_groups`' order holds)."""
+  """`check_intervals` of each row at the evaluation's own horizon."""
   horizon = str(results.get("selection_horizon") or 0)
   for row, by_h in rows.items():
-    theirs = results["table2"].get(row, {}).get("ci95", {})
-    for key in ("top1", "rmse"):
-      ours = by_h[horizon]["ci95"][key]
-      if key in theirs and not np.allclose(ours, theirs[key], rtol=0, atol=1e-9):
-        raise ValueError(f"{row} {key} at {horizon} steps: interval {ours} from the records, "
-                         f"{theirs[key]} in results.json: the records are not in the "
-                         "evaluation's tower order")
+    check_intervals(by_h[horizon]["ci95"], results["table2"].get(row, {}).get("ci95", {}),
+                    f"{row} at {horizon} steps")
 
 
 def choose(rows: dict) -> str:

@@ -104,9 +104,11 @@ def main(argv):
   from ppdjax.dataset.storage import DatasetError
   from ppdjax.infer import evaluation, faces, markdown, partial, tables
   for flag in (_SELECTION_HORIZON, _REFINE_HORIZON):
-    if flag.value not in (None,) + tables.SELECTION_HORIZONS:
-      sys.exit(f"error: --{flag.name} must be one of {tables.SELECTION_HORIZONS} "
-               f"(0: all steps), got {flag.value}")
+    try:
+      if flag.value is not None:
+        tables.check_horizon("--" + flag.name, flag.value)
+    except ValueError as e:
+      sys.exit(f"error: {e}")
   from ppdjax.training import checkpoints
   try:
     model, config = checkpoints.load(_WORKDIR.value)

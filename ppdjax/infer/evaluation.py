@@ -46,7 +46,7 @@ from ppdjax.infer import baselines, faces, partial, rows
 from ppdjax.infer.batches import evaluation_objects, read_ahead, table4_batches
 from ppdjax.infer.evaluator import REFINE_FROM_TAU, Evaluator, shape_pool
 from ppdjax.infer.refine import check_jacobian
-from ppdjax.infer.tables import PREFIXES, SELECTION_HORIZONS, model_switches, summarize
+from ppdjax.infer.tables import PREFIXES, check_horizon, model_switches, summarize
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.training import checkpoints
 from ppdjax.training import estimator as estimator_module
@@ -178,10 +178,8 @@ def evaluate(trained, data_dir: str, *, split: str = "test", samples: int = 512,
   starts = range(0, n, batch_size)
   table4_starts = {starts[i] for i in table4_batches(
       [min(batch_size, n - x) for x in starts], table4_objects)}
-  for name, h in (("selection_horizon", selection_horizon),
-                  ("refine_horizon", refine_horizon)):
-    if h not in SELECTION_HORIZONS:
-      raise ValueError(f"{name} must be one of {SELECTION_HORIZONS} (0: all steps), got {h}")
+  check_horizon("selection_horizon", selection_horizon)
+  check_horizon("refine_horizon", refine_horizon)
   if max_seconds and not partial_dir:
     raise ValueError("max_seconds needs partial_dir: where the batches done are kept")
   saved = (partial.PartialRecords(partial_dir, {

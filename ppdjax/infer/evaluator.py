@@ -23,7 +23,7 @@ from ppdjax.infer import baselines, faces, sampling
 from ppdjax.infer.groups import candidate_layout, decode_groups, fit_groups
 from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
-from ppdjax.infer.tables import BASELINES, SELECTION_HORIZONS
+from ppdjax.infer.tables import BASELINES, SELECTION_HORIZONS, check_horizon
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
@@ -136,9 +136,7 @@ class Evaluator:
       raise ValueError("the +Fit(depth) rows need the depth images' camera "
                        "(storage.Dataset.camera)")
     self.config, self.samples, self.refine, self.joint = config, samples, refine, joint
-    if refine_horizon not in SELECTION_HORIZONS:
-      raise ValueError(f"refine_horizon must be one of {SELECTION_HORIZONS} (0: all steps), "
-                       f"got {refine_horizon}")
+    check_horizon("refine_horizon", refine_horizon)
     self.refine_horizon = refine_horizon
     if image_fit and not fit:
       raise ValueError("image_fit refines the +Fit rows' boxes: it needs fit")

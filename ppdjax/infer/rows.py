@@ -14,7 +14,7 @@ import numpy as np
 from ppdjax.conventions import NUM_DENSITY_SLOTS, SLOT_DENSITY
 from ppdjax.infer import sampling
 from ppdjax.infer.tables import (BASELINES, FIT_ROWS, POSTERIOR_TEMPERATURES, PRIOR_WEIGHTS,
-                                 SCREENS, SELECTION_HORIZONS)
+                                 SCREENS, SELECTION_HORIZONS, check_horizon)
 
 
 SAMPLED_ABOVE = 1e9  # slots no sample has rank below every sampled one (objectives >= 0)
@@ -186,9 +186,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   the τ sweep at every horizon (`_sweep`). `table4`: the batch simulated Table 4's
   sampling baselines (with the baselines on): then, and only then, every row's best of N
   is recorded, so that Table 4 compares its rows on the same objects."""
-  if selection_horizon not in SELECTION_HORIZONS:
-    raise ValueError(f"selection_horizon must be one of {SELECTION_HORIZONS}, got "
-                     f"{selection_horizon}")
+  check_horizon("selection_horizon", selection_horizon)
   hi = SELECTION_HORIZONS.index(selection_horizon)
   keep = len(slot)
   rows = np.arange(keep)

@@ -29,6 +29,7 @@ PRIOR_WEIGHTS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
 POSTERIOR_TEMPERATURES = (1e-4, 3e-4, 1e-3, 3e-3, "rel:0.03", "rel:0.1", "rel:0.3", "rel:1")
 # +Sample's distance over the first h steps, swept beside τ (0: all steps, the paper's)
 SELECTION_HORIZONS = (16, 32, 64, 128, 0)
+
 # screened selection replayed on the exhaustive candidates (`rows.screen_records`): every
 # candidate over the first `steps` steps (one of SELECTION_HORIZONS), the `keep` closest whole
 SCREENS = ((16, 32), (16, 64), (32, 32), (32, 64), (32, 128), (64, 64), (64, 128))
@@ -56,6 +57,13 @@ PAPER_TABLE5 = {"Texture": (18.2, 18.5, 18.8, 19.7, 19.1),
                 "Physics": (3.6, 7.9, 15.8, 20.0, 14.7),
                 "Texture + Physics": (2.3, 4.9, 7.8, 10.9, 8.0)}
 PAPER_SHAPE_F1 = 97.5  # shape F1 (%) of the full model on block towers
+
+
+def check_horizon(name: str, steps) -> None:
+  """Raises ValueError unless `steps` is one of SELECTION_HORIZONS (the distances the
+  evaluation computes); `name` is the setting's, for the message."""
+  if steps not in SELECTION_HORIZONS:
+    raise ValueError(f"{name} must be one of {SELECTION_HORIZONS} (0: all steps), got {steps}")
 
 
 def model_switches(config) -> dict:
