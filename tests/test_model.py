@@ -270,3 +270,29 @@ def test_coordinate_channels_reach_the_voxel_feature():
   kernel.value = kernel.value.at[:, :, :, 1:].set(0.0)
   assert with_coords.shape == (1, 8)
   assert not np.allclose(with_coords, enc(jnp.asarray(vox), train=False))
+
+
+def test_density_branch_keeps_the_losses_apart(rng):
+  """model.density_branch: the density loss moves neither the voxel encoder nor the
+  geometry's LSTMs and heads; the geometry loss does not move the density branch."""
+  cfg = tiny.get_config().model
+  cfg.density_branch, cfg.dropout, cfg.use_image = True, 0.0, False  # no ResNet: faster
+  net = model.PPD(cfg, rngs=nnx.Rngs(2))
+  obs, tgt = _obs(rng), losses.targets(_random_boxes(rng, b=3))
+
+  @nnx.jit
+  def grads(m):  # compiled once for both terms: eager differentiation is far slower
+    term = lambda name: lambda m: losses.loss_fn(m(obs, tgt["prev"]), tgt, 1.0)[1][name]
+    return nnx.grad(term("density_loss"))(m), nnx.grad(term("geometry_loss"))(m)
+
+  largest = lambda g: {k: max(float(jnp.abs(x).max()) for x in jax.tree.leaves(v))
+                       for k, v in nnx.to_pure_dict(g).items()}
+  density, geometry = map(largest, grads(net))
+  for part in ("voxel_encoder", "fuse", "cells", "size_head", "trans_head", "rot_head"):
+    assert density[part] == 0.0, part
+  for part in ("density_fuse", "density_cells", "density_head", "trajectory_encoder"):
+    assert density[part] > 0.0, part
+  for part in ("density_fuse", "density_cells", "density_head"):
+    assert geometry[part] == 0.0, part
+  for part in ("voxel_encoder", "cells", "size_head"):
+    assert geometry[part] > 0.0, part

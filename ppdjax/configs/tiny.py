@@ -49,6 +49,10 @@ def get_config() -> ml_collections.ConfigDict:
   config.model.use_voxels = True  # ablation switches: a disabled encoder's feature is 0
   config.model.use_image = True
   config.model.use_trajectory = True
+  # True: the density head reads a second LSTM stack of its own, so the density loss does
+  # not move the geometry's LSTMs or the voxel encoder (ppdjax.nn.model.PPD._step; the
+  # tools preset); False: the paper's one generator for both
+  config.model.density_branch = False
   # Training (python -m ppdjax.train).
   config.train = ml_collections.ConfigDict()
   config.train.seed = 0

@@ -232,6 +232,14 @@ class PPD(nnx.Module):
     self.fuse = nnx.Linear(3 * f, f, rngs=rngs)
     self.cells = nnx.List([LSTMCell((PRIM_DIM + f) if i == 0 else c.hidden, c.hidden,
                                     rngs=rngs) for i in range(c.generator_layers)])
+    # The density branch (model.density_branch; see `_step`): its own fusion and LSTMs.
+    if c.get("density_branch", False):
+      self.density_fuse = nnx.Linear(3 * f, f, rngs=rngs)
+      self.density_cells = nnx.List([
+          LSTMCell((PRIM_DIM + f + c.hidden) if i == 0 else c.hidden, c.hidden, rngs=rngs)
+          for i in range(c.generator_layers)])
+    else:
+      self.density_fuse = self.density_cells = None
     self.dropout = nnx.Dropout(c.dropout)
     self.density_head = nnx.Linear(c.hidden, NUM_CLASSES, rngs=rngs)
     self.size_head = nnx.Linear(c.hidden, 3, rngs=rngs)
@@ -239,48 +247,83 @@ class PPD(nnx.Module):
     self.rot_head = nnx.Linear(c.hidden, 4, rngs=rngs,
                                bias_init=lambda k, s, d=jnp.float32: jnp.array([1., 0, 0, 0], d))
 
-  def encode(self, obs: dict, train: bool = False, rngs=None) -> jax.Array:
-    """f (B, feature): [f_V; f_I; f_T] through a fully connected layer.
-
-    An ablated encoder's part is 0, and so is the part of an observation `obs` lacks (the
-    geometry stream has voxels only).
-    """
+  def _encoder_features(self, obs: dict, train: bool, rngs) -> list[jax.Array]:
+    """[f_V, f_I, f_T], each (B, feature). An ablated encoder's part is 0, and so is the
+    part of an observation `obs` lacks (the geometry stream has voxels only)."""
     b = next(obs[k].shape[0] for k in OBS_KEYS if k in obs)
     zero = jnp.zeros((b, self.feature))
     use = lambda enc, key: enc is not None and key in obs
-    parts = [
+    return [
         self.voxel_encoder(obs["voxels"], train) if use(self.voxel_encoder, "voxels") else zero,
         self.image_encoder(obs["image"], train) if use(self.image_encoder, "image") else zero,
         (self.trajectory_encoder(obs["trajectories"], train, rngs)
          if use(self.trajectory_encoder, "trajectories") else zero),
     ]
-    return nnx.leaky_relu(self.fuse(jnp.concatenate(parts, -1)), 0.2)
 
-  def _step(self, carry, prev, f, train, rngs):
-    x = jnp.concatenate([prev, f], -1)
+  def encode(self, obs: dict, train: bool = False, rngs=None) -> jax.Array:
+    """f (B, feature): [f_V; f_I; f_T] through a fully connected layer (see
+    `_encoder_features` for ablated or missing inputs)."""
+    return self._fused(self._encoder_features(obs, train, rngs))[0]
+
+  def _fused(self, parts: list[jax.Array]) -> tuple[jax.Array, jax.Array | None]:
+    """(f, f_D): the generator's features and, with a density branch, the branch's own,
+    fused from the voxel feature with its gradient stopped (the density loss does not
+    move the voxel encoder, which geometry relies on)."""
+    act = lambda x: nnx.leaky_relu(x, 0.2)
+    f = act(self.fuse(jnp.concatenate(parts, -1)))
+    if self.density_cells is None:
+      return f, None
+    f_v, f_i, f_t = parts
+    return f, act(self.density_fuse(jnp.concatenate([jax.lax.stop_gradient(f_v), f_i, f_t],
+                                                    -1)))
+
+  def _run_cells(self, cells, carry, x, train, rngs):
     new = []
-    for i, (cell, state) in enumerate(zip(self.cells, carry)):
+    for i, (cell, state) in enumerate(zip(cells, carry)):
       if i > 0:
         x = self.dropout(x, deterministic=not train, rngs=rngs)
       state, x = cell(state, x)
       new.append(state)
+    return new, x
+
+  def _step(self, carry, prev, feats, train, rngs):
+    """One generator step: (new carry, (density logits, half size, centre, quaternion)).
+
+    Without a density branch (the paper's generator) one LSTM stack's output feeds all
+    four heads. With one (`model.density_branch`), that stack feeds the geometry heads
+    and a second stack the density head (slots and the end token); the second reads the
+    fed-back primitive, its own features (`_fused`) and the first stack's output with its
+    gradient stopped (which box this step describes). The density loss then reaches
+    neither the geometry's LSTMs nor the voxel encoder: on tools the joint stage's density
+    loss otherwise undid geometry (validation F1 68 -> 21 at its start,
+    docs/data.md), and the geometry loss does not bend the density branch.
+    """
+    f, f_d = feats
+    n = len(self.cells)
+    new, x = self._run_cells(self.cells, carry[:n], jnp.concatenate([prev, f], -1), train,
+                             rngs)
     s = nnx.sigmoid(self.size_head(x)) * SIZE_SCALE
     t = jnp.tanh(self.trans_head(x)) * TRANS_SCALE
     r = self.rot_head(x)
     r = r / jnp.maximum(jnp.linalg.norm(r, axis=-1, keepdims=True), 1e-12)
+    if self.density_cells is not None:
+      new_d, x = self._run_cells(
+          self.density_cells, carry[n:],
+          jnp.concatenate([prev, f_d, jax.lax.stop_gradient(x)], -1), train, rngs)
+      new = new + new_d
     return new, (self.density_head(x), s, t, r)
 
   def _init_carry(self, b):
     z = jnp.zeros((b, self.hidden))
-    return [(z, z) for _ in self.cells]
+    return [(z, z) for _ in list(self.cells) + list(self.density_cells or [])]
 
   def __call__(self, obs: dict, prev_BSx112: jax.Array, train: bool = False,
                rngs=None) -> Prediction:
     """Teacher-forced pass: step s is fed `prev[:, s]` (the start token, then the truth)."""
-    f = self.encode(obs, train, rngs)
-    carry, outs = self._init_carry(f.shape[0]), []
+    feats = self._fused(self._encoder_features(obs, train, rngs))
+    carry, outs = self._init_carry(prev_BSx112.shape[0]), []
     for s in range(prev_BSx112.shape[1]):
-      carry, out = self._step(carry, prev_BSx112[:, s], f, train, rngs)
+      carry, out = self._step(carry, prev_BSx112[:, s], feats, train, rngs)
       outs.append(out)
     return Prediction(*[jnp.stack(o, 1) for o in zip(*outs)])
 
@@ -291,13 +334,13 @@ class PPD(nnx.Module):
       (Primitives (B, K) with densities at the arg-max slot and a valid mask, the raw
       Prediction (B, K + 1, ...)). The first step always yields a box.
     """
-    f = self.encode(obs, False)
-    b, k = f.shape[0], self.max_primitives
+    feats = self._fused(self._encoder_features(obs, False, None))
+    b, k = feats[0].shape[0], self.max_primitives
     carry, outs = self._init_carry(b), []
     prev = primitive_vector(jnp.full((b,), START), jnp.zeros((b, 3)), jnp.zeros((b, 3)),
                             jnp.zeros((b, 4)))
     for _ in range(k + 1):
-      carry, out = self._step(carry, prev, f, False, None)
+      carry, out = self._step(carry, prev, feats, False, None)
       outs.append(out)
       token = jnp.argmax(out[0].at[..., START].set(-jnp.inf), -1)
       prev = primitive_vector(token, *out[1:])
