@@ -277,6 +277,7 @@ def test_density_branch_keeps_the_losses_apart(rng):
   geometry's LSTMs and heads; the geometry loss does not move the density branch."""
   cfg = tiny.get_config().model
   cfg.density_branch, cfg.dropout, cfg.use_image = True, 0.0, False  # no ResNet: faster
+  cfg.early_motion_steps = 2
   net = model.PPD(cfg, rngs=nnx.Rngs(2))
   obs, tgt = _obs(rng), losses.targets(_random_boxes(rng, b=3))
 
@@ -296,3 +297,23 @@ def test_density_branch_keeps_the_losses_apart(rng):
     assert geometry[part] == 0.0, part
   for part in ("voxel_encoder", "cells", "size_head"):
     assert geometry[part] > 0.0, part
+
+
+def test_early_motion_reads_velocities_after_the_push():
+  """A body moving at constant linear and angular velocity: every early-motion step holds
+  them, compressed; the features follow the pushes' order; the branch needs a density branch."""
+  dt, v, w = model.TIMESTEP, np.array([0.3, -0.2, 0.05]), np.array([0.0, 0.0, 1.5])
+  t = np.arange(6)[:, None] * dt
+  angle = w[2] * t[:, 0]
+  quat = np.stack([np.cos(angle / 2), 0 * angle, 0 * angle, np.sin(angle / 2)], -1)
+  traj = np.concatenate([v * t, quat], -1)[None, None]  # (1, 1, 6, 7)
+  rest = np.broadcast_to(np.r_[0.1, 0, 0.2, 1, 0, 0, 0], traj.shape)
+  traj = np.concatenate([traj, rest], 1)  # push 2: at rest
+  got = np.asarray(model.early_motion(jnp.asarray(traj, jnp.float32), 3)).reshape(2, 3, 6)
+  squash = lambda x: np.sign(x) * np.log1p(np.abs(x) / model.SPEED_SCALE)
+  np.testing.assert_allclose(got[0], np.tile(squash(np.r_[v, w]), (3, 1)), atol=2e-3)
+  np.testing.assert_allclose(got[1], 0.0, atol=1e-4)
+  cfg = tiny.get_config().model
+  cfg.early_motion_steps = 4
+  with pytest.raises(ValueError, match="density_branch"):
+    model.PPD(cfg, rngs=nnx.Rngs(0))

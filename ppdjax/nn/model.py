@@ -48,6 +48,36 @@ def trajectory_features(traj_BPTx7: jax.Array) -> jax.Array:
   return jnp.concatenate([pos - pos[..., :1, :], quat, vel], -1)
 
 
+def quat_multiply(a: jax.Array, b: jax.Array) -> jax.Array:
+  """Hamilton product a ⊗ b of (..., 4) quaternions (w, x, y, z)."""
+  w1, x1, y1, z1 = jnp.moveaxis(a, -1, 0)
+  w2, x2, y2, z2 = jnp.moveaxis(b, -1, 0)
+  return jnp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                    w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2],
+                   -1)
+
+
+def early_motion(traj_BPTx7: jax.Array, steps: int) -> jax.Array:
+  """(B, P · steps · 6) the linear and angular velocity (world frame) over recorded steps
+  1..`steps` of each push, each compressed as sign(v)·log(1 + |v| / 0.1) (m/s, rad/s).
+
+  What a push does at once is where a body's mass, centre of mass and inertia show most
+  plainly (Δv = J/m, Δω = I⁻¹ (r − c) × J): within one tool's density configurations these
+  velocities alone give each part's density to a median 1.3 % (docs/data.md), while the
+  motion that follows mixes in friction and contacts. The trajectory LSTM sees the linear
+  velocity among 256 steps and the rotation only as quaternions that change by 1e-4 a
+  step; these features hand both to the density branch directly.
+  """
+  pos, quat = traj_BPTx7[:, :, :steps + 1, :3], traj_BPTx7[:, :, :steps + 1, 3:]
+  vel = jnp.diff(pos, axis=2) / TIMESTEP
+  delta = quat_multiply(quat[:, :, 1:], quat[:, :, :-1] * jnp.array([1., -1, -1, -1]))
+  delta = delta * jnp.where(delta[..., :1] < 0, -1.0, 1.0)  # the short way round
+  spin = 2 * delta[..., 1:] / TIMESTEP
+  x = jnp.concatenate([vel, spin], -1)
+  x = jnp.sign(x) * jnp.log1p(jnp.abs(x) / SPEED_SCALE)
+  return x.reshape(x.shape[0], -1)
+
+
 def _lstm_update(z, c):
   i, f, g, o = jnp.split(z, 4, axis=-1)
   c = nnx.sigmoid(f) * c + nnx.sigmoid(i) * jnp.tanh(g)
@@ -232,9 +262,16 @@ class PPD(nnx.Module):
     self.fuse = nnx.Linear(3 * f, f, rngs=rngs)
     self.cells = nnx.List([LSTMCell((PRIM_DIM + f) if i == 0 else c.hidden, c.hidden,
                                     rngs=rngs) for i in range(c.generator_layers)])
-    # The density branch (model.density_branch; see `_step`): its own fusion and LSTMs.
+    # The density branch (model.density_branch; see `_step`): its own fusion and LSTMs,
+    # and, with model.early_motion_steps, the velocities just after each push (`_fused`).
+    self.early_steps = c.get("early_motion_steps", 0) if c.use_trajectory else 0
+    self.num_pushes = c.num_pushes
+    if self.early_steps and not c.get("density_branch", False):
+      raise ValueError("config.model.early_motion_steps feeds the density branch: set "
+                       "config.model.density_branch = True too")
     if c.get("density_branch", False):
-      self.density_fuse = nnx.Linear(3 * f, f, rngs=rngs)
+      early = c.num_pushes * self.early_steps * 6
+      self.density_fuse = nnx.Linear(3 * f + early, f, rngs=rngs)
       self.density_cells = nnx.List([
           LSTMCell((PRIM_DIM + f + c.hidden) if i == 0 else c.hidden, c.hidden, rngs=rngs)
           for i in range(c.generator_layers)])
@@ -248,17 +285,23 @@ class PPD(nnx.Module):
                                bias_init=lambda k, s, d=jnp.float32: jnp.array([1., 0, 0, 0], d))
 
   def _encoder_features(self, obs: dict, train: bool, rngs) -> list[jax.Array]:
-    """[f_V, f_I, f_T], each (B, feature). An ablated encoder's part is 0, and so is the
-    part of an observation `obs` lacks (the geometry stream has voxels only)."""
+    """[f_V, f_I, f_T], each (B, feature), then with model.early_motion_steps the
+    `early_motion` features. An ablated encoder's part is 0, and so is the part of an
+    observation `obs` lacks (the geometry stream has voxels only)."""
     b = next(obs[k].shape[0] for k in OBS_KEYS if k in obs)
     zero = jnp.zeros((b, self.feature))
     use = lambda enc, key: enc is not None and key in obs
-    return [
+    parts = [
         self.voxel_encoder(obs["voxels"], train) if use(self.voxel_encoder, "voxels") else zero,
         self.image_encoder(obs["image"], train) if use(self.image_encoder, "image") else zero,
         (self.trajectory_encoder(obs["trajectories"], train, rngs)
          if use(self.trajectory_encoder, "trajectories") else zero),
     ]
+    if self.early_steps:
+      size = self.num_pushes * self.early_steps * 6
+      parts.append(early_motion(obs["trajectories"], self.early_steps)
+                   if "trajectories" in obs else jnp.zeros((b, size)))
+    return parts
 
   def encode(self, obs: dict, train: bool = False, rngs=None) -> jax.Array:
     """f (B, feature): [f_V; f_I; f_T] through a fully connected layer (see
@@ -268,14 +311,14 @@ class PPD(nnx.Module):
   def _fused(self, parts: list[jax.Array]) -> tuple[jax.Array, jax.Array | None]:
     """(f, f_D): the generator's features and, with a density branch, the branch's own,
     fused from the voxel feature with its gradient stopped (the density loss does not
-    move the voxel encoder, which geometry relies on)."""
+    move the voxel encoder, which geometry relies on) and the early motion if given."""
     act = lambda x: nnx.leaky_relu(x, 0.2)
-    f = act(self.fuse(jnp.concatenate(parts, -1)))
+    f = act(self.fuse(jnp.concatenate(parts[:3], -1)))
     if self.density_cells is None:
       return f, None
-    f_v, f_i, f_t = parts
-    return f, act(self.density_fuse(jnp.concatenate([jax.lax.stop_gradient(f_v), f_i, f_t],
-                                                    -1)))
+    f_v, f_i, f_t = parts[:3]
+    return f, act(self.density_fuse(jnp.concatenate([jax.lax.stop_gradient(f_v), f_i, f_t]
+                                                    + parts[3:], -1)))
 
   def _run_cells(self, cells, carry, x, train, rngs):
     new = []

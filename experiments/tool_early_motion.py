@@ -1,0 +1,149 @@
+"""How much of a tool's part densities does the motion just after a push hold? (issue 18, CPU)
+
+  python experiments/tool_early_motion.py --tools=60 --seed=2033 --configs=40 --steps=4
+
++Sample's closest whole trajectory reads the parts' densities of these tools poorly even
+with the tool's own body (`tool_push_study.py --readers=own`: RMSE 7.9 slots). But what a
+push does at once is set by the mass properties alone: Δv = J/m and Δω = I⁻¹ (r − c) × J
+for an impulse J at r, before friction and contacts take over. This study asks how
+precisely those first velocities pin the densities, with the geometry held fixed.
+
+For each fresh tool of two or more parts (normalised as the dataset does), `--configs`
+density configurations are drawn as the dataset draws them (`tools.with_new_slots`) and
+simulated for `--steps` + 1 steps under the paper's four pushes (MuJoCo C, the dataset's
+1e3 N). Features: each push's linear velocity (with its inverse speed) and, in the second
+reader, its angular velocity, over recorded steps 1..steps (`ppdjax.nn.model.early_motion`,
+without the compression). Within the tool, a ridge regression from the standardised
+features to every part's log density is scored leaving one configuration out. The error
+is |log ρ̂ − log ρ| (0.01 is 1 %); "spread" predicts each configuration by the tool's
+mean (what the geometry and materials alone give). Writes OUT/results.{json,md}.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from ppdjax import metrics
+from ppdjax.conventions import density_to_slot
+from ppdjax.dataset import meshes, tool_scene, tools
+from ppdjax.nn.model import SPEED_SCALE, early_motion
+from tool_studies import over_tools, study_parser, write
+
+READERS = ("spread", "linear velocity", "linear and angular velocity")
+RIDGE = 1e-2
+
+
+def velocities(traj_PTx7: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray]:
+  """(linear (P·steps·3,), angular (P·steps·3,)) velocities over recorded steps 1..steps,
+  undoing `early_motion`'s compression."""
+  x = np.asarray(early_motion(jnp.asarray(traj_PTx7[None], jnp.float32), steps), np.float64)
+  x = np.sign(x) * np.expm1(np.abs(x)) * SPEED_SCALE
+  x = x.reshape(traj_PTx7.shape[0], steps, 6)
+  return x[..., :3].ravel(), x[..., 3:].ravel()
+
+
+def loo_errors(features: np.ndarray, targets: np.ndarray) -> np.ndarray:
+  """(C, parts) signed error (prediction − target) of a ridge regression leaving each of the C rows out in turn."""
+  x = (features - features.mean(0)) / (features.std(0) + 1e-9)
+  x = np.c_[x, np.ones(len(x))]
+  out = []
+  for i in range(len(x)):
+    keep = np.arange(len(x)) != i
+    a = x[keep]
+    coef = np.linalg.solve(a.T @ a + RIDGE * np.eye(a.shape[1]), a.T @ targets[keep])
+    out.append(x[i] @ coef - targets[i])
+  return np.asarray(out)
+
+
+def study_tool(tool, configs: int, steps: int, rng) -> dict | None:
+  """The three readers' leave-one-out errors over `configs` configurations of `tool`;
+  None for one-part tools and where MuJoCo diverges."""
+  if len(tool.parts) < 2:
+    return None
+  parts, _ = meshes.normalize(list(tool.parts))
+  lin, ang, logs, slots = [], [], [], []
+  for _ in range(configs):
+    cfg = tools.with_new_slots(tool, rng)
+    try:
+      traj = tool_scene.simulate_tool(parts, cfg.densities, steps=steps + 1)
+    except RuntimeError:
+      return None
+    v, w = velocities(traj, steps)
+    speed = np.linalg.norm(v.reshape(-1, 3), axis=-1)
+    lin.append(np.r_[v, 1 / np.maximum(speed, 1e-6)])
+    ang.append(w)
+    logs.append(np.log(cfg.densities))
+    slots.append(cfg.slots)
+  lin, ang, logs = np.asarray(lin), np.asarray(ang), np.asarray(logs)
+  errors = {"spread": logs.mean(0) - logs,
+            "linear velocity": loo_errors(lin, logs),
+            "linear and angular velocity": loo_errors(np.c_[lin, ang], logs)}
+  return {"category": tool.category, "materials": list(tool.materials),
+          **{k: e.tolist() for k, e in errors.items()},
+          "slot_error_linear_and_angular": np.abs(
+              density_to_slot(np.exp(logs + errors["linear and angular velocity"]))
+              - np.asarray(slots)).tolist()}
+
+
+def summarize(rows: list[dict]) -> dict:
+  """Per reader: median and mean |log-density error| over every part of every
+  configuration, with 95 % intervals from resampling tools."""
+  out = {}
+  for reader in READERS:
+    per_tool = [np.abs(np.ravel(r[reader])) for r in rows]
+    pooled = lambda idx: np.concatenate([per_tool[i] for i in idx])  # noqa: E731
+    median = lambda idx: float(np.median(pooled(idx)))  # noqa: E731
+    mean = lambda idx: float(np.mean(pooled(idx)))  # noqa: E731
+    every = np.arange(len(rows))
+    out[reader] = {"median": median(every),
+                   "median_ci95": metrics.bootstrap_interval(median, len(rows)),
+                   "mean": mean(every), "mean_ci95": metrics.bootstrap_interval(mean, len(rows)),
+                   "p90": float(np.percentile(pooled(every), 90))}
+  return out
+
+
+def markdown(summary: dict, args, diverged: int) -> str:
+  lines = [
+      "# The motion just after a push, within one tool's configurations", "",
+      "```", f"python experiments/tool_early_motion.py --tools={args.tools} --seed={args.seed} "
+      f"--configs={args.configs} --steps={args.steps}", "```", "",
+      f"{summary['tools']} tools of two or more parts (of {args.tools} drawn; {diverged} "
+      f"left out: one part or MuJoCo diverged), {args.configs} density configurations each, "
+      f"velocities over the {args.steps} steps after each of the four pushes (1e3 N); "
+      "ridge regression within each tool, leave one configuration out; |log ρ̂ − log ρ| "
+      "over every part (0.01 is 1 %), 95 % intervals over tools.", "",
+      "| reader | median | mean | p90 |", "|---|--:|--:|--:|"]
+  for reader in READERS:
+    r = summary["readers"][reader]
+    lines.append(f"| {reader} | {r['median']:.3f} [{r['median_ci95'][0]:.3f}, "
+                 f"{r['median_ci95'][1]:.3f}] | {r['mean']:.3f} [{r['mean_ci95'][0]:.3f}, "
+                 f"{r['mean_ci95'][1]:.3f}] | {r['p90']:.3f} |")
+  s = summary["slots_linear_and_angular"]
+  lines += ["", f"In slots (linear and angular): {s['exact']:.1f} % of parts exact, "
+            f"{s['within_2']:.1f} % within 2, RMSE {s['rmse']:.2f}.", ""]
+  return "\n".join(lines)
+
+
+def main():
+  parser = study_parser(__doc__, "tool_early_motion", tools=60, seed=2033)
+  parser.add_argument("--configs", type=int, default=40, help="configurations a tool")
+  parser.add_argument("--steps", type=int, default=4, help="recorded steps after the push")
+  args = parser.parse_args()
+  if args.tools < 1 or args.configs < 4 or args.steps < 1:
+    parser.error("--tools >= 1, --configs >= 4 and --steps >= 1")
+  rng = np.random.default_rng(args.seed)
+  rows, diverged = over_tools(args.seed, args.tools,
+                              lambda t: study_tool(t, args.configs, args.steps, rng))
+  slot_err = np.concatenate([np.ravel(r["slot_error_linear_and_angular"]) for r in rows])
+  summary = {"tools": len(rows), "configs": args.configs, "steps": args.steps,
+             "readers": summarize(rows),
+             "slots_linear_and_angular": {
+                 "exact": 100 * float(np.mean(slot_err == 0)),
+                 "within_2": 100 * float(np.mean(slot_err <= 2)),
+                 "rmse": float(np.sqrt(np.mean(slot_err.astype(float) ** 2)))}}
+  write(args.out, summary, rows, markdown(summary, args, diverged), rows_key="tools_rows")
+
+
+if __name__ == "__main__":
+  main()
