@@ -1,5 +1,6 @@
 """The shipped models (block towers, tools) and example tower (assets/) load and decompose."""
 
+import importlib
 import os
 
 import jax
@@ -96,14 +97,15 @@ def test_shipped_model_recovers_the_example_tower():
   np.testing.assert_allclose(prims.pos[0, :4], true.pos[:4], atol=0.05)
 
 
-def test_shipped_model_evaluates_with_the_presets_rules():
-  """The shipped model's saved evaluation settings are the paper preset's (the defaults of
-  `python -m ppdjax.evaluate --workdir=assets/blocks_model`, and the selection horizon
-  the example and `python -m ppdjax.decompose` pass; what experiments/results/blocks.md
+@pytest.mark.parametrize("model,preset", [(MODEL, "paper"), (TOOLS_MODEL, "tools")])
+def test_shipped_model_evaluates_with_the_presets_rules(model, preset):
+  """A shipped model's saved evaluation settings are its preset's (the defaults of
+  `python -m ppdjax.evaluate --workdir=assets/...`, and the selection horizon the example
+  and `python -m ppdjax.decompose` pass; what experiments/results/blocks.md and tools.md
   measured): no stale default."""
-  from ppdjax.configs import paper  # pylint: disable=import-outside-toplevel
-  _, config = ppdjax.load(MODEL)
-  assert config.eval.to_dict() == paper.get_config().eval.to_dict()
+  presets = importlib.import_module(f"ppdjax.configs.{preset}")
+  _, config = ppdjax.load(model)
+  assert config.eval.to_dict() == presets.get_config().eval.to_dict()
 
 
 @pytest.mark.slow

@@ -244,7 +244,12 @@ class PPD(nnx.Module):
 
   def __init__(self, config: ml_collections.ConfigDict, *, rngs: nnx.Rngs):
     c = config
+    self.early_steps = c.get("early_motion_steps", 0) if c.use_trajectory else 0
+    if self.early_steps and not c.get("density_branch", False):
+      raise ValueError("config.model.early_motion_steps feeds the density branch: set "
+                       "config.model.density_branch = True too")
     self.feature, self.hidden, self.max_primitives = c.feature, c.hidden, c.max_primitives
+    self.num_pushes = c.num_pushes
     f = c.feature
     self.voxel_encoder = (VoxelEncoder(f, c.get("voxel_width", 1), c.get("voxel_coords", False),
                                        c.get("voxel_keep", 1), rngs=rngs)
@@ -264,11 +269,6 @@ class PPD(nnx.Module):
                                     rngs=rngs) for i in range(c.generator_layers)])
     # The density branch (model.density_branch; see `_step`): its own fusion and LSTMs,
     # and, with model.early_motion_steps, the velocities just after each push (`_fused`).
-    self.early_steps = c.get("early_motion_steps", 0) if c.use_trajectory else 0
-    self.num_pushes = c.num_pushes
-    if self.early_steps and not c.get("density_branch", False):
-      raise ValueError("config.model.early_motion_steps feeds the density branch: set "
-                       "config.model.density_branch = True too")
     if c.get("density_branch", False):
       early = c.num_pushes * self.early_steps * 6
       self.density_fuse = nnx.Linear(3 * f + early, f, rngs=rngs)
