@@ -12,8 +12,8 @@ For each fresh tool of two or more parts (normalised as the dataset does), `--co
 density configurations are drawn as the dataset draws them (`tools.with_new_slots`) and
 simulated for `--steps` + 1 steps under the paper's four pushes (MuJoCo C, the dataset's
 1e3 N). Features: each push's linear velocity (with its inverse speed) and, in the second
-reader, its angular velocity, over recorded steps 1..steps (`ppdjax.nn.model.early_motion`,
-without the compression). Within the tool, a ridge regression from the standardised
+reader, its angular velocity, between recorded poses 0..steps (`ppdjax.nn.model.early_motion`,
+without the compression; pose 0 is the one after the push's step). Within the tool, a ridge regression from the standardised
 features to every part's log density is scored leaving one configuration out. The error
 is |log ρ̂ − log ρ| (0.01 is 1 %); "spread" predicts each configuration by the tool's
 mean (what the geometry and materials alone give). Writes OUT/results.{json,md}.

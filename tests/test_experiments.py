@@ -468,6 +468,33 @@ def test_tool_push_study_picks_the_truth_when_it_is_a_candidate():
       "motion_mm_median", "diverged_candidates", "own shape"}
 
 
+def test_tool_early_motion_reads_densities_from_velocities():
+  """The study's regression recovers an exact linear law leaving each row out and not
+  noise; `velocities` undoes `early_motion`'s compression; a hammer gives a row per part
+  and configuration; the summary reads zero errors as zero."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from ppdjax.dataset import tools
+  import tool_early_motion as study  # pylint: disable=import-outside-toplevel
+
+  rng = np.random.default_rng(0)
+  x = rng.normal(size=(30, 3))
+  y = x @ np.array([[0.5, -1.0], [0.2, 0.0], [0.0, 2.0]]) + 1.0
+  assert np.abs(study.loo_errors(x, y)).max() < 0.05  # ridge shrinks a little
+  assert np.abs(study.loo_errors(rng.normal(size=(30, 3)), y)).mean() > 0.5
+  t = np.arange(4)[:, None] * (1 / 300)
+  traj = np.concatenate([t * np.array([0.4, 0.0, -0.1]), np.tile([1.0, 0, 0, 0], (4, 1))],
+                        -1)[None].repeat(4, 0)  # (P, T, 7): sliding at 0.4 m/s, no spin
+  lin, ang = study.velocities(traj, 2)
+  np.testing.assert_allclose(lin.reshape(4, 2, 3), np.broadcast_to([0.4, 0, -0.1], (4, 2, 3)),
+                             atol=1e-4)
+  np.testing.assert_allclose(ang, 0.0, atol=1e-4)
+  r = study.study_tool(tools.sample_tool(2026, 0, category="hammer"), 6, 1, rng)
+  assert np.shape(r["linear velocity"]) == (6, 2) and np.shape(r["spread"]) == (6, 2)
+  zero = {k: [[0.0, 0.0]] * 6 for k in study.READERS}
+  summary = study.summarize([zero, zero])
+  assert summary["linear velocity"]["median"] == 0.0 and summary["spread"]["mean"] == 0.0
+
+
 @pytest.mark.slow  # three command lines, about 15 s on 2 cores
 def test_tools_study_runs_some_variants_from_another_pretraining(tmp_path):
   """--variants keeps only those models' steps (no report without all three); --pretrained

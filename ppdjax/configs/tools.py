@@ -49,8 +49,9 @@ def get_config(size: str = "paper"):
   config.pretrain.rotate = 0.2
   config.pretrain.size_noise = 0.1
   # A density branch in the generator (model.density_branch): with one LSTM stack the
-  # joint stage's density loss undid the geometry stage's boxes (validation F1 68.0 ->
-  # 21.3 at its start, 50-66 at its end; docs/data.md).
+  # joint stage's density loss undid the geometry stage's boxes (validation F1 63.0 ->
+  # 10.4 in its first 50 steps, 67.2 at its end; with the branch 88.0 at the end, test F1
+  # 87.5 against 63.1; experiments/results/tools_runs/).
   config.model.density_branch = True
   # No early motion (model.early_motion_steps): the velocities just after the pushes give
   # each part's density to about 1 % within one tool's configurations
@@ -67,11 +68,10 @@ def get_config(size: str = "paper"):
   config.finetune = ml_collections.ConfigDict()
   # The geometry stage is longer than the first runs' 150 steps: with boxes in an order the
   # voxels show (primitives.bottom_to_top), validation F1 still rose at 600 steps (18.6 at
-  # 150, 68.0 at 600), and density weight 0 cannot overfit the densities. The joint stage
-  # then costs geometry (validation F1 68.0 -> 50.3). A trial with 1,200 geometry steps
-  # and geometry weighing 10 reached F1 80.9 at the end of the geometry stage but 61.3
-  # after the joint one, and lost density (top-1 18.8 -> 9.7 on the test tools): not kept
-  # (experiments/results/tools_order_study/).
+  # 150, 68.0 at 600), and density weight 0 cannot overfit the densities. With one LSTM
+  # stack the joint stage then cost geometry (validation F1 68.0 -> 50.3), and a trial with
+  # 1,200 geometry steps and geometry weighing 10 lost density (top-1 18.8 -> 9.7 on the
+  # test tools; experiments/results/tools_order_study/); the density branch ended that.
   config.finetune.geometry_steps = 600 if size == "paper" else 20
   config.finetune.geometry_weight = 1.0
   # 1,400 joint steps: with 350 the training density loss was still falling (6.2 against

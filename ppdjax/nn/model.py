@@ -58,12 +58,14 @@ def quat_multiply(a: jax.Array, b: jax.Array) -> jax.Array:
 
 
 def early_motion(traj_BPTx7: jax.Array, steps: int) -> jax.Array:
-  """(B, P · steps · 6) the linear and angular velocity (world frame) over recorded steps
-  1..`steps` of each push, each compressed as sign(v)·log(1 + |v| / 0.1) (m/s, rad/s).
+  """(B, P · steps · 6) the linear and angular velocity (world frame) between recorded
+  poses 0..`steps` of each push, each compressed as sign(v)·log(1 + |v| / 0.1) (m/s,
+  rad/s). Pose 0 is the one after the push's step, so the first velocity is that of the
+  simulation's second step (the rest pose before the push is not in a trajectory).
 
   What a push does at once is where a body's mass, centre of mass and inertia show most
   plainly (Δv = J/m, Δω = I⁻¹ (r − c) × J): within one tool's density configurations these
-  velocities alone give each part's density to a median 1.3 % (docs/data.md), while the
+  velocities alone give each part's density to about 1 % (docs/data.md), while the
   motion that follows mixes in friction and contacts. The trajectory LSTM sees the linear
   velocity among 256 steps and the rotation only as quaternions that change by 1e-4 a
   step; these features hand both to the density branch directly.
@@ -338,7 +340,7 @@ class PPD(nnx.Module):
     fed-back primitive, its own features (`_fused`) and the first stack's output with its
     gradient stopped (which box this step describes). The density loss then reaches
     neither the geometry's LSTMs nor the voxel encoder: on tools the joint stage's density
-    loss otherwise undid geometry (validation F1 68 -> 21 at its start,
+    loss otherwise undid geometry (validation F1 63 -> 10 in its first 50 steps,
     docs/data.md), and the geometry loss does not bend the density branch.
     """
     f, f_d = feats
