@@ -495,6 +495,33 @@ def test_tool_early_motion_reads_densities_from_velocities():
   assert summary["linear velocity"]["median"] == 0.0 and summary["spread"]["mean"] == 0.0
 
 
+def test_paired_models_reads_the_change_of_one_model_against_another():
+  """Two hand-made record sets of the same 4 objects (2 geometries): the second has one
+  more exact box and one more matched box; the change and F1 are those by hand; records
+  of other objects are refused."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import paired_models as study  # pylint: disable=import-outside-toplevel
+
+  def records(top1, matched):
+    rec = {("true_slot",): np.array([1, 2, 3, 4]), ("mae", "PPD"): np.array([2.0, 2, 2, 2])}
+    for k, v in {"top1": top1, "top5": [1, 1, 1, 1], "top10": [1, 1, 1, 1],
+                 "sq_err": [0.0, 0, 0, 0], "count": [1, 1, 1, 1]}.items():
+      rec[("counts", "PPD", k)] = np.asarray(v)
+    rec.update({("shape", "matched"): np.asarray(matched), ("shape", "predicted"): np.ones(4),
+                ("shape", "true"): np.ones(4)})
+    return rec
+
+  first, second = records([1, 0, 0, 0], [1, 1, 0, 0]), records([1, 1, 0, 0], [1, 1, 1, 0])
+  out = study.compare(first, second, np.array([0, 0, 1, 1]), resamples=50)
+  assert out["rows"]["PPD"]["top1"] == pytest.approx(25.0)
+  assert out["rows"]["PPD"]["mae"] == 0.0 and list(out["rows"]) == ["PPD"]
+  assert (out["shape_f1"]["first"], out["shape_f1"]["second"]) == (50.0, 75.0)
+  other = records([1, 1, 0, 0], [1, 1, 1, 0])
+  other[("true_slot",)] = np.array([4, 3, 2, 1])
+  with pytest.raises(ValueError, match="not of the same"):
+    study.compare(first, other, np.array([0, 0, 1, 1]))
+
+
 @pytest.mark.slow  # three command lines, about 15 s on 2 cores
 def test_tools_study_runs_some_variants_from_another_pretraining(tmp_path):
   """--variants keeps only those models' steps (no report without all three); --pretrained
