@@ -89,7 +89,9 @@ def get_config(size: str = "paper"):
   config.eval.refine = False
   # +Sample's τ for tools, chosen on 200 tools of a seed never trained on (7), by density
   # RMSE: 0.05 gives 18.8 slots against 31.2 at τ = 0, where the closest trajectory needs
-  # wrong densities (boxes are not the tool; experiments/results/tool_fill_study/tau_choice)
+  # wrong densities (boxes are not the tool; experiments/results/tool_fill_study/tau_choice);
+  # checked again with the density-branch model: 15.7 at 0.05, 15.6 at 0.1, 20.4 at 0
+  # (tool_fill_study/tau_choice_density_branch)
   config.eval.prior_weight = 0.05 if size == "paper" else config.eval.prior_weight
   # +Sample over all 256 steps (the paper's rule; experiments/tools.py evaluates so): the
   # paper preset's 32 steps were chosen on towers, and tools kept no horizon sweep
