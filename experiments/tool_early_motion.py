@@ -12,7 +12,7 @@ For each fresh tool of two or more parts (normalised as the dataset does), `--co
 density configurations are drawn as the dataset draws them (`tools.with_new_slots`) and
 simulated for `--steps` + 1 steps under the paper's four pushes (MuJoCo C, the dataset's
 1e3 N). Features: each push's linear velocity (with its inverse speed) and, in the second
-reader, its angular velocity, between recorded poses 0..steps (`ppdjax.nn.model.early_motion`,
+reader, its angular velocity, between recorded poses 0..steps (`ppdjax.nn.motion.early_motion`,
 without the compression; pose 0 is the one after the push's step). Within the tool, a ridge regression from the standardised
 features to every part's log density is scored leaving one configuration out. The error
 is |log ρ̂ − log ρ| (0.01 is 1 %); "spread" predicts each configuration by the tool's
@@ -27,7 +27,7 @@ import numpy as np
 from ppdjax import metrics
 from ppdjax.conventions import density_to_slot
 from ppdjax.dataset import meshes, tool_scene, tools
-from ppdjax.nn.model import SPEED_SCALE, early_motion
+from ppdjax.nn.motion import decompress, early_motion
 from tool_studies import over_tools, study_parser, write
 
 READERS = ("spread", "linear velocity", "linear and angular velocity")
@@ -37,8 +37,7 @@ RIDGE = 1e-2
 def velocities(traj_PTx7: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray]:
   """(linear (P·steps·3,), angular (P·steps·3,)) velocities over recorded steps 1..steps,
   undoing `early_motion`'s compression."""
-  x = np.asarray(early_motion(jnp.asarray(traj_PTx7[None], jnp.float32), steps), np.float64)
-  x = np.sign(x) * np.expm1(np.abs(x)) * SPEED_SCALE
+  x = decompress(early_motion(jnp.asarray(traj_PTx7[None], jnp.float32), steps))
   x = x.reshape(traj_PTx7.shape[0], steps, 6)
   return x[..., :3].ravel(), x[..., 3:].ravel()
 

@@ -9,7 +9,8 @@ from flax import nnx
 
 from ppdjax import box_overlap, metrics, primitives
 from ppdjax.configs import tiny
-from ppdjax.nn import losses, model
+from ppdjax.conventions import TIMESTEP
+from ppdjax.nn import losses, model, motion
 from ppdjax.nn.resnet import ResNet18, load_torchvision_weights
 from ppdjax.primitives import Primitives
 
@@ -91,9 +92,9 @@ def test_grouped_lstm_runs_independent_lstms(rng):
 def test_trajectory_features_are_relative_and_compressed():
   traj = jnp.zeros((1, 1, 3, 7)).at[..., 3].set(1.0)
   traj = traj.at[0, 0, :, 0].set(jnp.array([2.0, 2.0 + 1 / 300, 2.0 + 2 / 300]))  # 1 m/s in x
-  f = model.trajectory_features(traj)
+  f = motion.trajectory_features(traj)
   np.testing.assert_allclose(f[0, 0, :, 0], [0, 1 / 300, 2 / 300], atol=1e-6)
-  np.testing.assert_allclose(f[0, 0, 1:, 7], np.log1p(1.0 / model.SPEED_SCALE), rtol=1e-3)
+  np.testing.assert_allclose(f[0, 0, 1:, 7], np.log1p(1.0 / motion.SPEED_SCALE), rtol=1e-3)
 
 
 def test_conv_matches_xla_convolution(rng):
@@ -302,15 +303,15 @@ def test_density_branch_keeps_the_losses_apart(rng):
 def test_early_motion_reads_velocities_after_the_push():
   """A body moving at constant linear and angular velocity: every early-motion step holds
   them, compressed; the features follow the pushes' order; the branch needs a density branch."""
-  dt, v, w = model.TIMESTEP, np.array([0.3, -0.2, 0.05]), np.array([0.0, 0.0, 1.5])
+  dt, v, w = TIMESTEP, np.array([0.3, -0.2, 0.05]), np.array([0.0, 0.0, 1.5])
   t = np.arange(6)[:, None] * dt
   angle = w[2] * t[:, 0]
   quat = np.stack([np.cos(angle / 2), 0 * angle, 0 * angle, np.sin(angle / 2)], -1)
   traj = np.concatenate([v * t, quat], -1)[None, None]  # (1, 1, 6, 7)
   rest = np.broadcast_to(np.r_[0.1, 0, 0.2, 1, 0, 0, 0], traj.shape)
   traj = np.concatenate([traj, rest], 1)  # push 2: at rest
-  got = np.asarray(model.early_motion(jnp.asarray(traj, jnp.float32), 3)).reshape(2, 3, 6)
-  squash = lambda x: np.sign(x) * np.log1p(np.abs(x) / model.SPEED_SCALE)
+  got = np.asarray(motion.early_motion(jnp.asarray(traj, jnp.float32), 3)).reshape(2, 3, 6)
+  squash = lambda x: np.sign(x) * np.log1p(np.abs(x) / motion.SPEED_SCALE)
   np.testing.assert_allclose(got[0], np.tile(squash(np.r_[v, w]), (3, 1)), atol=2e-3)
   np.testing.assert_allclose(got[1], 0.0, atol=1e-4)
   cfg = tiny.get_config().model

@@ -54,7 +54,7 @@ def get_config() -> ml_collections.ConfigDict:
   # tools preset); False: the paper's one generator for both
   config.model.density_branch = False
   # > 0: the density branch also reads the velocities over the first this many recorded
-  # steps after each push (ppdjax.nn.model.early_motion; needs density_branch)
+  # steps after each push (ppdjax.nn.motion.early_motion; needs density_branch)
   config.model.early_motion_steps = 0
   # Training (python -m ppdjax.train).
   config.train = ml_collections.ConfigDict()

@@ -20,7 +20,7 @@ import ml_collections
 from flax import nnx
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS
-from ppdjax.nn.model import TRAJ_FEATURES, trajectory_features
+from ppdjax.nn.motion import TRAJ_FEATURES, trajectory_features
 from ppdjax.primitives import Primitives, bottom_to_top_order
 
 BOX_FEATURES = 8  # extents (3), centre (3), volume / 0.1 m^3, valid

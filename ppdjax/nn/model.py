@@ -12,7 +12,8 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx, struct
 
-from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, TIMESTEP, slot_to_density_jax
+from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density_jax
+from ppdjax.nn.motion import TRAJ_FEATURES, early_motion, trajectory_features
 from ppdjax.nn.resnet import ResNet18
 from ppdjax.primitives import Primitives
 
@@ -20,8 +21,6 @@ START, END = NUM_DENSITY_SLOTS, NUM_DENSITY_SLOTS + 1  # the density head's two 
 NUM_CLASSES = NUM_DENSITY_SLOTS + 2
 PRIM_DIM = NUM_CLASSES + 3 + 3 + 4  # a primitive fed back to the generator
 SIZE_SCALE = TRANS_SCALE = 0.5  # C_S and C_T of Eq. 3
-TRAJ_FEATURES = 10
-SPEED_SCALE = 0.1  # m/s; see trajectory_features
 REDUCED = 16  # channels per cell of a position-keeping voxel encoder before flattening
 
 
@@ -32,52 +31,6 @@ class Prediction:
   half_size: jax.Array  # (B, S, 3) in [0, C_S]
   pos: jax.Array  # (B, S, 3) in [-C_T, C_T]
   quat: jax.Array  # (B, S, 4) unit
-
-
-def trajectory_features(traj_BPTx7: jax.Array) -> jax.Array:
-  """Normalised trajectory inputs (B, P, T, 10): [p_t − p_0, q_t, symlog velocity].
-
-  Positions are taken relative to the first recorded pose (metres; towers move up to
-  about a metre). The velocity (p_t − p_{t−1}) / dt carries the density signal — the
-  push's impulse over the mass — over two decades, so it is compressed as
-  sign(v)·log(1 + |v| / 0.1 m/s). Quaternions are already in [−1, 1].
-  """
-  pos, quat = traj_BPTx7[..., :3], traj_BPTx7[..., 3:]
-  vel = jnp.diff(pos, axis=-2, prepend=pos[..., :1, :]) / TIMESTEP
-  vel = jnp.sign(vel) * jnp.log1p(jnp.abs(vel) / SPEED_SCALE)
-  return jnp.concatenate([pos - pos[..., :1, :], quat, vel], -1)
-
-
-def quat_multiply(a: jax.Array, b: jax.Array) -> jax.Array:
-  """Hamilton product a ⊗ b of (..., 4) quaternions (w, x, y, z)."""
-  w1, x1, y1, z1 = jnp.moveaxis(a, -1, 0)
-  w2, x2, y2, z2 = jnp.moveaxis(b, -1, 0)
-  return jnp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                    w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2],
-                   -1)
-
-
-def early_motion(traj_BPTx7: jax.Array, steps: int) -> jax.Array:
-  """(B, P · steps · 6) the linear and angular velocity (world frame) between recorded
-  poses 0..`steps` of each push, each compressed as sign(v)·log(1 + |v| / 0.1) (m/s,
-  rad/s). Pose 0 is the one after the push's step, so the first velocity is that of the
-  simulation's second step (the rest pose before the push is not in a trajectory).
-
-  What a push does at once is where a body's mass, centre of mass and inertia show most
-  plainly (Δv = J/m, Δω = I⁻¹ (r − c) × J): within one tool's density configurations these
-  velocities alone give each part's density to about 1 % (docs/data.md), while the
-  motion that follows mixes in friction and contacts. The trajectory LSTM sees the linear
-  velocity among 256 steps and the rotation only as quaternions that change by 1e-4 a
-  step; these features hand both to the density branch directly.
-  """
-  pos, quat = traj_BPTx7[:, :, :steps + 1, :3], traj_BPTx7[:, :, :steps + 1, 3:]
-  vel = jnp.diff(pos, axis=2) / TIMESTEP
-  delta = quat_multiply(quat[:, :, 1:], quat[:, :, :-1] * jnp.array([1., -1, -1, -1]))
-  delta = delta * jnp.where(delta[..., :1] < 0, -1.0, 1.0)  # the short way round
-  spin = 2 * delta[..., 1:] / TIMESTEP
-  x = jnp.concatenate([vel, spin], -1)
-  x = jnp.sign(x) * jnp.log1p(jnp.abs(x) / SPEED_SCALE)
-  return x.reshape(x.shape[0], -1)
 
 
 def _lstm_update(z, c):
