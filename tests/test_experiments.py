@@ -495,6 +495,49 @@ def test_tool_early_motion_reads_densities_from_velocities():
   assert summary["linear velocity"]["median"] == 0.0 and summary["spread"]["mean"] == 0.0
 
 
+def test_tool_density_ceiling_reads_box_parts_exactly_and_floors_hidden_ones():
+  """A tool made of two boxes (one turned about z) gives its boxes' densities back from its
+  mass properties alone; the floor of one hidden metal box in four is the metal slots'
+  spread over two; the records' guesses are checked against the rebuilt slots; a reading
+  outside its material's slots moves to the nearest of them."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  import trimesh  # pylint: disable=import-outside-toplevel
+  from ppdjax import primitives  # pylint: disable=import-outside-toplevel
+  from ppdjax.dataset import materials, tool_scene  # pylint: disable=import-outside-toplevel
+  import tool_density_ceiling as study  # pylint: disable=import-outside-toplevel
+
+  half = np.array([[0.3, 0.05, 0.04], [0.06, 0.1, 0.05]])
+  pos = np.array([[-0.1, 0.0, -0.02], [0.26, 0.02, 0.07]])
+  turn = trimesh.transformations.rotation_matrix(0.4, [0, 0, 1])
+  parts = []
+  for h, p, rot in zip(half, pos, (np.eye(4), turn)):
+    box = trimesh.creation.box(extents=2 * h, transform=rot)
+    box.apply_translation(p)
+    parts.append(box)
+  quat = np.stack([[1.0, 0, 0, 0], np.asarray(primitives.mat_to_quat(
+      np.asarray(turn[:3, :3], np.float32)))])
+  prims = primitives.Primitives(half_size=half, pos=pos, quat=quat,
+                                density=np.zeros(2), valid=np.ones(2, bool))
+  rho = np.array([700.0, 7800.0])
+  target = study.tool_moments(*tool_scene.mass_properties(parts, rho))
+  np.testing.assert_allclose(study.read_densities(study.box_moments(prims), target), rho,
+                             rtol=1e-3)
+  rows = [{"share": np.array([0.995, 0.005]), "material": ["wood", "metal"], "count": 2,
+           "category": "screwdriver", "tool": 0, "slot": np.array([4, 80])},
+          {"share": np.array([0.5, 0.5]), "material": ["wood", "metal"], "count": 2,
+           "category": "screwdriver", "tool": 1, "slot": np.array([4, 80])}]
+  out = study.floor(rows, 0.01)
+  assert out["hidden_boxes_pct"] == 25.0
+  assert out["rmse_floor"] == pytest.approx(np.std(materials.material_slots("metal")) / 2)
+  rec = {("guess", "PPD"): np.array([[4, 70, -1], [5, 80, -1]]),
+         ("true_slot",): np.array([[4, 80, 0], [4, 81, 0]]),
+         ("true_valid",): np.array([[1, 1, 0], [1, 1, 0]], bool)}
+  err, bad = study.network_errors(rec, rows)
+  assert bad == [1] and list(err) == [0, -10, 1, -1]
+  np.testing.assert_allclose(study.in_material(rows[0], np.array([1500.0, 5000.0])),
+                             [1000.0, 3500.0])  # wood's top; metal's nearer range
+
+
 def test_paired_models_reads_the_change_of_one_model_against_another():
   """Two hand-made record sets of the same 4 objects (2 geometries): the second has one
   more exact box and one more matched box; the change and F1 are those by hand; records
