@@ -311,7 +311,8 @@ def test_init_from_copies_what_matches(tiny_run):
   config = tiny.get_config()
   config.model.voxel_keep = 4  # another voxel head: the rest still matches
   fresh = train_state.build(config).model
-  copied = train_state.init_from(fresh, workdir)
+  with pytest.warns(UserWarning, match=r"start fresh: .*voxel_encoder/head1/kernel"):
+    copied = train_state.init_from(fresh, workdir)
   assert any(p.startswith("voxel_encoder/convs") for p in copied)
   assert "voxel_encoder/head1/kernel" not in copied  # a 1x1x1 conv there, a dense layer here
   np.testing.assert_array_equal(fresh.voxel_encoder.convs[0].kernel.value,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -190,13 +192,19 @@ def eval_step(graphdef, state, batch, w, weights):
 def init_from(model: PPD, workdir: str) -> list[str]:
   """Copies into `model` every parameter and batch statistic of another run's latest model
   whose path and shape match (the voxel encoder and generator of a geometry-stage run,
-  say); returns the paths copied. Raises ValueError if nothing matches."""
+  say); returns the paths copied. Warns, naming them, about arrays both models have at
+  another shape (those start fresh). Raises ValueError if nothing matches."""
   source, _ = checkpoints.load(workdir, which="latest")
   src = _flat(nnx.to_pure_dict(nnx.state(source)))
   dst = nnx.to_pure_dict(nnx.state(model))
   copied = [p for p, v in _flat(dst).items() if p in src and np.shape(src[p]) == np.shape(v)]
   if not copied:
     raise ValueError(f"train.init_from={workdir}: no parameter matches this model")
+  reshaped = [f"{'/'.join(map(str, p))} {np.shape(src[p])} -> {np.shape(v)}"
+              for p, v in _flat(dst).items() if p in src and np.shape(src[p]) != np.shape(v)]
+  if reshaped:
+    warnings.warn(f"train.init_from={workdir}: {len(reshaped)} arrays have another shape "
+                  "here and start fresh: " + "; ".join(reshaped), stacklevel=2)
   _assign(dst, {p: src[p] for p in copied})
   state = nnx.state(model)
   nnx.replace_by_pure_dict(state, dst)
