@@ -1,27 +1,28 @@
-"""What Table 3's density columns allow on the procedural tools, whatever the model (CPU).
+"""How well a tool's exact mass properties give its true boxes' densities (CPU).
 
   python experiments/tool_density_ceiling.py \
       --records=experiments/results/tools_runs/eval_full/records \
       --out=experiments/results/tool_density_ceiling
 
 A push moves a rigid body through its contact shape and its mass properties: the mass,
-centre of mass and inertia, ten numbers. On the test split's tools (rebuilt from the
-preset's seed, every configuration checked against the evaluation's records) this study
-scores three readers beside the shipped model's own guesses (the records' PPD row):
+centre of mass and inertia, ten numbers, the only part of the motion the densities
+change. On the test split's tools (rebuilt from the preset's seed, every configuration
+checked against the evaluation's records) this study scores readers given those ten
+numbers **exactly**, beside the shipped model's own guesses (the records' PPD row):
 
-- **Oracle mass properties through the true boxes.** Each configuration's exact ten
-  numbers (what the motion could reveal at best, `tool_scene.mass_properties`) are
-  explained by the true boxes' densities: non-negative least squares on the moment
-  equations (mass, first moments, second moments about the object's origin). Raw, and
-  with the boxes' fill calibrated on tools of another seed by category, box count and box
-  position (a box is a cylinder's or a wedge's bounding box, not the part).
-- **The hidden-part floor.** A box whose part holds under `--hidden` of the tool's mass
-  moves the tool less than the geometry's own uncertainty; if such a box is read no better
-  than its material's prior (its slots' mean, the material known), no reader's RMSE over
-  the whole split can go below sqrt(sum of those priors' variances / boxes).
+- **raw**: the true boxes' densities whose moments (mass, first moments, second moments
+  about the object's origin) come closest, non-negative least squares;
+- **corrected**: each reading times a density correction (label / raw reading) learned on
+  tools of another seed by category, box count and box position: a box around a cylinder,
+  wedge or bent blade holds more than its part, and misplaces its mass;
+- **corrected, material known**: the fit itself bounded to each box's material range (its
+  columns divided by their corrections), then the nearest slot of the material.
 
-Per-box top-1 is the exact slot; "within 2" and "within 5" are what a top-5 and a top-10
-centred on a point estimate can hold at most. Intervals: 95 % bootstrap over tools.
+Each reader is scored on every box, and apart on boxes of parts holding under `HIDDEN[0]`
+of the tool's mass, whose density barely moves the tool. The **hidden-part floor** is the
+split's RMSE if those boxes are read at their material's mean slot and every other box
+exactly. Per-box top-1 is the exact slot; "within 2" and "within 5" stand in for a top-5
+and a top-10 (a point reading has no ranking). Intervals: 95 % bootstrap over tools.
 Writes OUT/results.md and OUT/results.json.
 """
 
@@ -30,64 +31,58 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
+import jax
 import numpy as np
-from scipy.optimize import nnls
+from scipy.optimize import lsq_linear
 from tqdm import tqdm
 
 from ppdjax import metrics, primitives
 from ppdjax.configs import tools as tools_preset
-from ppdjax.conventions import density_to_slot, slot_to_density
+from ppdjax.conventions import MAX_DENSITY, density_to_slot, slot_to_density
 from ppdjax.dataset import materials, mesh_boxes, tool_scene, tools
 from ppdjax.dataset.meshes import normalize
+from ppdjax.dataset.tool_generation import density_variants
 from ppdjax.infer import partial
+from ppdjax.sim.mass import mass_properties
+from tools_by_category import test_tools
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from tools_by_category import test_tools  # pylint: disable=wrong-import-position
-
-LENGTH = 0.25  # metres: scales first and second moments to the mass's magnitude
-HIDDEN = (0.01, 0.02, 0.03)  # mass fractions under which a part is called hidden
-
-
-def moment_vector(mass: float, first: np.ndarray, second: np.ndarray) -> np.ndarray:
-  """(10,) mass, first moment (3,) / LENGTH, second moment about the origin (upper
-  triangle, 6) / LENGTH^2."""
-  iu = np.triu_indices(3)
-  return np.concatenate([[mass], first / LENGTH, second[iu] / LENGTH ** 2])
+LENGTH = 0.25  # m in the object frame: scales first and second moments to the mass's size
+HIDDEN = (0.01, 0.02, 0.03)  # shares of the tool's mass under which a part is called hidden
+READERS = ("raw", "corrected", "corrected, material known")
+_box_properties = jax.jit(mass_properties)
 
 
 def tool_moments(mass: float, com: np.ndarray, inertia: np.ndarray) -> np.ndarray:
-  """moment_vector of a body from its mass, centre of mass and inertia about it."""
+  """(10,) mass, first moment / LENGTH, second moment about the origin (upper triangle) /
+  LENGTH^2, of a body of this mass, centre of mass and inertia about it."""
   spread = np.trace(inertia) / 2 * np.eye(3) - inertia  # integral of r r^T about the com
-  return moment_vector(mass, mass * com, spread + mass * np.outer(com, com))
+  second = spread + mass * np.outer(com, com)
+  return np.concatenate([[mass], mass * np.asarray(com) / LENGTH,
+                         second[np.triu_indices(3)] / LENGTH ** 2])
 
 
 def box_moments(prims: primitives.Primitives) -> np.ndarray:
-  """(10, k) moment vectors of the valid boxes at unit density."""
-  cols = []
-  for half, pos, quat, valid in zip(*(np.asarray(getattr(prims, f), np.float64) for f in
-                                      ("half_size", "pos", "quat", "valid"))):
-    if not valid:
-      continue
-    rot = np.asarray(primitives.quat_to_mat(quat.astype(np.float32)), np.float64)
-    vol = 8 * np.prod(half)
-    spread = vol * rot @ np.diag(half ** 2 / 3) @ rot.T
-    cols.append(moment_vector(vol, vol * pos, spread + vol * np.outer(pos, pos)))
-  return np.stack(cols, 1)
+  """(10, k) tool_moments of each valid box alone at unit density (`sim.mass`)."""
+  k = int(np.asarray(prims.valid).sum())
+  alone = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (k,) + np.shape(x)), prims)
+  alone = alone.replace(density=np.eye(k, len(prims.valid), dtype=np.float32))
+  props = _box_properties(alone)
+  return np.stack([tool_moments(float(m), np.asarray(c, np.float64), np.asarray(i, np.float64))
+                   for m, c, i in zip(props.mass, props.com, props.inertia)], 1)
 
 
-def read_densities(columns: np.ndarray, target: np.ndarray) -> np.ndarray:
-  """(k,) non-negative densities whose boxes' moments come closest to `target`'s,
-  relative to its mass."""
-  rho, _ = nnls(columns / target[0], target / target[0])
-  return rho
+def read_densities(columns: np.ndarray, target: np.ndarray, lower=0.0,
+                   upper=np.inf) -> np.ndarray:
+  """(k,) densities, within [lower, upper], whose boxes' moments (columns (10, k), one per
+  unit density) come closest to `target` (10,) in least squares."""
+  return lsq_linear(columns, target, bounds=(lower, upper), method="bvls").x
 
 
 def tool_rows(seed: int, index: int, configs: int) -> list[dict]:
-  """One dict per configuration of tool `index` (as `tool_generation.tool_samples` makes
-  them, attempt 0): its boxes' true slots, the oracle reading, each box's part's share of
-  the mass, the box's material."""
+  """One dict per density configuration of tool `index` (`density_variants`, attempt 0):
+  its boxes' true slots, the raw reading, each box's part's share of the mass, the part's
+  name and material, and the boxes' moment columns."""
   tool = tools.sample_tool(seed, index)
   parts, _ = normalize(list(tool.parts))
   prims, owner = mesh_boxes.boxes_of_parts(parts, tool.densities)
@@ -95,51 +90,65 @@ def tool_rows(seed: int, index: int, configs: int) -> list[dict]:
   owner = owner[:k]
   columns = box_moments(prims)
   volumes = np.asarray([abs(p.volume) for p in parts])
-  variants = [tool] + [tools.with_new_slots(tool, np.random.default_rng([seed, index, c]))
-                       for c in range(1, configs)]
   rows = []
-  for v in variants:
+  for v in density_variants(tool, seed, index, configs):
     target = tool_moments(*tool_scene.mass_properties(parts, v.densities))
     part_mass = volumes * v.densities
-    rows.append({"category": tool.category, "tool": index, "count": k,
-                 "slot": density_to_slot(v.densities[owner]),
-                 "oracle": read_densities(columns, target),
+    rows.append({"category": tool.category, "tool": index, "count": k, "columns": columns,
+                 "target": target, "slot": density_to_slot(v.densities[owner]),
+                 "raw": read_densities(columns, target),
                  "share": part_mass[owner] / part_mass.sum(),
+                 "part": [tool.names[o] for o in owner],
                  "material": [tool.materials[o] for o in owner]})
   return rows
 
 
-def fill_factors(rows: list[dict]) -> dict:
-  """Median label / oracle density by (category, box count, box position), by category,
-  and overall ("all")."""
+def _keys(r: dict, j: int) -> tuple:
+  return ((r["category"], r["count"], j), (r["category"],), ("all",))
+
+
+def corrections(rows: list[dict]) -> dict:
+  """Median label / raw reading by (category, box count, box position), by category and
+  overall ("all"), over readings of at least the lowest slot's density (a box the fit
+  left empty says nothing about its correction)."""
   ratios: dict = {}
   for r in rows:
-    for j, (s, est) in enumerate(zip(r["slot"], r["oracle"])):
-      lr = np.log((s + 1) * 100.0 / max(est, 1.0))
-      for key in ((r["category"], r["count"], j), (r["category"],), ("all",)):
-        ratios.setdefault(key, []).append(lr)
+    for j, (s, est) in enumerate(zip(r["slot"], r["raw"])):
+      if est >= slot_to_density(0):
+        for key in _keys(r, j):
+          ratios.setdefault(key, []).append(np.log(slot_to_density(s) / est))
   return {k: float(np.exp(np.median(v))) for k, v in ratios.items()}
 
 
-def calibrated(r: dict, factors: dict) -> np.ndarray:
-  """r's oracle densities times the most specific fill factor known."""
-  out = []
-  for j, est in enumerate(r["oracle"]):
-    for key in ((r["category"], r["count"], j), (r["category"],), ("all",)):
-      if key in factors:
-        out.append(est * factors[key])
-        break
-  return np.asarray(out)
+def box_corrections(r: dict, table: dict) -> np.ndarray:
+  """(k,) the most specific correction `table` holds for each of r's boxes."""
+  return np.asarray([next(table[key] for key in _keys(r, j) if key in table)
+                     for j in range(r["count"])])
 
 
-def in_material(r: dict, densities: np.ndarray) -> np.ndarray:
-  """Each density moved to the nearest slot of its box's material (the material known, as a
-  texture could tell it)."""
-  out = []
-  for m, d in zip(r["material"], densities):
-    slots = materials.material_slots(m)
-    out.append(slot_to_density(slots[np.argmin(np.abs(slots - density_to_slot(max(d, 1.0))))]))
-  return np.asarray(out)
+def nearest_in_material(material: str, density: float) -> float:
+  """The density of the slot of `material` nearest to `density`."""
+  slots = materials.material_slots(material)
+  return float(slot_to_density(slots[np.argmin(np.abs(slots - density_to_slot(density)))]))
+
+
+def read_in_material(r: dict, correction: np.ndarray) -> np.ndarray:
+  """(k,) densities fitted within each box's material range, the columns divided by their
+  corrections, each then moved to its material's nearest slot."""
+  lo = [slot_to_density(materials.material_slots(m).min()) for m in r["material"]]
+  hi = [slot_to_density(materials.material_slots(m).max()) for m in r["material"]]
+  fit = read_densities(r["columns"] / correction, r["target"], np.asarray(lo), np.asarray(hi))
+  return np.asarray([nearest_in_material(m, d) for m, d in zip(r["material"], fit)])
+
+
+def readings(rows: list[dict], table: dict) -> dict:
+  """{reader: per-box slot errors} over rows, READERS order."""
+  out = {name: [] for name in READERS}
+  for r in rows:
+    c = box_corrections(r, table)
+    for name, d in zip(READERS, (r["raw"], r["raw"] * c, read_in_material(r, c))):
+      out[name].append(density_to_slot(np.clip(d, slot_to_density(0), MAX_DENSITY)) - r["slot"])
+  return {k: np.concatenate(v) for k, v in out.items()}
 
 
 def scores(err: np.ndarray, tool_of_box: np.ndarray) -> dict:
@@ -157,33 +166,23 @@ def scores(err: np.ndarray, tool_of_box: np.ndarray) -> dict:
 
 
 def floor(rows: list[dict], threshold: float) -> dict:
-  """The RMSE no reader can go below if boxes of parts under `threshold` of the tool's
-  mass are read at their material's prior mean, and every other box exactly."""
-  variance = {m: float(np.var(materials.material_slots(m))) for m in materials.MATERIALS}
-  share = np.concatenate([r["share"] for r in rows])
-  mats = np.concatenate([r["material"] for r in rows])
-  hidden = share < threshold
-  mse = sum(variance[str(m)] for m in mats[hidden]) / len(share)
-  names = {}
+  """The split's RMSE if boxes of parts under `threshold` of the tool's mass are read at
+  their material's mean slot and every other box exactly; which parts those are."""
+  sq, names = [], {}
   for r in rows:
-    for s, m in zip(r["share"], r["material"]):
-      if s < threshold:
-        names[f"{r['category']} ({m})"] = names.get(f"{r['category']} ({m})", 0) + 1
-  return {"threshold": threshold, "hidden_boxes_pct": float(100 * hidden.mean()),
-          "rmse_floor": float(np.sqrt(mse)), "hidden_by_category": names}
-
-
-def per_box(rows: list[dict], values) -> tuple[np.ndarray, np.ndarray]:
-  """(errors in slots, tool of each box) of per-configuration density estimates."""
-  err = np.concatenate([density_to_slot(np.maximum(v, 1.0)) - r["slot"]
-                        for r, v in zip(rows, values)])
-  tool = np.concatenate([[r["tool"]] * r["count"] for r in rows])
-  return err, tool
+    for s, share, part, m in zip(r["slot"], r["share"], r["part"], r["material"]):
+      hidden = share < threshold
+      sq.append((s - materials.material_slots(m).mean()) ** 2 if hidden else 0.0)
+      if hidden:
+        key = f"{r['category']} {part} ({m})"
+        names[key] = names.get(key, 0) + 1
+  return {"threshold": threshold, "hidden_boxes_pct": 100 * sum(names.values()) / len(sq),
+          "rmse_floor": float(np.sqrt(np.mean(sq))), "hidden": names}
 
 
 def network_errors(rec: dict, rows: list[dict]) -> tuple[np.ndarray, list[int]]:
   """(per-box errors of the records' PPD guesses, positions of configurations whose
-  records' true slots differ from the rebuilt ones)."""
+  records' true slots or box counts differ from the rebuilt ones)."""
   guess, slot = np.asarray(rec[("guess", "PPD")]), np.asarray(rec[("true_slot",)])
   valid = np.asarray(rec[("true_valid",)])
   bad = [i for i, r in enumerate(rows)
@@ -194,28 +193,31 @@ def network_errors(rec: dict, rows: list[dict]) -> tuple[np.ndarray, list[int]]:
 
 
 def markdown(out: dict) -> str:
+  """results.md: the readers' table and the floors."""
   fmt = lambda s, k: f"{s[k]:.1f} [{s[k + '_ci'][0]:.1f}, {s[k + '_ci'][1]:.1f}]"
-  lines = ["# What the tools' densities allow (Table 3's test split)", "", "```",
-           out["command"], "```", "",
+  lines = ["# Exact mass properties and the tools' box densities (Table 3's test split)", "",
+           "```", out["command"], "```", "",
            f"{out['tools']} test tools x {out['configs']} configurations, {out['boxes']} "
            f"boxes ({out['left_out']} configurations left out: records differ from the "
-           f"rebuilt tool); fill factors from {out['calibrate_tools']} tools of seed "
-           f"{out['calibrate_seed']}. Intervals: 95 % bootstrap over tools.", "",
-           "| reader | top-1 (%) | within 2 slots (%) | within 5 (%) | RMSE (slots) |",
-           "|---|--:|--:|--:|--:|"]
+           f"rebuilt tool); corrections from {out['calibrate_tools']} tools of seed "
+           f"{out['calibrate_seed']}; hidden: parts under {100 * HIDDEN[0]:.0f} % of the "
+           "tool's mass. Intervals: 95 % bootstrap over tools.", "",
+           "| reader | boxes | top-1 (%) | within 2 slots (%) | within 5 (%) | RMSE (slots) |",
+           "|---|--:|--:|--:|--:|--:|"]
   for name, s in out["readers"].items():
-    lines.append(f"| {name} | {fmt(s, 'top1')} | {fmt(s, 'within2')} | {fmt(s, 'within5')}"
-                 f" | {fmt(s, 'rmse')} |")
+    lines.append(f"| {name} | {s['boxes']} | {fmt(s, 'top1')} | {fmt(s, 'within2')} | "
+                 f"{fmt(s, 'within5')} | {fmt(s, 'rmse')} |")
   lines += ["", "| parts under this share of the tool's mass | boxes (%) | RMSE floor "
             "(slots) | which |", "|--:|--:|--:|---|"]
   for f in out["floors"]:
-    which = ", ".join(f"{k} {v}" for k, v in sorted(f["hidden_by_category"].items()))
+    which = ", ".join(f"{k} {v}" for k, v in sorted(f["hidden"].items()))
     lines.append(f"| {100 * f['threshold']:.0f} % | {f['hidden_boxes_pct']:.1f} | "
                  f"{f['rmse_floor']:.2f} | {which} |")
   return "\n".join(lines) + "\n"
 
 
 def main():
+  """Rebuilds the test tools, checks them against the records, scores and writes."""
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--records", required=True, help="the tools evaluation's kept records")
   p.add_argument("--out", required=True)
@@ -240,32 +242,26 @@ def main():
   calib = [r for i in tqdm(range(a.calibrate_tools), desc="calibration tools")
            for r in tool_rows(a.calibrate_seed, i, a.calibrate_configs)]
   net_err, bad = network_errors({k: np.asarray(v)[:len(rows)] for k, v in rec.items()}, rows)
-  keep_cfg = np.ones(len(rows), bool)
-  keep_cfg[bad] = False
-  keep_box = np.concatenate([[k] * r["count"] for k, r in zip(keep_cfg, rows)])
-  kept = [r for r, k in zip(rows, keep_cfg) if k]
-  factors = fill_factors(calib)
-  oracle, tool = per_box(kept, [r["oracle"] for r in kept])
-  fitted, _ = per_box(kept, [calibrated(r, factors) for r in kept])
-  known, _ = per_box(kept, [in_material(r, calibrated(r, factors)) for r in kept])
-  share = np.concatenate([r["share"] for r in kept])
-  seen = share >= HIDDEN[0]
-  readers = {
-      "the shipped model, PPD (full) (records)": scores(net_err[keep_box], tool),
-      f"the shipped model, boxes of parts >= {HIDDEN[0]:.0%} of the mass":
-          scores(net_err[keep_box][seen], tool[seen]),
-      f"the shipped model, boxes of parts < {HIDDEN[0]:.0%} of the mass":
-          scores(net_err[keep_box][~seen], tool[~seen]),
-      "oracle mass properties, true boxes": scores(oracle, tool),
-      "oracle mass properties, true boxes, fill calibrated": scores(fitted, tool),
-      "the same, each box's material known": scores(known, tool)}
+  keep = np.ones(len(rows), bool)
+  keep[bad] = False
+  keep_box = np.concatenate([[k] * r["count"] for k, r in zip(keep, rows)])
+  kept = [r for r, k in zip(rows, keep) if k]
+  table = corrections(calib)
+  errors = {"the shipped model, PPD (full)": net_err[keep_box], **readings(kept, table)}
+  tool = np.concatenate([[r["tool"]] * r["count"] for r in kept])
+  seen = np.concatenate([r["share"] for r in kept]) >= HIDDEN[0]
+  readers = {}
+  for name, err in errors.items():
+    readers[name] = scores(err, tool)
+    readers[f"{name}: hidden boxes"] = scores(err[~seen], tool[~seen])
+    readers[f"{name}: other boxes"] = scores(err[seen], tool[seen])
   command = (f"python experiments/tool_density_ceiling.py --records={a.records} "
              f"--out={a.out}" + (f" --tools={a.tools}" if a.tools else ""))
   out = {"command": command, "tools": len(ids), "configs": configs,
          "boxes": int(keep_box.sum()), "left_out": len(bad),
          "calibrate_seed": a.calibrate_seed, "calibrate_tools": a.calibrate_tools,
          "readers": readers, "floors": [floor(kept, t) for t in HIDDEN],
-         "fill_factors": {"/".join(map(str, k)): v for k, v in factors.items()}}
+         "corrections": {"/".join(map(str, k)): v for k, v in table.items()}}
   os.makedirs(a.out, exist_ok=True)
   with open(os.path.join(a.out, "results.json"), "w") as f:
     json.dump(out, f, indent=1)

@@ -496,10 +496,11 @@ def test_tool_early_motion_reads_densities_from_velocities():
 
 
 def test_tool_density_ceiling_reads_box_parts_exactly_and_floors_hidden_ones():
-  """A tool made of two boxes (one turned about z) gives its boxes' densities back from its
-  mass properties alone; the floor of one hidden metal box in four is the metal slots'
-  spread over two; the records' guesses are checked against the rebuilt slots; a reading
-  outside its material's slots moves to the nearest of them."""
+  """A tool of two boxes (one turned about a tilted axis) has exactly its boxes' ten
+  moments and gives their densities back from its mass properties alone; corrections skip
+  empty readings and fall back to coarser keys; a bounded reading snaps into the
+  material; the floor of one hidden metal box in four is its miss of metal's mean slot
+  over two; the records' guesses are checked against the rebuilt slots."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   import trimesh  # pylint: disable=import-outside-toplevel
   from ppdjax import primitives  # pylint: disable=import-outside-toplevel
@@ -508,7 +509,7 @@ def test_tool_density_ceiling_reads_box_parts_exactly_and_floors_hidden_ones():
 
   half = np.array([[0.3, 0.05, 0.04], [0.06, 0.1, 0.05]])
   pos = np.array([[-0.1, 0.0, -0.02], [0.26, 0.02, 0.07]])
-  turn = trimesh.transformations.rotation_matrix(0.4, [0, 0, 1])
+  turn = trimesh.transformations.rotation_matrix(0.7, [0.3, 1.0, 0.5])
   parts = []
   for h, p, rot in zip(half, pos, (np.eye(4), turn)):
     box = trimesh.creation.box(extents=2 * h, transform=rot)
@@ -516,26 +517,37 @@ def test_tool_density_ceiling_reads_box_parts_exactly_and_floors_hidden_ones():
     parts.append(box)
   quat = np.stack([[1.0, 0, 0, 0], np.asarray(primitives.mat_to_quat(
       np.asarray(turn[:3, :3], np.float32)))])
-  prims = primitives.Primitives(half_size=half, pos=pos, quat=quat,
-                                density=np.zeros(2), valid=np.ones(2, bool))
+  prims = primitives.Primitives(half_size=half.astype(np.float32),
+                                pos=pos.astype(np.float32), quat=quat.astype(np.float32),
+                                density=np.zeros(2, np.float32), valid=np.ones(2, bool))
   rho = np.array([700.0, 7800.0])
   target = study.tool_moments(*tool_scene.mass_properties(parts, rho))
-  np.testing.assert_allclose(study.read_densities(study.box_moments(prims), target), rho,
-                             rtol=1e-3)
+  columns = study.box_moments(prims)
+  np.testing.assert_allclose(columns @ rho, target, rtol=2e-4, atol=1e-3 * target[0])
+  np.testing.assert_allclose(study.read_densities(columns, target), rho, rtol=1e-3)
+  row = {"category": "knife", "count": 2, "slot": np.array([4, 80]),
+         "raw": np.array([500.0, 40.0]), "material": ["wood", "metal"],
+         "columns": columns, "target": target}
+  table = study.corrections([row])  # the empty second box is not a correction
+  assert table[("knife", 2, 0)] == pytest.approx(1.0) and ("knife", 2, 1) not in table
+  np.testing.assert_allclose(study.box_corrections(row, table), [1.0, 1.0])
+  np.testing.assert_allclose(study.read_in_material(row, np.ones(2)), rho, rtol=0.02)
+  assert study.nearest_in_material("metal", 5000.0) == 3500.0  # metal's nearer range
   rows = [{"share": np.array([0.995, 0.005]), "material": ["wood", "metal"], "count": 2,
-           "category": "screwdriver", "tool": 0, "slot": np.array([4, 80])},
+           "part": ["handle", "tip"], "category": "screwdriver", "tool": 0,
+           "slot": np.array([4, 80])},
           {"share": np.array([0.5, 0.5]), "material": ["wood", "metal"], "count": 2,
-           "category": "screwdriver", "tool": 1, "slot": np.array([4, 80])}]
+           "part": ["handle", "tip"], "category": "screwdriver", "tool": 1,
+           "slot": np.array([4, 81])}]
   out = study.floor(rows, 0.01)
-  assert out["hidden_boxes_pct"] == 25.0
-  assert out["rmse_floor"] == pytest.approx(np.std(materials.material_slots("metal")) / 2)
+  assert out["hidden_boxes_pct"] == 25.0 and out["hidden"] == {"screwdriver tip (metal)": 1}
+  miss = 80 - materials.material_slots("metal").mean()
+  assert out["rmse_floor"] == pytest.approx(abs(miss) / 2)
   rec = {("guess", "PPD"): np.array([[4, 70, -1], [5, 80, -1]]),
-         ("true_slot",): np.array([[4, 80, 0], [4, 81, 0]]),
+         ("true_slot",): np.array([[4, 80, 0], [4, 82, 0]]),
          ("true_valid",): np.array([[1, 1, 0], [1, 1, 0]], bool)}
   err, bad = study.network_errors(rec, rows)
-  assert bad == [1] and list(err) == [0, -10, 1, -1]
-  np.testing.assert_allclose(study.in_material(rows[0], np.array([1500.0, 5000.0])),
-                             [1000.0, 3500.0])  # wood's top; metal's nearer range
+  assert bad == [1] and list(err) == [0, -10, 1, -2]
 
 
 def test_paired_models_reads_the_change_of_one_model_against_another():

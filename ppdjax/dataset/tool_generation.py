@@ -23,6 +23,14 @@ ATTEMPTS = 4
 ATTEMPT_STRIDE = 1_000_000
 
 
+def density_variants(tool: tools.Tool, seed: int, index: int, configs: int) -> list:
+  """The `configs` density configurations of tool `index` of `seed`: the tool itself, then
+  each other with every part's slot drawn again (`tools.with_new_slots`, from (seed, index,
+  c)), as the dataset stores them."""
+  return [tool] + [tools.with_new_slots(tool, np.random.default_rng([seed, index, c]))
+                   for c in range(1, configs)]
+
+
 def tool_samples(seed: int, index: int, image_size: int, steps: int, configs: int = 1,
                  force: float = tool_scene.TOOL_PUSH_FORCE) -> list[dict[str, np.ndarray]]:
   """The arrays of tool `index` (one row of each storage field but "split") under
@@ -36,8 +44,7 @@ def tool_samples(seed: int, index: int, image_size: int, steps: int, configs: in
     tool = tools.sample_tool(seed, index + attempt * ATTEMPT_STRIDE)
     parts, _ = normalize(list(tool.parts))
     tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, len(parts))
-    variants = [tool] + [tools.with_new_slots(tool, np.random.default_rng([seed, index, c]))
-                         for c in range(1, configs)]
+    variants = density_variants(tool, seed, index, configs)
     pushes = tool_scene.tool_pushes(force)
     try:
       obs = tool_scene.observe(parts, tool.materials, tool.densities, tex_seeds,

@@ -197,11 +197,12 @@ def init_from(model: PPD, workdir: str) -> list[str]:
   source, _ = checkpoints.load(workdir, which="latest")
   src = _flat(nnx.to_pure_dict(nnx.state(source)))
   dst = nnx.to_pure_dict(nnx.state(model))
-  copied = [p for p, v in _flat(dst).items() if p in src and np.shape(src[p]) == np.shape(v)]
+  both = {p: v for p, v in _flat(dst).items() if p in src}
+  copied = [p for p, v in both.items() if np.shape(src[p]) == np.shape(v)]
   if not copied:
     raise ValueError(f"train.init_from={workdir}: no parameter matches this model")
   reshaped = [f"{'/'.join(map(str, p))} {np.shape(src[p])} -> {np.shape(v)}"
-              for p, v in _flat(dst).items() if p in src and np.shape(src[p]) != np.shape(v)]
+              for p, v in both.items() if np.shape(src[p]) != np.shape(v)]
   if reshaped:
     warnings.warn(f"train.init_from={workdir}: {len(reshaped)} arrays have another shape "
                   "here and start fresh: " + "; ".join(reshaped), stacklevel=2)
