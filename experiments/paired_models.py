@@ -47,8 +47,8 @@ def row(rec: dict, name: str) -> tuple[dict, np.ndarray]:
 
 def f1(rec: dict, idx: np.ndarray) -> float:
   """Shape F1 (%) over the records `idx`, from their matched / predicted / true counts."""
-  m, p, t = (np.asarray(rec[("shape", k)])[idx].sum() for k in ("matched", "predicted", "true"))
-  return float(200 * m / max(p + t, 1))
+  return metrics.f1_from_counts(*(np.asarray(rec[("shape", k)])[idx]
+                                  for k in ("matched", "predicted", "true")))
 
 
 def compare(first: dict, second: dict, groups: np.ndarray, resamples: int = 1000) -> dict:

@@ -204,7 +204,7 @@ class PPD(nnx.Module):
       raise ValueError("config.model.early_motion_steps feeds the density branch: set "
                        "config.model.density_branch = True too")
     self.feature, self.hidden, self.max_primitives = c.feature, c.hidden, c.max_primitives
-    self.num_pushes = c.num_pushes
+    self.early_size = c.num_pushes * self.early_steps * 6  # early_motion's features
     f = c.feature
     self.voxel_encoder = (VoxelEncoder(f, c.get("voxel_width", 1), c.get("voxel_coords", False),
                                        c.get("voxel_keep", 1), rngs=rngs)
@@ -225,8 +225,7 @@ class PPD(nnx.Module):
     # The density branch (model.density_branch; see `_step`): its own fusion and LSTMs,
     # and, with model.early_motion_steps, the velocities just after each push (`_fused`).
     if c.get("density_branch", False):
-      early = c.num_pushes * self.early_steps * 6
-      self.density_fuse = nnx.Linear(3 * f + early, f, rngs=rngs)
+      self.density_fuse = nnx.Linear(3 * f + self.early_size, f, rngs=rngs)
       self.density_cells = nnx.List([
           LSTMCell((PRIM_DIM + f + c.hidden) if i == 0 else c.hidden, c.hidden, rngs=rngs)
           for i in range(c.generator_layers)])
@@ -253,9 +252,8 @@ class PPD(nnx.Module):
          if use(self.trajectory_encoder, "trajectories") else zero),
     ]
     if self.early_steps:
-      size = self.num_pushes * self.early_steps * 6
       parts.append(early_motion(obs["trajectories"], self.early_steps)
-                   if "trajectories" in obs else jnp.zeros((b, size)))
+                   if "trajectories" in obs else jnp.zeros((b, self.early_size)))
     return parts
 
   def encode(self, obs: dict, train: bool = False, rngs=None) -> jax.Array:
