@@ -4,8 +4,8 @@ decomposed into physical primitives.
 Reads the mesh (`ppdjax.load_object`: parts are the file's groups or connected
 components), observes it as the tools dataset does (`tool_scene.observe`: exact voxels, a
 textured image, MuJoCo C trajectories of the parts under the tools' four pushes), runs
-`make_decompose_fn` with a trained model (under the pushes of its training data), and
-writes OUT/decomposition.png (the input
+`make_decompose_fn` with a trained model and its own settings
+(`--config.eval.<key>=<value>` overrides one), and writes OUT/decomposition.png (the input
 image, the recovered boxes coloured by density, the truth's boxes from the mesh) and
 OUT/decomposition.json (the boxes in the normalised frame, the transform from the file's
 coordinates, the parts and their densities).
@@ -18,6 +18,8 @@ import os
 
 from absl import app, flags, logging
 
+from ppdjax.configs import cli
+
 _MESH = flags.DEFINE_string("mesh", None, "OBJ/STL/PLY/GLB file.", required=True)
 _MATERIALS = flags.DEFINE_string("materials", "", "Materials per part: name=material,... "
                                  "(names: the file's groups, or part0, part1, ...), or one "
@@ -27,20 +29,15 @@ _DENSITIES = flags.DEFINE_string("densities", "", "Densities per part in kg/m^3 
 _MODEL = flags.DEFINE_string("model", "", "Trained model folder (default: assets/tools_model; "
                              "the block-tower model if that is missing).")
 _OUT = flags.DEFINE_string("out", "out/decompose", "Output directory.")
-_SAMPLES = flags.DEFINE_integer("samples", 512, "Density candidates.")
 _ENGINE = flags.DEFINE_enum("engine", "", ["", "mjx", "box_plane"], "Engine that simulates "
                             "the boxes (default: the model's training engine).")
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling and texture seed.")
-_FIT = flags.DEFINE_bool("fit", None, "Replace the network's boxes by boxes fitted to the "
-                         "voxels (`ppdjax.fit_boxes`). Default: off for a mesh observed as "
-                         "a tool (on the tools' test split the tools model's own boxes reach "
-                         "shape F1 63.1, the fit 49.2: a fitted box is at least a voxel "
-                         "thick), on with --trajectory (block towers: the fit is exact).")
 _TRAJECTORY = flags.DEFINE_string(
     "trajectory", "", "A tracked trajectory (python -m ppdjax.track's .npz) to read instead "
     "of simulating the mesh's motion: the object struck once as the video model was trained "
     "(default model then assets/video_model; the stickers' object frame must be the "
     "mesh's normalised frame).")
+_CONFIG = cli.define_model_overrides(("eval",))
 
 
 def _parse(text: str, number: bool):
@@ -67,20 +64,18 @@ def default_model(tracked: bool = False) -> str:
   return "assets/blocks_model"
 
 
-def run(mesh: str, materials, densities, model: str, out: str, samples: int = 512,
-        engine: str = "", seed: int = 0, trajectory: str = "", fit: bool | None = None
-        ) -> dict:
+def run(mesh: str, materials, densities, model: str, out: str, overrides: dict | None = None,
+        engine: str = "", seed: int = 0, trajectory: str = "") -> dict:
   """Decomposes a mesh file; writes the picture and JSON into `out`; returns the JSON.
   With `trajectory` (a `ppdjax.track` .npz), that tracked motion is the observation's;
-  `fit`: boxes fitted to the voxels instead of the network's (`make_decompose_fn`; None:
-  with a trajectory only, see --fit)."""
+  `overrides`: keys of the model's `eval` section (`schema.EvalConfig`) to change."""
   import jax
   import numpy as np
 
   from ppdjax import load, load_object, make_decompose_fn, plots
   from ppdjax.dataset import tool_generation, tool_scene
   from ppdjax.dataset.mesh_boxes import boxes_of_parts
-  from ppdjax.sim.rollout_mjx import settings_for
+  from ppdjax.infer.config import DecomposeConfig
 
   tool, transform = load_object(mesh, part_materials=materials, part_densities=densities)
   trained = load(model)
@@ -99,12 +94,12 @@ def run(mesh: str, materials, densities, model: str, out: str, samples: int = 51
     obs["trajectories"] = tracked_observation(trajectory, config, tool_scene.rest_height(
         list(tool.parts)))
   # simulated here under the tools' pushes; a tracked trajectory under the model's own
-  fit = bool(trajectory) if fit is None else fit
-  decompose = make_decompose_fn(trained, num_samples=samples, fit=fit,
-                                prior_weight=float(config.eval.get("prior_weight", 0.0)),
-                                selection_horizon=int(config.eval.get("selection_horizon", 0)),
-                                pushes=None if trajectory else pushes,
-                                settings=settings_for(engine) if engine else None)
+  settings = DecomposeConfig.from_eval({**config.eval, **(overrides or {})})
+  if settings.fit.depth and "depth" not in obs:
+    settings = settings.replace(**{"fit.depth": False})  # a mesh observed without depth
+  decompose = make_decompose_fn(trained, settings, pushes=None if trajectory else pushes,
+                                engine=engine or None)
+  samples = settings.select.samples
   print(f"decomposing with {model} ({samples} density candidates; the first call compiles)")
   result = jax.tree.map(np.asarray, decompose(obs, jax.random.key(seed)))
   os.makedirs(out, exist_ok=True)
@@ -122,7 +117,7 @@ def run(mesh: str, materials, densities, model: str, out: str, samples: int = 51
             "parts": [{"name": n, "material": m, "density": float(d)} for n, m, d in
                       zip(tool.names, tool.materials, tool.densities)],
             "boxes": boxes(result.primitives), "boxes_from_mesh": boxes(truth),
-            "trajectory_distance_m": float(result.score), "samples": samples, "fit": fit,
+            "trajectory_distance_m": float(result.score), "settings": settings.to_dict(),
             "trajectory": os.path.abspath(trajectory) if trajectory else "simulated"}
   with open(os.path.join(out, "decomposition.json"), "w") as f:
     json.dump(record, f, indent=1)
@@ -136,8 +131,8 @@ def main(argv):
   import jax
   jax.config.update("jax_compilation_cache_dir", os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   run(_MESH.value, _parse(_MATERIALS.value, number=False), _parse(_DENSITIES.value, number=True),
-      _MODEL.value or default_model(bool(_TRAJECTORY.value)), _OUT.value, _SAMPLES.value,
-      _ENGINE.value, _SEED.value, _TRAJECTORY.value, _FIT.value)
+      _MODEL.value or default_model(bool(_TRAJECTORY.value)), _OUT.value,
+      cli.model_overrides(("eval",))["eval"], _ENGINE.value, _SEED.value, _TRAJECTORY.value)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from ppdjax.dataset import generation, storage, towers
 from ppdjax.infer import evaluation, example, markdown
 from ppdjax.infer.decompose import make_decompose_fn
 from ppdjax.plots import plot_decomposition, plot_trajectories
+from ppdjax.report.provenance import write_provenance
 from ppdjax.sim.mass import mass_properties
 from ppdjax.sim.pushes import default_pushes, push_points
 from ppdjax.sim.scene import rest_position
@@ -130,21 +131,20 @@ def smoke_run(config, out_dir: str) -> dict:
 def evaluate_and_decompose(config, blocks: str, workdir: str, out: str) -> dict:
   """Evaluates a trained model on the test split (OUT/eval) and decomposes one test tower
   (OUT/decomposition.png); returns the evaluation's results."""
-  cfg = config.eval
   trained = checkpoints.load(workdir)
-  print(f"  evaluating on the test split with {cfg.samples} density samples per object "
+  print(f"  evaluating on the test split with {trained[1].eval.samples} density samples per "
+        "object "
         f"(compiles once) -> {out}/eval", flush=True)
-  results = evaluation.evaluate(trained, blocks, **evaluation.eval_settings(config))
-  markdown.write_results(results, os.path.join(out, "eval"),
-                       f"python -m ppdjax.evaluate --workdir={workdir} --data={blocks}")
-  row = results["table2"]["PPD+Sample"]
-  print(f"  test: shape F1 {results['f1']:.1f}, +Sample top-1 {row['top1']:.1f}%, RMSE "
-        f"{row['rmse']:.1f} slots, trajectory MAE {row['mae']:.0f} mm", flush=True)
+  results = evaluation.evaluate(trained, blocks)  # the model's own settings, as decompose
+  command = f"python -m ppdjax.evaluate --workdir={workdir} --data={blocks}"
+  paths = markdown.write_results(results, os.path.join(out, "eval"), command)
+  write_provenance(paths[0], command=command, config=trained[1], weights=trained[0])
+  row = results["table2"][results["headline"]]
+  print(f"  test: shape F1 {results['f1']:.1f}, {results['headline']} top-1 {row['top1']:.1f}%"
+        f", RMSE {row['rmse']:.1f} slots, trajectory MAE {row['mae']:.0f} mm", flush=True)
   print("  decomposing one test tower with the jitted decompose()...", flush=True)
   sample = storage.open_dataset(blocks, "test")[0]
-  decompose = make_decompose_fn(trained, num_samples=cfg.samples, refine=cfg.refine,
-                                refine_steps=cfg.refine_steps, prior_weight=cfg.prior_weight,
-                                fit=bool(cfg.get("fit", False)))  # as the evaluation above
+  decompose = make_decompose_fn(trained)  # the same settings as the evaluation above
   got = decompose({k: sample[k] for k in OBS_KEYS}, jax.random.key(config.seed))
   prims = jax.device_get(got.primitives)
   plot_decomposition(sample["image"], prims, os.path.join(out, "decomposition.png"),

@@ -8,26 +8,19 @@ import numpy as np
 from flax import nnx, struct
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION
-from ppdjax.dataset.camera import check_camera
+from ppdjax.dataset.camera import camera_dict, check_camera
 from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.image_fit import check_image
+from ppdjax.infer.config import DecomposeConfig, FitConfig
 from ppdjax.infer.fit import fit_boxes
-from ppdjax.infer.refine import check_jacobian, density_prior, refine_if_closer
-from ppdjax.infer import faces, sampling
+from ppdjax.infer.refine import density_prior, refine_if_closer
+from ppdjax.infer import sampling
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import Settings, settings_for
 from ppdjax.training import checkpoints
 from ppdjax.training import estimator as estimator_module
-
-
-# The screen `make_decompose_fn` uses with the depth fit (experiments/results/screen_study)
-SCREEN_STEPS_WITH_DEPTH = 32
-# the default screen runs only where it keeps at most this fraction of the candidates:
-# with fewer (e.g. the demo's 128 samples, 64 kept) it simulates almost as many steps and
-# compiles a second rollout (about 20 s of tracing and 40 s of compiling on a 2-core CPU)
-SCREEN_MIN_RATIO = 4
 
 
 @struct.dataclass
@@ -42,7 +35,7 @@ class Decomposition:
       combined (`ppdjax.nn.estimator.combine_logits`).
     score: (B,) trajectory distance (metres) of the returned densities.
     scores: (B, S) every sampled candidate's distance (candidate 0: the arg-max; inf for
-      one screened out, `make_decompose_fn(screen_steps=)`).
+      one screened out, `SelectConfig.screen_steps`).
     trajectories: (B, P, T, 7) the returned object simulated under the pushes.
   """
 
@@ -96,162 +89,117 @@ def is_paper_pushes(pushes: Pushes) -> bool:
           and all(np.allclose(a, b) for a, b in zip(pushes.arrays()[:3], paper.arrays()[:3])))
 
 
-def default_screen_steps(fit_with: tuple[str, ...], num_samples: int, screen_keep: int) -> int:
-  """`make_decompose_fn`'s screen when none is given: SCREEN_STEPS_WITH_DEPTH with the
-  depth fit and at least SCREEN_MIN_RATIO × `screen_keep` candidates, else 0 (a screen
-  keeping a quarter or more saves little and compiles a second rollout)."""
-  return (SCREEN_STEPS_WITH_DEPTH if "depth" in fit_with
-          and num_samples >= SCREEN_MIN_RATIO * screen_keep else 0)
+def model_camera(trained) -> dict:
+  """The camera of a model's training data: saved beside an exported or trained model
+  (`checkpoints.DECOMPOSE_FILE`), else the datasets' camera at its image size."""
+  if isinstance(trained, str):
+    saved = checkpoints.read_decompose(trained)
+    if saved is not None and saved.get("camera") is not None:
+      return saved["camera"]
+    trained = (None, checkpoints.read_config(trained))
+  size = trained[1].data.image_size
+  return camera_dict(size, size)
 
 
-def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
-                      camera: dict | None = None, fit_with: tuple[str, ...] | None = None,
-                      refine: bool = False,
-                      refine_steps: int = 12, prior_weight: float = 0.0,
-                      mass_match: bool = False, screen_steps: int | None = None,
-                      screen_keep: int = 64, face_spread: float = 0.0,
-                      selection_horizon: int = 0, refine_prior: float = 0.0,
-                      refine_jacobian: str = "forward",
-                      estimator=None,
-                      estimator_weight: float = 1.0, pushes: Pushes | None = None,
-                      settings: Settings | None = None):
+def model_settings(trained) -> DecomposeConfig:
+  """The decomposition settings a model was evaluated with: its saved `eval` section (the
+  one source; decompose.json shows them as a DecomposeConfig beside the camera)."""
+  config = checkpoints.read_config(trained) if isinstance(trained, str) else trained[1]
+  return DecomposeConfig.from_eval(config.eval)
+
+
+def fit_stage(obs: dict, pred: Primitives, fit: FitConfig, camera) -> Primitives:
+  """The boxes the densities go on, for a batch (B, K): `pred` (the network's) or, with
+  `fit.enabled`, boxes fitted to the voxels from them (and to the image and depth as
+  `fit` asks); the densities stay `pred`'s. The evaluation's fitted rows call it too."""
+  if not fit.enabled:
+    return pred
+  return fit_boxes(obs["voxels"], init=pred, image=obs["image"] if fit.image else None,
+                   depth=obs["depth"] if fit.depth else None,
+                   camera=camera if fit.with_ else None).replace(density=pred.density)
+
+
+def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
+                      camera: dict | None = None, pushes: Pushes | None = None,
+                      engine: str | Settings | None = None):
   """One jitted `decompose(observation, key) -> Decomposition` for a trained model.
 
   Args:
-    trained: a training workdir, or the (model, config) pair `ppdjax.load` returns.
-    num_samples: density candidates per object (1: the network's arg-max only).
-    fit: replace the network's boxes by boxes fitted to the voxels (`ppdjax.fit_boxes`,
-      started from the network's); the network's k-th density scores go to the k-th
-      fitted box from the bottom. False: the network's boxes, as the paper.
-    camera: the images' camera (`open_dataset(DIR).camera`), for the observations the
-      fit reads beside the voxels (`fit_with`). Needs `fit`.
-    fit_with: which observations the fit reads beside the voxels: any of "image" (faces
-      moved within half a voxel onto the image's edges: the paper's inputs) and "depth"
-      (then refined against observation["depth"]: faces the camera sees become
-      sub-voxel), through `fit_boxes(..., image=, depth=, camera=)`. None: ("depth",)
-      with a camera, () without. Needs the camera.
-    refine: fit the densities by Levenberg–Marquardt through MJX, from the candidate
-      closest in trajectory (whatever `prior_weight` selects: that start refines best,
-      docs/inference.md); the fit replaces the selection only where its trajectory
-      distance is below every candidate's.
-    refine_steps: LM iterations.
-    prior_weight: τ of `select_densities` (0: the closest trajectory wins).
-    mass_match: `select_densities`' second pass: candidates scaled to the closest one's
-      total mass and simulated again (twice the rollouts; continuous densities).
-    screen_steps: > 0 simulates every candidate over its first `screen_steps` steps only
-      and the `screen_keep` closest over that prefix whole; the answer is the best of those
-      (`select_densities`; 0: every candidate whole, the paper's). Candidates screened
-      out have score inf. None: 32 with the depth fit and at least 4 × `screen_keep`
-      candidates (on depth-fitted boxes the screen of 32 steps to 64 survivors kept the
-      exhaustive answer for 98.8 % of 2,400 test towers, at 3.8× the objects/s in batches
-      of 64 at 512 samples), else 0 (on coarser boxes it keeps it less
-      often: docs/inference.md, "Screened selection").
-    screen_keep: survivors of the screen per object.
-    selection_horizon: > 0 picks the candidate closest over the first this many steps
-      (`select_densities`; 0: all steps, the paper's). The paper preset's evaluation uses 32
-      (`config.eval.selection_horizon`: chosen on the validation split, docs/inference.md);
-      the reported score and refinement's start stay whole-trajectory.
-    face_spread: > 0 (voxels; needs `fit`) draws each candidate's faces too, within this of
-      the fitted ones (`faces.spread_faces`; 0.5: wherever the voxels allow them), and
-      returns the winner's boxes: its trajectories come closer, its densities do not
-      (docs/inference.md, "Faces drawn with the densities"). 0: the fitted boxes.
-    refine_prior: > 0 makes refinement a MAP step under the network's density scores
-      (`refine.refine_densities`'s prior_weight; 1e-5: a one-σ move costs about 3 mm of
-      trajectory residual); 0 is plain least squares.
-    refine_jacobian: "forward" (forward mode, K tangents), "differences" or "central"
-      (K + 1 or 2K + 1 rollouts in one call: where the rollouts run as the box-plane GPU
-      kernel, 3x faster and slightly less accurate; docs/inference.md).
-    estimator: a density estimator (its folder, or the model `training.estimator.load`
-      returns) that reads the fitted boxes and the trajectories; its log-probabilities,
-      times `estimator_weight`, join the network's for sampling and the MAP prior. Needs
-      `fit` and the paper's pushes.
-    estimator_weight: see `estimator`.
+    model: a training workdir or exported model (such as "assets/blocks_model"), or the
+      (model, config) pair `ppdjax.load` returns.
+    config: the settings (`DecomposeConfig`); None: the model's own, those its tables
+      report (its saved `eval` section). `DecomposeConfig.paper()` and `.best()` are the
+      presets; `config.replace(**{"select.samples": 128})` changes one setting.
+    camera: the images' camera (`open_dataset(DIR).camera`), for a fit that reads the
+      image or the depth; None: the camera of the model's training data.
     pushes: the pushes the observations were recorded with (None: those of the model's
-      training data, `generation.pushes_of(config.data)`: the paper's four for towers).
-    settings: the engine the observations were simulated with: MjxSettings or
-      BoxPlaneSettings; None: the default settings of the engine that made the model's
-      training data (`config.data.backend`, `rollout_mjx.settings_for`).
+      training data, the paper's four for towers).
+    engine: the simulator the observations come from: "mjx", "box_plane" (or their
+      `Settings`); None: the engine of the model's training data.
 
   Returns:
-    decompose(observation, key): observation is a dict with "voxels" (32,32,32),
-    "image" (H,W,3) uint8 and "trajectories" (P,T,7) (and "depth" (H',W') metres with a
-    camera), or a batch of them (leading B); the result has the same leading axes.
+    decompose(observation, key): observation is a dict with "voxels" (32,32,32), "image"
+    (H,W,3) uint8 and "trajectories" (P,T,7) (and "depth" (H',W') metres for a depth fit),
+    or a batch of them (leading B); the result has the same leading axes.
   """
-  if isinstance(trained, str):
-    trained = checkpoints.load(trained)
-  model, config = trained
-  if num_samples < 1:
-    raise ValueError(f"num_samples must be >= 1, got {num_samples}")
-  if fit_with is None:
-    fit_with = ("depth",) if camera is not None else ()
-  fit_with = tuple(fit_with)
-  if set(fit_with) - {"image", "depth"}:
-    raise ValueError(f"fit_with: expected any of ('image', 'depth'), got {fit_with}")
-  if fit_with and camera is None:
-    raise ValueError(f"fit_with={fit_with} needs the images' camera (camera=)")
-  if screen_steps is None:
-    screen_steps = default_screen_steps(fit_with, num_samples, screen_keep)
-  sampling.check_screen(screen_steps, screen_keep, num_samples, 0)  # its errors, now
-  sampling.check_selection_horizon(selection_horizon)
-  if camera is not None and not fit:
-    raise ValueError("camera is for the image and depth fits: it needs fit=True")
-  faces.check_spread(face_spread, fit)
-  if camera is not None:
-    camera = check_camera(camera)
-  keys = OBS_KEYS + (("depth",) if "depth" in fit_with else ())
-  if estimator is not None and not fit:
-    raise ValueError("the estimator reads fitted boxes: it needs fit=True")
+  path = model if isinstance(model, str) else None
+  trained = checkpoints.load(model) if path is not None else model
+  net, run_config = trained
+  config = model_settings(path or trained) if config is None else config
+  if not isinstance(config, DecomposeConfig):
+    raise TypeError(f"config: expected a DecomposeConfig, got {type(config).__name__}")
+  config.validate()
+  fit, select, refine = config.fit, config.select, config.refine
+  if fit.with_:
+    camera = check_camera(model_camera(path or trained) if camera is None else camera)
+  elif camera is not None:
+    raise ValueError("camera is for the image and depth fits: this config reads neither "
+                     "(fit.image, fit.depth)")
+  keys = OBS_KEYS + (("depth",) if fit.depth else ())
   if pushes is None:
     from ppdjax.dataset.generation import pushes_of  # pylint: disable=import-outside-toplevel
-    pushes = pushes_of(config.data)
-  if estimator is not None and not is_paper_pushes(pushes):
-    raise ValueError("the estimator was trained on the paper's four pushes; these pushes "
-                     "(given, or the model's training data's) are others")
-  if isinstance(estimator, str):
-    estimator = estimator_module.load(estimator)[0]
-  if settings is None:
-    settings = settings_for(config.data.get("backend", "mjx"))
-  check_jacobian(refine_jacobian)  # its error, now
-  graphdef, state = nnx.split(model)
+    pushes = pushes_of(run_config.data)
+  estimator = None
+  if config.estimator.path:
+    if not is_paper_pushes(pushes):
+      raise ValueError("the estimator was trained on the paper's four pushes; these pushes "
+                       "(given, or the model's training data's) are others")
+    estimator = estimator_module.load(config.estimator.path)[0]
+  if engine is None:
+    engine = run_config.data.get("backend", "mjx")
+  settings = settings_for(engine) if isinstance(engine, str) else engine
+  graphdef, state = nnx.split(net)
   est_graphdef, est_state = nnx.split(estimator) if estimator is not None else (None, None)
 
   @jax.jit
   def run(state, est_state, obs, key):
-    model = nnx.merge(graphdef, state)
-    prims, raw = model.decode(obs)
-    k = prims.num_slots
-    logits = raw.density_logits[:, :k, :NUM_DENSITY_SLOTS]
+    pred, raw = nnx.merge(graphdef, state).decode(obs)
+    logits = raw.density_logits[:, :pred.num_slots, :NUM_DENSITY_SLOTS]
     traj = obs["trajectories"].astype(jnp.float32)
-    if fit:
-      prims = fit_boxes(obs["voxels"], init=prims,
-                        image=obs["image"] if "image" in fit_with else None,
-                        depth=obs.get("depth"),
-                        camera=camera if fit_with else None).replace(density=prims.density)
+    prims = fit_stage(obs, pred, fit, camera)
     if est_graphdef is not None:
       logits = combine_logits(logits, nnx.merge(est_graphdef, est_state)(prims, traj),
-                              estimator_weight)
-    keys = jax.random.split(key, traj.shape[0])
+                              config.estimator.weight)
     sel = jax.vmap(lambda p, l, o, kk: sampling.select_densities(
-        p, l, o, pushes, num_samples=num_samples, key=kk, prior_weight=prior_weight,
-        mass_match=mass_match, screen_steps=screen_steps, screen_keep=screen_keep,
-        face_spread=face_spread, selection_horizon=selection_horizon,
-        settings=settings))(prims, logits, traj, keys)
+        p, l, o, pushes, num_samples=select.samples, key=kk,
+        prior_weight=select.prior_weight, mass_match=select.mass_match,
+        screen_steps=select.screen_steps, screen_keep=select.screen_keep,
+        face_spread=fit.face_spread, selection_horizon=select.horizon,
+        settings=settings))(prims, logits, traj, object_keys(key, traj.shape[0]))
     pick = lambda index: jax.tree.map(  # each object's candidate `index` (B,)
         lambda x: jnp.take_along_axis(x, index.reshape((-1,) + (1,) * (x.ndim - 1)), 1)[:, 0],
         sel.boxes)
     prims = pick(sel.best).replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
-    # from the candidate closest over all steps whatever τ and the horizon chose, as the
-    # evaluation's +Refine; where refinement is not closer, +Sample's answer stays (the
-    # evaluation's row keeps the start: the same answer at τ = 0 and selection_horizon = 0)
-    if refine:
+    if refine.enabled:  # from the candidate closest over all steps, whatever selected
       start = pick(jnp.argmin(sel.scores, -1))
       ref = jax.vmap(lambda p, lg, o, d: refine_if_closer(
-          p, o, d, pushes, steps=refine_steps,
-          prior=density_prior(lg) if refine_prior > 0 else None, prior_weight=refine_prior,
-          jacobian=refine_jacobian, settings=settings))(start, logits, traj, sel.scores.min(-1))
+          p, o, d, pushes, steps=refine.steps,
+          prior=density_prior(lg) if refine.prior_weight > 0 else None,
+          prior_weight=refine.prior_weight, jacobian=refine.jacobian,
+          settings=settings))(start, logits, traj, sel.scores.min(-1))
       # kept where it is closer than every candidate; else the +Sample answer stays
-      prims = jax.tree.map(  # the refined boxes (the closest candidate's) with their densities
+      prims = jax.tree.map(
           lambda r, p: jnp.where(ref.closer.reshape((-1,) + (1,) * (p.ndim - 1)), r, p),
           ref.primitives, prims)
       score = jnp.where(ref.closer, ref.distance, score)
@@ -259,13 +207,14 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     return Decomposition(prims, logits, score, sel.scores, sim)
 
   def decompose(observation: dict, key: jax.Array) -> Decomposition:
-    batched = check_observation(observation, config)
+    batched = check_observation(observation, run_config)
     lead = np.shape(observation["voxels"])[:1] if batched else ()
-    if "depth" in fit_with:
+    if fit.depth:
       if "depth" not in observation:
-        raise ValueError("observation lacks 'depth', which the fit asks for (fit_with)")
+        raise ValueError("observation lacks 'depth', which this config's fit reads "
+                         "(fit.depth)")
       check_depth(observation["depth"], camera, lead)  # shape, finite, > 0
-    if "image" in fit_with:
+    if fit.image:
       check_image(observation["image"], camera, lead)  # shape and the camera's size
     obs = {k: jnp.asarray(observation[k]) for k in keys}
     if not batched:
@@ -273,4 +222,11 @@ def make_decompose_fn(trained, *, num_samples: int = 512, fit: bool = True,
     out = run(state, est_state, obs, key)
     return out if batched else jax.tree.map(lambda x: x[0], out)
 
+  decompose.config = config  # what it runs, for reports and the evaluation
   return decompose
+
+
+def object_keys(key: jax.Array, count: int) -> jax.Array:
+  """(count,) the key each object of a batch samples with; the evaluation's rows of the
+  same settings draw the same candidates from them."""
+  return jax.random.split(key, count)

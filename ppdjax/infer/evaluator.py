@@ -19,14 +19,18 @@ from flax import nnx
 
 from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
                                 slot_to_density_jax)
-from ppdjax.infer import baselines, faces, sampling
+from ppdjax.infer import baselines, sampling
+from ppdjax.infer.config import DecomposeConfig
+from ppdjax.infer.decompose import object_keys
 from ppdjax.infer.groups import candidate_layout, decode_groups, fit_groups
 from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
-from ppdjax.infer.tables import BASELINES, SELECTION_HORIZONS, check_horizon
+from ppdjax.infer.rows import batch_records, screen_mask
+from ppdjax.infer.tables import BASELINES, FIT_ROWS, SELECTION_HORIZONS, check_horizon
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
+from ppdjax.training import estimator as estimator_module
 from ppdjax.training import sharding
 
 
@@ -40,7 +44,7 @@ def simultaneous_candidates() -> int:
 def _table4_candidates(t, pool, kk, samples: int):
   """Table 4's sampling baselines for one object (`candidate_layout`'s "uniform" and
   "shapes"): `samples` uniform densities on its true boxes `t`, then `pool` (random tower
-  shapes) with uniform densities."""
+  shapes) with uniform densities; `kk` (4,) the object's derived keys."""
   uniform, _ = sampling.candidate_slots(jnp.zeros(t.valid.shape + (NUM_DENSITY_SLOTS,)),
                                         t.valid, samples, kk[1], include_mode=False)
   shape_slots = jax.random.randint(kk[2], (samples, t.density.shape[-1]), 0, NUM_DENSITY_SLOTS)
@@ -49,24 +53,28 @@ def _table4_candidates(t, pool, kk, samples: int):
 
 
 def _simulate(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys, pool=None,
-              *, samples, with_baselines, chunk, pushes, settings, face_spreads=None):
+              *, samples, with_baselines, chunk, pushes, settings, face_spreads=None,
+              ppd_key_is_own=False):
   """Per object: (distance (C, H) over each of SELECTION_HORIZONS, MAE (C,)) of every
   candidate (`candidate_layout`; Table 4's too when `pool`, its random tower shapes, is
   given), the network's candidate slots on its boxes, and a tuple of them on each of
   `fitted` (a tuple of the fit groups' boxes, in layout order, scored by `fit_logits`, a
-  tuple alike). `keys` (B, 4): each object's own, so that a batch split over devices draws
-  the same. `face_spreads`: per fit group, > 0 draws its candidates' faces too
-  (`faces.spread_faces`, from one key for every such group)."""
+  tuple alike). `keys` (B,): each object's own (`decompose.object_keys`): the fit groups
+  draw from it as `decompose` does (`sampling.select_densities`), so that the row of
+  `decompose`'s settings holds its candidates; the network's boxes draw from it too where
+  they are `decompose`'s (`ppd_key_is_own`: no fit), else from a key derived from it.
+  `face_spreads`: per fit group, > 0 draws its candidates' faces too."""
   def one(args):
-    p, fs, lg, flg, t, bs, traj, kk = args
-    slots, _ = sampling.candidate_slots(lg, p.valid, samples, kk[0])
+    p, fs, lg, flg, t, bs, traj, k = args
+    kk = jax.random.split(k, 4)
+    slots, _ = sampling.candidate_slots(lg, p.valid, samples, k if ppd_key_is_own else kk[0])
     cands = [sampling.with_slots(p, slots)]
     fit_slots = []
     spreads = face_spreads or (0.0,) * len(fs)
     for f, fl, spread in zip(fs, flg, spreads):  # one key for every fit group: rows with
       # the same scores differ by the boxes alone
-      fit_slots.append(sampling.candidate_slots(fl, f.valid, samples, kk[3])[0])
-      cands.append(sampling.candidate_boxes(f, fit_slots[-1], jax.random.fold_in(kk[3], 1),
+      fit_slots.append(sampling.candidate_slots(fl, f.valid, samples, k)[0])
+      cands.append(sampling.candidate_boxes(f, fit_slots[-1], jax.random.fold_in(k, 1),
                                             spread))
     if with_baselines:
       cands.append(sampling.with_slots(t, bs))
@@ -85,18 +93,12 @@ def _simulate_table4(true, pool, obs_traj, keys, *, samples, chunk, pushes, sett
   """Table 4's sampling baselines per object, (distance (C, H), MAE (C,)) of
   `_table4_candidates`: on the batches Table 4 covers when it covers only some."""
   def one(args):
-    t, traj, kk = args
-    cands = jax.tree.map(lambda *x: jnp.concatenate(x), *_table4_candidates(t, pool, kk, samples))
+    t, traj, k = args
+    cands = jax.tree.map(lambda *x: jnp.concatenate(x),
+                         *_table4_candidates(t, pool, jax.random.split(k, 4), samples))
     return sampling.score_candidates(cands, traj, pushes, settings, horizons=SELECTION_HORIZONS)
 
   return jax.lax.map(one, (true, obs_traj, keys), batch_size=chunk)
-
-
-# +Refine and +Joint start from the sample closest in trajectory, whatever τ the +Sample
-# rows use: on the validation split of unseen towers that start refined best (top-1 62.6 %
-# against 59.9 % from τ = 0.05; experiments/results/prior_study_val.md). Which steps that
-# distance covers is the Evaluator's `refine_horizon` (0: all).
-REFINE_FROM_TAU = 0.0
 
 
 _log_priors = jax.jit(jax.vmap(sampling.log_prior))  # (B, S) of each object's candidates
@@ -111,38 +113,36 @@ def shape_pool(key, samples: int, num_slots: int):
 class Evaluator:
   """Compiles the per-batch calls once for a model, batch size and sample count."""
 
-  def __init__(self, model, config, *, samples: int, refine: bool, refine_steps: int = 12,
-               baselines_on: bool = True, fit: bool = False,
-               depth: bool = False, camera: dict | None = None, refine_prior: float = 0.0,
-               estimator=None, estimator_weight: float = 1.0, joint: bool = False,
-               true_shapes: bool = False, pushes=None, settings=DEFAULT_SETTINGS,
-               refine_jacobian: str = "forward", table4_every_batch: bool = False,
-               face_spread: float = 0.0, image_fit: bool = False, refine_horizon: int = 0,
+  def __init__(self, model, config, decompose: DecomposeConfig, *, baselines_on: bool = True,
+               camera: dict | None = None, joint: bool = False, true_shapes: bool = False,
+               pushes=None, settings=DEFAULT_SETTINGS, table4_every_batch: bool = False,
                devices=None):
-    """`devices`: the local devices each batch splits over (None: all of them).
-    `table4_every_batch`: Table 4's sampling baselines run on every batch, inside the
-    sampling call (one program to compile: on a CPU that is a minute less); otherwise in a
-    call of their own on the batches `batch` is asked to (`table4=True`).
-    `face_spread` (voxels): > 0 draws the faces of the "fit" group's candidates too, within
-    this of the fitted ones (`faces.spread_faces`; the voxels place a face within half a
-    voxel). `image_fit`: the "fit" group's boxes are then refined against the images'
-    edges (`infer.image_fit`; needs fit and the images' camera). `refine_horizon`: +Refine
-    and +Joint start from the candidate closest over the first this many steps (one of
-    SELECTION_HORIZONS; 0: all); they still fit, and compare their answer with the start
-    on, the whole trajectory."""
-    if samples < 1:
-      raise ValueError(f"samples must be >= 1, got {samples}")
-    if depth and camera is None:
-      raise ValueError("the +Fit(depth) rows need the depth images' camera "
-                       "(storage.Dataset.camera)")
-    self.config, self.samples, self.refine, self.joint = config, samples, refine, joint
-    check_horizon("refine_horizon", refine_horizon)
-    self.refine_horizon = refine_horizon
-    if image_fit and not fit:
-      raise ValueError("image_fit refines the +Fit rows' boxes: it needs fit")
-    if image_fit and camera is None:
-      raise ValueError("image_fit needs the images' camera (storage.Dataset.camera)")
-    self.fits = fit_groups(fit, depth, estimator is not None)
+    """`decompose`: the settings of the row the evaluation reports as `decompose`'s
+    (`headline`): its boxes (`fit_stage`), candidates, selection and refinement. `camera`:
+    the images' (needed where the fit reads the image or the depth). `devices`: the
+    local devices each batch splits over (None: all of them). `table4_every_batch`:
+    Table 4's sampling baselines run on every batch, inside the sampling call (one
+    program to compile: on a CPU that is a minute less); otherwise in a call of their own
+    on the batches `batch` is asked to (`table4=True`)."""
+    decompose.validate()
+    fit, select, refine = decompose.fit, decompose.select, decompose.refine
+    check_horizon("select.horizon", select.horizon)
+    if select.screen_steps:
+      check_horizon("select.screen_steps", select.screen_steps)
+    if select.mass_match:
+      raise ValueError("select.mass_match simulates a second set of candidates: the "
+                       "evaluation does not replay it (a study: experiments/mass_match_study)")
+    if fit.with_ and camera is None:
+      raise ValueError(f"the fit reads {' and '.join(fit.with_)}: it needs the images' "
+                       "camera (storage.Dataset.camera)")
+    samples = select.samples
+    self.decompose, self.config, self.samples = decompose, config, samples
+    self.refine, self.joint = refine.enabled, joint
+    estimator = (estimator_module.load(decompose.estimator.path)[0]
+                 if decompose.estimator.path else None)
+    estimator_weight = decompose.estimator.weight
+    face_spread = fit.face_spread
+    self.fits = fit_groups(fit, estimator is not None)
     if joint and not self.fits:
       raise ValueError("+Joint moves fitted boxes' faces: it needs fit or depth")
     self.baselines_on = baselines_on
@@ -151,11 +151,9 @@ class Evaluator:
     # every group sampled and scored; "true" (the oracle boxes) after the fits
     self.groups = self.fits + (("true",) if true_shapes else ())
     self.refine_group = self.fits[-1] if self.fits else "ppd"  # +Refine's and +Joint's boxes
-    faces.check_spread(face_spread, "fit" in self.fits)
-    if face_spread > 0 and (refine or joint) and self.refine_group == "fit":
-      raise ValueError("face_spread draws the +Fit candidates' faces, and +Refine and +Joint "
-                       "would start from the fitted ones: with face_spread, refine from the "
-                       "depth fit (depth=True) or not at all")
+    if face_spread > 0 and (refine.enabled or joint):
+      raise ValueError("fit.face_spread draws the candidates' faces, and +Refine and +Joint "
+                       "would start from the fitted ones: with face_spread, no refinement")
     self.layout = candidate_layout(samples, self.groups, baselines_on)
     self.table4_fused = baselines_on and table4_every_batch
     table4 = [self.layout[g] for g in ("uniform", "shapes") if g in self.layout]
@@ -178,9 +176,8 @@ class Evaluator:
     # batch (`sharding.jit_over_local_devices`; the weights and the baselines' shape pool whole)
     per_device = functools.partial(sharding.jit_over_local_devices, devices=devices)
     decode = functools.partial(
-        decode_groups, self.graphdef, groups=self.fits, camera=camera,
-        est_graphdef=est_graphdef, est_weight=estimator_weight, true_shapes=true_shapes,
-        image_fit=image_fit)
+        decode_groups, self.graphdef, groups=self.fits, camera=camera, fit=fit,
+        est_graphdef=est_graphdef, est_weight=estimator_weight, true_shapes=true_shapes)
     self._decode = per_device(decode, replicated=(0, 3))
     # zeros shaped, typed and placed as the decode's outputs (XLA drops the network), for
     # `compile`'s stand-ins: any difference would make the batches compile again
@@ -189,8 +186,9 @@ class Evaluator:
         replicated=(0, 3))
     self._simulate = per_device(functools.partial(
         _simulate, samples=samples, with_baselines=baselines_on, chunk=chunk, pushes=pushes,
-        settings=settings, face_spreads=tuple(face_spread if g == "fit" else 0.0
-                                              for g in self.groups)),
+        settings=settings, face_spreads=tuple(face_spread if g != "true" else 0.0
+                                              for g in self.groups),
+        ppd_key_is_own=not self.fits),
         replicated=(8,) if self.table4_fused else ())
     self._simulate_table4 = per_device(functools.partial(
         _simulate_table4, samples=samples, pushes=pushes, settings=settings,
@@ -198,13 +196,13 @@ class Evaluator:
     # without a fit, the network's boxes are refined as the paper's least squares; with a
     # fit, the fitted boxes, as a MAP step when refine_prior > 0 (the presets: 0)
     self._refine = per_device(functools.partial(
-        refine_batch, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
-        pushes=pushes, settings=settings, jacobian=refine_jacobian))
+        refine_batch, steps=refine.steps, prior_weight=refine.prior_weight,
+        pushes=pushes, settings=settings, jacobian=refine.jacobian))
     # +Joint vectorised over 64 objects at once on an accelerator (a batch of 64 in 4.1 s
     # on an H100, 20.6 s 8 at once: benchmarks.md), 8 on a CPU
     self._joint = per_device(functools.partial(
-        joint_batch, steps=refine_steps, prior_weight=refine_prior if self.fits else 0.0,
-        camera=camera if depth else None, pushes=pushes, settings=settings,
+        joint_batch, steps=refine.steps, prior_weight=refine.prior_weight,
+        camera=camera if fit.depth else None, pushes=pushes, settings=settings,
         at_once=8 if jax.default_backend() == "cpu" else 64))
 
   def _timed(self, stage: str, fn, *args):
@@ -250,7 +248,7 @@ class Evaluator:
     b, k = true.density.shape
     decoded = (self._decode_zeros(self.state, obs, true, self.est_state) if execute else
                jax.eval_shape(self._decode, self.state, obs, true, self.est_state))
-    keys = jax.random.split(key, (b, 4))
+    keys = object_keys(key, b)
     pool = shape_pool(key, self.samples, k) if pool is None and self.baselines_on else pool
     tasks = [(self._decode, (self.state, obs, true, self.est_state)),
              (self._simulate, self._sample_args(decoded, true, np.zeros(
@@ -295,7 +293,7 @@ class Evaluator:
     b, k = true.density.shape
     base_slots = (np.argmax(base_scores, -1).astype(np.int32) if base_scores is not None
                   else np.zeros((b, len(BASELINES), k), np.int32))
-    keys = jax.random.split(key, (b, 4))
+    keys = object_keys(key, b)
     table4 = table4 and self.baselines_on
     if table4 and pool is None:
       pool = shape_pool(key, self.samples, k)
@@ -314,7 +312,7 @@ class Evaluator:
                        for g, s, f, fl in zip(self.groups, fit_slots, fitted, fit_logits)}
     if self.refine or self.joint:  # from the closest sample, on the most precise boxes
       group = self.refine_group
-      prims, prior, d0, m0 = self._best_sample(out, decoded, group, REFINE_FROM_TAU)
+      prims, prior, d0, m0 = self._best_sample(out, decoded, group)
       if self.refine:
         out["refine"] = jax.device_get(self._timed("refine", self._refine, prims, prior,
                                                    obs["trajectories"], d0, m0))
@@ -324,24 +322,43 @@ class Evaluator:
         out["joint"] = jax.device_get(self._timed("joint", self._joint, prims, prior,
                                                   obs["trajectories"], depth, true))
     if self.refine and "true" in self.groups:  # the oracle column refined alike
-      prims, prior, d0, m0 = self._best_sample(out, decoded, "true", REFINE_FROM_TAU)
+      prims, prior, d0, m0 = self._best_sample(out, decoded, "true")
       out["refine_true"] = jax.device_get(self._timed("refine", self._refine, prims, prior,
                                                       obs["trajectories"], d0, m0))
     return out
 
-  def _best_sample(self, out: dict, decoded: dict, group: str, tau: float):
-    """A group's best candidate (by the +Sample objective at `tau` on the distance over the
-    first `refine_horizon` steps) as boxes with its densities, the group's logits (the MAP
-    prior), and its distance over the whole trajectory and its MAE."""
+  def _best_sample(self, out: dict, decoded: dict, group: str):
+    """A group's candidate closest over the whole trajectory (for `decompose`'s group,
+    among those its screen keeps, as `decompose` refines) as boxes with its densities,
+    the group's logits (the MAP prior), and its distance and MAE."""
     fitted = group != "ppd"
     boxes = decoded["fitted"][group] if fitted else decoded["pred"]
     cand_slots = out["fit_slots"][group] if fitted else out["slots"]
     d, m = out["dist"][:, self.layout[group]], out["mae"][:, self.layout[group]]
-    hd = out["hdist"][:, self.layout[group], SELECTION_HORIZONS.index(self.refine_horizon)]
-    logp = out["fit_logp"][group] if fitted else out["logp"]
-    best = np.argmin(sampling.selection_objective(hd, logp, tau), -1)
+    select = self.decompose.select
+    keep = (screen_mask(out["hdist"][:, self.layout[group]], select.screen_steps,
+                        select.screen_keep) if group == self.refine_group else True)
+    best = np.argmin(np.where(keep, d, np.inf), -1)
     start = np.take_along_axis(cand_slots, best[:, None, None], 1)[:, 0]
     prims = boxes.replace(density=jnp.asarray(slot_to_density(start), jnp.float32))
     rows = np.arange(len(best))
     prior = decoded["group_logits"][group] if fitted else decoded["logits"]
     return prims, prior, d[rows, best], m[rows, best]
+
+  def records(self, out: dict, slot, valid, base, *, prefixes, table4: bool = True,
+              studies: bool = False, horizon_sweep: bool = False) -> dict:
+    """One batch's per-object records (`rows.batch_records`) of `batch`'s output, with
+    `decompose`'s settings for its row."""
+    select = self.decompose.select
+    return batch_records(out, slot, valid, base, samples=self.samples,
+                         prior_weight=select.prior_weight, prefixes=prefixes,
+                         with_baselines=self.baselines_on, refine=self.refine,
+                         layout=self.layout, selection_horizon=select.horizon,
+                         horizon_sweep=horizon_sweep, table4=table4, studies=studies,
+                         headline=self.refine_group,
+                         screen=(select.screen_steps, select.screen_keep))
+
+  def headline_row(self) -> str:
+    """The name of the Table 2 row that `decompose` with these settings returns."""
+    name = FIT_ROWS.get(self.refine_group, "PPD") + "+Sample"
+    return name + "+Refine" if self.refine else name

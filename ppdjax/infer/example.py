@@ -11,7 +11,8 @@ import numpy as np
 from ppdjax import box_overlap, metrics, primitives
 from ppdjax.conventions import OBS_KEYS, density_to_slot
 from ppdjax.dataset.storage import DatasetError
-from ppdjax.infer.decompose import make_decompose_fn
+from ppdjax.infer.config import DecomposeConfig
+from ppdjax.infer.decompose import make_decompose_fn, model_settings
 from ppdjax.plots import plot_decomposition
 from ppdjax.primitives import Primitives
 from ppdjax.training import checkpoints
@@ -63,18 +64,19 @@ def load_camera(path: str) -> dict | None:
   return cam
 
 
-def decompose_example(model_dir: str, example: str, out: str, samples: int = 512,
-                      prior_weight: float | None = None, seed: int = 0) -> dict:
+def decompose_example(model_dir: str, example: str, out: str, samples: int | None = None,
+                      config: DecomposeConfig | None = None, seed: int = 0) -> dict:
   """Decomposes an example tower with a trained model; saves the picture at `out`.
 
   Args:
     model_dir: an exported model (assets/blocks_model) or a training workdir.
-    example: an .npz written by `save_example` (with a depth image and its camera, the
-      boxes are fitted to voxels and depth).
+    example: an .npz written by `save_example` (its camera, where it saved one, is the
+      image fit's and the depth fit's).
     out: the PNG to write: the input image, the recovered boxes coloured by density and
       the truth.
-    samples: density samples simulated per call.
-    prior_weight: τ of +Sample (None: the model's preset).
+    samples: density candidates (None: the config's).
+    config: the decomposition settings (None: the model's own, `make_decompose_fn`'s
+      default).
     seed: sampling seed.
 
   Returns:
@@ -86,10 +88,12 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
   """
   trained = checkpoints.load(model_dir)
   obs, true = load_example(example)
-  camera = load_camera(example) if "depth" in obs else None  # the depth fit where it can
-  tau = trained[1].eval.prior_weight if prior_weight is None else prior_weight
-  decompose = make_decompose_fn(trained, num_samples=samples, prior_weight=tau, camera=camera,
-                                selection_horizon=int(trained[1].eval.get("selection_horizon", 0)))
+  config = model_settings(trained) if config is None else config
+  if samples is not None:
+    config = config.replace(**{"select.samples": samples})
+  samples = config.select.samples
+  camera = load_camera(example) if config.fit.with_ else None
+  decompose = make_decompose_fn(trained, config, camera=camera)
   key = jax.random.key(seed)
   jax.block_until_ready(decompose(obs, key))  # compiles
   t0 = time.perf_counter()
@@ -113,7 +117,8 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int = 512
           "iou": [float(iou[k, k]) for k in range(min(valid.sum(), true_valid.sum()))],
           "distance_m": float(got.score),
           "mae_mm": float(metrics.trajectory_mae(got.trajectories, obs["trajectories"])),
-          "samples": samples, "depth_fit": camera is not None, "seconds": seconds, "path": out,
+          "samples": samples, "fit_with": list(config.fit.with_), "seconds": seconds,
+          "path": out,
           "engine": trained[1].data.get("backend", "mjx")}
 
 

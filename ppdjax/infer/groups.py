@@ -16,19 +16,23 @@ from flax import nnx
 
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
-from ppdjax.infer.fit import fit_boxes, refine_fitted
+from ppdjax.infer.config import FitConfig
+from ppdjax.infer.decompose import fit_stage
 from ppdjax.infer.tables import BASELINES
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import bottom_to_top
 
 
-def fit_groups(fit: bool, depth: bool, estimator: bool = False) -> tuple[str, ...]:
-  """The fitted-box groups an evaluation has, least precise first; with an estimator, the
-  most precise fit again, scored with it ("fit_est" or "fit_depth_est")."""
-  fits = (("fit",) if fit else ()) + (("fit_depth",) if depth else ())
-  if estimator and not fits:
-    raise ValueError("the estimator reads fitted boxes: it needs fit or depth")
-  return fits + ((fits[-1] + "_est",) if estimator else ())
+def fit_groups(fit: FitConfig, estimator: bool = False) -> tuple[str, ...]:
+  """The fitted-box groups of an evaluation of `decompose` with this fit: "fit" (voxels,
+  and the image where the fit reads it) or "fit_depth" (the fit reads the depth); with an
+  estimator, the same boxes again, scored with it ("..._est", `decompose`'s answer)."""
+  if not fit.enabled:
+    if estimator:
+      raise ValueError("the estimator reads fitted boxes: it needs fit.enabled")
+    return ()
+  group = "fit_depth" if fit.depth else "fit"
+  return (group,) + ((group + "_est",) if estimator else ())
 
 
 def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) -> dict:
@@ -52,13 +56,11 @@ def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) 
   return out
 
 
-def decode_groups(graphdef, state, obs, true, est_state=None, *, groups, camera,
-                  est_graphdef=None, est_weight=1.0, true_shapes=False, depth_iterations=15,
-                  image_fit=False):
+def decode_groups(graphdef, state, obs, true, est_state=None, *, groups, camera, fit,
+                  est_graphdef=None, est_weight=1.0, true_shapes=False):
   """The network's boxes and slot logits, and per fit group the fitted boxes
-  (`fit.fit_boxes` from the network's; "fit" with `image_fit` then refined against the
-  image, "fit_depth" against the depth image, `depth_fit`; the k-th logits go to the k-th
-  fitted box from the bottom) and their logits
+  (`decompose.fit_stage` with the `fit` settings, as `decompose` fits them; the k-th
+  logits go to the k-th fitted box from the bottom) and their logits
   ("group_logits": the network's, or with the estimator combined with its); shape counts
   of each ("shape", "shape_fit", "shape_fit_depth"). With `true_shapes`, the true boxes
   too, as group "true" with the network's logits."""
@@ -69,13 +71,7 @@ def decode_groups(graphdef, state, obs, true, est_state=None, *, groups, camera,
          "fitted": {}, "faces": {"ppd": metrics.face_errors(bottom_to_top(pred), true)},
          "group_logits": {g: logits for g in groups}}
   if groups:
-    fitted = fit_boxes(obs["voxels"], init=pred)
-    refined = lambda **seen: refine_fitted(fitted, obs["voxels"], camera=camera,
-                                           depth_iterations=depth_iterations, **seen)
-    if "fit_depth" in groups:  # refined and snapped as `decompose` does (fit.refine_fitted)
-      out["fitted"]["fit_depth"] = refined(depth=obs["depth"])
-    if "fit" in groups:
-      out["fitted"]["fit"] = refined(image=obs["image"]) if image_fit else fitted
+    out["fitted"][groups[0]] = fit_stage(obs, pred, fit, camera)
   for g, boxes in list(out["fitted"].items()):
     out["fitted"][g] = boxes.replace(density=pred.density)
     out["shape_" + g] = metrics.shape_counts(boxes, true)

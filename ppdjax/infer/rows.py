@@ -152,6 +152,20 @@ def screen_records(row, hdist, objective, mae, logits, slots, slot, valid, pvali
   return out
 
 
+def screen_mask(hdist, steps: int, keep: int):
+  """(B, S) the candidates a screen keeps (`sampling.select_densities(screen_steps=)`,
+  replayed on exhaustively simulated candidates): the `keep` closest over the first
+  `steps` steps of hdist (B, S, H); all of them where `steps` is 0 or keep >= S."""
+  b, s = hdist.shape[:2]
+  if not steps or keep >= s:
+    return np.ones((b, s), bool)
+  prefix = hdist[..., SELECTION_HORIZONS.index(steps)]
+  survivors = np.argsort(prefix, -1, kind="stable")[:, :keep]
+  out = np.zeros((b, s), bool)
+  np.put_along_axis(out, survivors, True, -1)
+  return out
+
+
 def _sweep(row, logits, slots, objective, mae, pvalid, slot, valid, selection_index,
            horizons: bool) -> dict:
   """A +Sample row's records for every τ in PRIOR_WEIGHTS (free: the candidates are
@@ -177,7 +191,8 @@ def _sweep(row, logits, slots, objective, mae, pvalid, slot, valid, selection_in
 def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: float,
                    prefixes, with_baselines: bool, refine: bool, layout: dict,
                    selection_horizon: int = 0, horizon_sweep: bool = False,
-                   table4: bool = True) -> dict:
+                   table4: bool = True, studies: bool = False, headline: str = "ppd",
+                   screen: tuple[int, int] = (0, 0)) -> dict:
   """Per-object records of one batch, keyed by (kind, row, name); `evaluation.evaluate`
   concatenates them and `tables.summarize` turns them into the tables. +Sample selects by
   the distance over the first `selection_horizon` steps (0: all; one of
@@ -185,7 +200,11 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   N and refinement's start use the whole trajectory (out["dist"]). `horizon_sweep` adds
   the τ sweep at every horizon (`_sweep`). `table4`: the batch simulated Table 4's
   sampling baselines (with the baselines on): then, and only then, every row's best of N
-  is recorded, so that Table 4 compares its rows on the same objects."""
+  is recorded, so that Table 4 compares its rows on the same objects. `headline`: the
+  group whose +Sample row is `decompose`'s (`Evaluator.refine_group`); its selection
+  keeps only the candidates `screen` (steps, keep) keeps, as `decompose` does.
+  `studies`: also the sweeps (τ, temperatures, screens, oracle picks), free in rollouts
+  but not in host time."""
   check_horizon("selection_horizon", selection_horizon)
   hi = SELECTION_HORIZONS.index(selection_horizon)
   keep = len(slot)
@@ -195,7 +214,8 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   slots = out["slots"]
   hdist, omae = out["hdist"][:, layout["ppd"]], out["mae"][:, layout["ppd"]]
   dist = out["dist"][:, layout["ppd"]]
-  objective = lambda tau, h=hi: sampling.selection_objective(hdist[..., h], out["logp"], tau)
+  objective = lambda tau, h=hi, keep=screen_mask(hdist, *screen) if headline == "ppd" else 1: (
+      np.where(keep, sampling.selection_objective(hdist[..., h], out["logp"], tau), np.inf))
   rec = {("blocks",): valid.sum(-1), ("true_slot",): slot, ("true_valid",): valid}
   rec.update({("shape", k): np.asarray(v) for k, v in out["shape"].items()})
   rec.update({("faces", g): np.asarray(v) for g, v in out["faces"].items()})  # (B, K, 6) m
@@ -203,13 +223,14 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   scores = {"PPD": logits,
             "PPD+Sample": sample_scores(logits, slots, objective(prior_weight), pvalid)}
   mae = {"PPD": omae[:, 0], "PPD+Sample": omae[rows, best]}
-  rec.update(_sweep("PPD+Sample", logits, slots, objective, omae, pvalid, slot, valid, hi,
-                     horizon_sweep))
-  rec.update(oracle_pick("PPD+Sample", logits, slots, slot, valid, pvalid))
-  rec.update(posterior_records("PPD+Sample", logits, slots, hdist[..., hi], out["logp"], omae,
-                               pvalid, slot, valid))
-  rec.update(screen_records("PPD+Sample", hdist, objective(prior_weight), omae, logits, slots,
-                            slot, valid, pvalid))
+  if studies:
+    rec.update(_sweep("PPD+Sample", logits, slots, objective, omae, pvalid, slot, valid, hi,
+                       horizon_sweep))
+    rec.update(oracle_pick("PPD+Sample", logits, slots, slot, valid, pvalid))
+    rec.update(posterior_records("PPD+Sample", logits, slots, hdist[..., hi], out["logp"],
+                                 omae, pvalid, slot, valid))
+    rec.update(screen_records("PPD+Sample", hdist, objective(prior_weight), omae, logits,
+                              slots, slot, valid, pvalid))
   table4 = table4 or not with_baselines  # without the baselines: the network's rows
   if table4:
     for p in prefixes:
@@ -233,22 +254,25 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     glogits = out["group_logits"][group].astype(np.float64)
     fd, fm = out["dist"][:, layout[group]], out["mae"][:, layout[group]]
     fhd = out["hdist"][:, layout[group]]
-    f_objective = lambda tau, h=hi, fhd=fhd, g=group: sampling.selection_objective(
-        fhd[..., h], out["fit_logp"][g], tau)
+    keep = screen_mask(fhd, *screen) if group == headline else 1
+    f_objective = lambda tau, h=hi, fhd=fhd, g=group, keep=keep: np.where(
+        keep, sampling.selection_objective(fhd[..., h], out["fit_logp"][g], tau), np.inf)
     f_obj = f_objective(prior_weight)
     f_best = np.argmin(f_obj, -1)
     scores[name] = glogits
     mae[name] = fm[:, 0]
     scores[name + "+Sample"] = sample_scores(glogits, out["fit_slots"][group], f_obj, fvalid)
     mae[name + "+Sample"] = fm[rows, f_best]
-    rec.update(_sweep(name + "+Sample", glogits, out["fit_slots"][group], f_objective, fm,
-                      fvalid, slot, valid, hi, horizon_sweep))
-    rec.update(oracle_pick(name + "+Sample", glogits, out["fit_slots"][group], slot, valid,
-                           fvalid))
-    rec.update(posterior_records(name + "+Sample", glogits, out["fit_slots"][group],
-                                 fhd[..., hi], out["fit_logp"][group], fm, fvalid, slot, valid))
-    rec.update(screen_records(name + "+Sample", fhd, f_obj, fm, glogits,
-                              out["fit_slots"][group], slot, valid, fvalid))
+    if studies:
+      rec.update(_sweep(name + "+Sample", glogits, out["fit_slots"][group], f_objective, fm,
+                        fvalid, slot, valid, hi, horizon_sweep))
+      rec.update(oracle_pick(name + "+Sample", glogits, out["fit_slots"][group], slot, valid,
+                             fvalid))
+      rec.update(posterior_records(name + "+Sample", glogits, out["fit_slots"][group],
+                                   fhd[..., hi], out["fit_logp"][group], fm, fvalid, slot,
+                                   valid))
+      rec.update(screen_records(name + "+Sample", fhd, f_obj, fm, glogits,
+                                out["fit_slots"][group], slot, valid, fvalid))
     if group != "true":  # +Refine and +Joint start from the most precise fit
       sample_row, pvalid = name + "+Sample", fvalid
     for p in prefixes if table4 else ():

@@ -1,9 +1,12 @@
 """Orbax checkpoints of a training run, and `load(workdir)` for inference and notebooks.
 
-A workdir holds `config.json` (the preset the run was made with), `checkpoints/` (the
-last few: model and optimizer, for exact resume) and `best/` (the model with the lowest
-validation loss). `export` writes a model to ship instead: `config.json`, `export.json`
-and its weights as `weights-NN.npz` files of bounded size; `load` reads both layouts.
+A workdir holds `config.json` (the preset the run was made with, read back through
+`configs.schema`), `decompose.json` (its decomposition settings and the camera of its
+training data: what `make_decompose_fn(workdir)` runs), `checkpoints/` (the last few:
+model and optimizer, for exact resume) and `best/` (the model with the lowest validation
+loss). `export` writes a model to ship instead: `config.json`, `decompose.json`,
+`export.json` and its weights as `weights-NN.npz` files of bounded size; `load` reads both
+layouts.
 """
 
 from __future__ import annotations
@@ -19,10 +22,12 @@ import numpy as np
 import orbax.checkpoint as ocp
 from flax import nnx
 
+from ppdjax.configs import schema
 from ppdjax.nn.model import PPD
 
 LATEST, BEST = "checkpoints", "best"
 EXPORT = "export.json"
+DECOMPOSE_FILE = "decompose.json"
 
 
 class CheckpointError(ValueError):
@@ -101,21 +106,54 @@ def _unreadable(manager, step: int, error: Exception) -> str:
           f"({type(error).__name__}: {first})")
 
 
-def save_config(workdir: str, config: ml_collections.ConfigDict) -> None:
+def save_config(workdir: str, config: ml_collections.ConfigDict,
+                camera: dict | None = None) -> None:
+  """config.json, and decompose.json: the decomposition settings of its `eval` section
+  and `camera` (None: the datasets' camera at the data's image size)."""
+  from ppdjax.dataset.camera import camera_dict  # pylint: disable=import-outside-toplevel
+  from ppdjax.infer.config import DecomposeConfig  # pylint: disable=import-outside-toplevel
   os.makedirs(workdir, exist_ok=True)
   with open(os.path.join(workdir, "config.json"), "w") as f:
     f.write(config.to_json_best_effort(indent=1, sort_keys=True))
+  size = config.data.image_size
+  camera = camera_dict(size, size) if camera is None else camera
+  record = {"config": DecomposeConfig.from_eval(config.eval).to_dict(),
+            "camera": {k: np.asarray(v).tolist() if v is not None else None
+                       for k, v in camera.items()}}
+  with open(os.path.join(workdir, DECOMPOSE_FILE), "w") as f:
+    json.dump(record, f, indent=1)
+
+
+def read_decompose(workdir: str) -> dict | None:
+  """decompose.json of a workdir or export ({"config": DecomposeConfig, "camera": dict}),
+  or None for a run saved before it existed."""
+  from ppdjax.infer.config import DecomposeConfig  # pylint: disable=import-outside-toplevel
+  path = os.path.join(workdir, DECOMPOSE_FILE)
+  if not os.path.exists(path):
+    return None
+  try:
+    with open(path) as f:
+      record = json.load(f)
+    return {"config": DecomposeConfig.from_dict(record["config"]), "camera": record["camera"]}
+  except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+    raise CheckpointError(f"{path} is corrupt: {e}") from e
 
 
 def read_config(workdir: str) -> ml_collections.ConfigDict:
+  """A run's config.json through the schema: keys it predates take the behaviour they
+  had (`schema.complete`); an unknown or ill-typed key is named."""
   path = os.path.join(workdir, "config.json")
   if not os.path.exists(path):
     raise CheckpointError(f"{workdir} is not a training workdir: {path} is missing")
   try:
     with open(path) as f:
-      return ml_collections.ConfigDict(_lists_to_tuples(json.load(f)))
+      saved = _lists_to_tuples(json.load(f))
   except json.JSONDecodeError as e:
     raise CheckpointError(f"{path} is corrupt: {e}") from e
+  try:
+    return schema.complete_saved(saved)
+  except schema.ConfigError as e:
+    raise CheckpointError(f"{path}: {e}") from e
 
 
 def _lists_to_tuples(d):
@@ -213,7 +251,7 @@ def export(workdir: str, out: str, *, dtype: str = "float16", max_file_mb: float
     with open(path, "rb") as f:
       digest = hashlib.sha256(f.read()).hexdigest()
     files.append({"name": name, "bytes": os.path.getsize(path), "sha256": digest})
-  save_config(out, config)
+  save_config(out, config, (read_decompose(workdir) or {}).get("camera"))
   record = {"dtype": dtype, "parameters": int(sum(v.size for v in arrays.values())),
             "files": files, "source": os.path.basename(os.path.normpath(workdir))}
   with open(os.path.join(out, EXPORT), "w") as f:

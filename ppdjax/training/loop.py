@@ -17,20 +17,13 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ppdjax.dataset import storage
+from ppdjax.configs import schema
 from ppdjax.plots import plot_learning_curve
 from ppdjax.training import checkpoints, sharding
 from ppdjax.training.loader import Loader
 from ppdjax.training.state import Trainer, batch_norm_mode, density_weight, phase, total_steps
 
 
-# Keys added since runs were first saved, with the value that reproduces older runs.
-ADDED_KEYS = {"model.voxel_width": 1, "model.voxel_coords": False, "model.voxel_keep": 1,
-              "train.schedule": "constant", "train.end_weight": None,
-              "train.geometry_weight": 1.0, "train.stream_steps": 0, "train.stream_weight": 0.0,
-              "train.augment": True, "train.init_from": "",
-              "train.clip_norm": 0.0, "train.warmup_steps": 0, "train.density_ramp_steps": 0,
-              "train.batch_norm": "global",
-              "model.image_dtype": "float32", "model.trajectory_unroll": 1}
 # Keys a resumed run may change without invalidating its checkpoints.
 RESUMABLE_CHANGES = ("train.joint_steps", "train.log_every", "train.eval_every",
                      "train.eval_batches", "train.prefetch", "train.keep_checkpoints",
@@ -83,7 +76,7 @@ def _check_resume(workdir: str, config) -> None:
   """Refuses to resume a run made with another model, data or optimiser setting."""
   if not os.path.exists(os.path.join(workdir, "config.json")):
     return
-  old = {**ADDED_KEYS, **_flatten(checkpoints.read_config(workdir).to_dict())}
+  old = _flatten(json.loads(checkpoints.read_config(workdir).to_json_best_effort()))
   new = _flatten(json.loads(config.to_json_best_effort()))
   changed = sorted(k for k in set(old) | set(new)
                    if k not in RESUMABLE_CHANGES and not k.startswith("eval.")  # not training's
@@ -106,6 +99,7 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
     time_limit_s: if set, stop after about this many seconds of steps with a checkpoint
       (rerun to resume); `trained_steps(workdir)` then tells how far the run got.
   """
+  config = schema.complete(config)  # unknown or ill-typed keys named; defaults filled
   check_config(config)
   t = config.train
   sharding.check_batch_size(t.batch_size)
@@ -123,7 +117,7 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
       raise ValueError(f"the train split has {len(train_ds)} samples, fewer than "
                        f"train.batch_size={t.batch_size}")
   _check_resume(workdir, config)
-  checkpoints.save_config(workdir, config)
+  checkpoints.save_config(workdir, config, train_ds.camera if train_ds is not None else None)
 
   trainer = Trainer(config, workdir)
   start = trainer.restore_latest()

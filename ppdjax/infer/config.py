@@ -1,0 +1,196 @@
+"""`DecomposeConfig`: every setting of `decompose`, typed, checked in one place.
+
+A model carries its own: `DecomposeConfig.from_eval(config.eval)` reads the preset's `eval`
+section saved with every trained and exported model, so that `make_decompose_fn(model)`
+and `python -m ppdjax.evaluate` run the settings the model's tables report. Presets:
+`paper()` (the paper's inputs: voxels and image) and `best()` (observations with a depth
+image: the depth fit and refinement). The choices behind each value: docs/inference.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from ppdjax.infer import faces
+from ppdjax.infer.refine import check_jacobian
+from ppdjax.infer.sampling import check_screen, check_selection_horizon
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+  """Which boxes the densities go on.
+
+  Attributes:
+    enabled: boxes fitted to the voxels (`ppdjax.fit_boxes`, from the network's); False:
+      the network's own boxes, as the paper's PPD rows.
+    image: then each face moved within half a voxel onto the image's edges (the paper's
+      inputs: voxels and image; needs the camera).
+    depth: then the faces the camera sees refined against the depth image (needs the
+      camera and observation["depth"]).
+    face_spread: > 0 (voxels) draws each candidate's faces too, within this of the fitted
+      ones (`faces.spread_faces`).
+  """
+  enabled: bool = True
+  image: bool = False
+  depth: bool = False
+  face_spread: float = 0.0
+
+  @property
+  def with_(self) -> tuple[str, ...]:
+    """The observations the fit reads beside the voxels."""
+    return (("image",) if self.image else ()) + (("depth",) if self.depth else ())
+
+
+@dataclasses.dataclass(frozen=True)
+class SelectConfig:
+  """+Sample (paper Sec. 4.3): candidates drawn from the density scores, the closest kept.
+
+  Attributes:
+    samples: candidates per object (candidate 0: the scores' arg-max; 1: the arg-max only).
+    prior_weight: τ (m per nat): the winner minimises distance − τ · log prior (0: the
+      paper's closest trajectory).
+    horizon: > 0 compares trajectories over their first this many steps (0: all).
+    mass_match: a second pass with every candidate scaled to the closest's total mass.
+    screen_steps: > 0 simulates every candidate over this many steps and only the
+      `screen_keep` closest over the whole trajectory (0: every candidate whole).
+    screen_keep: survivors of the screen.
+  """
+  samples: int = 512
+  prior_weight: float = 0.0
+  horizon: int = 0
+  mass_match: bool = False
+  screen_steps: int = 0
+  screen_keep: int = 64
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineConfig:
+  """Levenberg–Marquardt on the densities through the simulator, from the candidate
+  closest over the whole trajectory; kept only where it comes closer.
+
+  Attributes:
+    enabled: refine at all.
+    steps: LM iterations.
+    prior_weight: > 0 makes it a MAP step under the density scores (0: least squares).
+    jacobian: "forward" (forward mode), "differences" or "central" (`refine.JACOBIANS`).
+  """
+  enabled: bool = False
+  steps: int = 12
+  prior_weight: float = 0.0
+  jacobian: str = "forward"
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimatorConfig:
+  """A density estimator that reads the fitted boxes and the motion
+  (`python -m ppdjax.train_estimator`): its log-probabilities, times `weight`, join the
+  network's scores. `path` "" for none."""
+  path: str = ""
+  weight: float = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class DecomposeConfig:
+  """Every setting of `decompose`; `validate` names the first bad one."""
+  fit: FitConfig = FitConfig()
+  select: SelectConfig = SelectConfig()
+  refine: RefineConfig = RefineConfig()
+  estimator: EstimatorConfig = EstimatorConfig()
+
+  def __post_init__(self):
+    self.validate()
+
+  def validate(self) -> None:
+    """Raises ValueError naming the first setting that cannot run."""
+    f, s, r = self.fit, self.select, self.refine
+    if isinstance(s.samples, bool) or not isinstance(s.samples, int) or s.samples < 1:
+      raise ValueError(f"select.samples must be a whole number >= 1, got {s.samples!r}")
+    if (f.image or f.depth or f.face_spread) and not f.enabled:
+      raise ValueError("fit.image, fit.depth and fit.face_spread refine fitted boxes: they "
+                       "need fit.enabled")
+    faces.check_spread(f.face_spread, f.enabled)
+    check_selection_horizon(s.horizon)
+    check_screen(s.screen_steps, s.screen_keep, s.samples, 0)
+    if s.prior_weight < 0:
+      raise ValueError(f"select.prior_weight must be >= 0, got {s.prior_weight}")
+    if isinstance(r.steps, bool) or not isinstance(r.steps, int) or r.steps < 1:
+      raise ValueError(f"refine.steps must be a whole number >= 1, got {r.steps!r}")
+    if r.prior_weight < 0:
+      raise ValueError(f"refine.prior_weight must be >= 0, got {r.prior_weight}")
+    check_jacobian(r.jacobian)
+    if self.estimator.path and not f.enabled:
+      raise ValueError("the estimator reads fitted boxes: it needs fit.enabled")
+
+  def replace(self, **changes) -> "DecomposeConfig":
+    """A copy with dotted changes, e.g. `replace(**{"select.samples": 64})`, or whole parts
+    (`replace(refine=RefineConfig(enabled=True))`)."""
+    parts = {}
+    for key, value in changes.items():
+      part, _, field = key.partition(".")
+      if part not in ("fit", "select", "refine", "estimator"):
+        raise ValueError(f"DecomposeConfig has no part {part!r} (fit, select, refine, "
+                         "estimator)")
+      if not field:
+        parts[part] = value
+        continue
+      current = parts.get(part, getattr(self, part))
+      if field not in {x.name for x in dataclasses.fields(current)}:
+        raise ValueError(f"DecomposeConfig.{part} has no setting {field!r}")
+      parts[part] = dataclasses.replace(current, **{field: value})
+    return dataclasses.replace(self, **parts)
+
+  def to_dict(self) -> dict:
+    return dataclasses.asdict(self)
+
+  @classmethod
+  def from_dict(cls, d: dict) -> "DecomposeConfig":
+    parts = {"fit": FitConfig, "select": SelectConfig, "refine": RefineConfig,
+             "estimator": EstimatorConfig}
+    unknown = set(d) - set(parts)
+    if unknown:
+      raise ValueError(f"DecomposeConfig has no part {sorted(unknown)}")
+    return cls(**{k: parts[k](**v) for k, v in d.items()})
+
+  @classmethod
+  def from_eval(cls, eval_section) -> "DecomposeConfig":
+    """The decomposition settings of a preset's (or a saved run's) `eval` section
+    (`configs.schema.EvalConfig`: the one mapping between the two)."""
+    from ppdjax.configs import schema  # pylint: disable=import-outside-toplevel
+    e = schema._section("eval", dict(eval_section))  # pylint: disable=protected-access
+    fitted = e.fit or e.depth
+    return cls(
+        fit=FitConfig(enabled=fitted, image=e.image_fit and fitted, depth=e.depth,
+                      face_spread=e.face_spread if fitted else 0.0),
+        select=SelectConfig(samples=e.samples, prior_weight=e.prior_weight,
+                            horizon=e.selection_horizon, mass_match=e.mass_match,
+                            screen_steps=e.screen_steps, screen_keep=e.screen_keep),
+        refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
+                            prior_weight=e.refine_prior, jacobian=e.refine_jacobian),
+        estimator=EstimatorConfig(path=e.estimator, weight=e.estimator_weight))
+
+  def to_eval(self) -> dict:
+    """The `eval` section's keys for these settings (`from_eval`'s inverse)."""
+    f, s, r, e = self.fit, self.select, self.refine, self.estimator
+    return {"samples": s.samples, "fit": f.enabled, "image_fit": f.image, "depth": f.depth,
+            "face_spread": f.face_spread, "prior_weight": s.prior_weight,
+            "selection_horizon": s.horizon, "mass_match": s.mass_match,
+            "screen_steps": s.screen_steps, "screen_keep": s.screen_keep,
+            "refine": r.enabled, "refine_steps": r.steps, "refine_prior": r.prior_weight,
+            "refine_jacobian": r.jacobian, "estimator": e.path,
+            "estimator_weight": e.weight}
+
+  @classmethod
+  def paper(cls) -> "DecomposeConfig":
+    """The paper's inputs (voxels, image, trajectories): boxes fitted to the voxels and the
+    image's edges, 512 candidates compared over their first 32 steps (chosen on the
+    validation split), no refinement: the blocks' headline +Fit+Sample row."""
+    return cls(fit=FitConfig(image=True), select=SelectConfig(horizon=32))
+
+  @classmethod
+  def best(cls) -> "DecomposeConfig":
+    """Observations with a depth image: boxes fitted to the voxels and the depth, 512
+    candidates screened over 32 steps (the 64 closest simulated whole), then refinement
+    by forward differences: the blocks' best row."""
+    return cls(fit=FitConfig(depth=True),
+               select=SelectConfig(screen_steps=32, screen_keep=64),
+               refine=RefineConfig(enabled=True, jacobian="differences"))

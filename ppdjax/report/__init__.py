@@ -1,0 +1,1 @@
+"""Reports of results: provenance records and the results index."""
