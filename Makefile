@@ -29,7 +29,7 @@ data: $(VENV)/.installed
 	$(PY) -m ppdjax.generate --config=ppdjax/configs/tiny.py --out=out/blocks_tiny
 
 bench: $(VENV)/.installed
-	$(PY) experiments/bench_physics.py
+	$(PY) experiments/benchmarks/bench_physics.py
 
 clean:
 	rm -rf $(VENV) out .jax_cache

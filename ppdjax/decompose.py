@@ -72,7 +72,8 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
   import jax
   import numpy as np
 
-  from ppdjax import load, load_object, make_decompose_fn, plots
+  from ppdjax import load, load_object, make_decompose_fn
+  from ppdjax.report import plots
   from ppdjax.dataset import tool_generation, tool_scene
   from ppdjax.dataset.mesh_boxes import boxes_of_parts
   from ppdjax.infer.config import DecomposeConfig

@@ -37,7 +37,7 @@ _MAX_SECONDS = flags.DEFINE_float("max_seconds", 0, "Stop after the batch that p
 _KEEP_RECORDS = flags.DEFINE_bool("keep_records", False, "Keep OUT/partial, the per-object "
                                   "records, after the results are written, compacted into one "
                                   "compressed file (for studies of single objects, e.g. "
-                                  "experiments/table5_errors.py).")
+                                  "experiments/table5_errors/run.py).")
 
 
 def main(argv):
@@ -49,7 +49,8 @@ def main(argv):
                       os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   from ppdjax.configs.schema import ConfigError
   from ppdjax.dataset.storage import DatasetError
-  from ppdjax.infer import evaluation, markdown, partial
+  from ppdjax.eval import evaluation, partial
+  from ppdjax.report import markdown
   from ppdjax.report.provenance import write_provenance
   from ppdjax.training import checkpoints
   try:

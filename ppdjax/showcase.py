@@ -18,9 +18,11 @@ import numpy as np
 
 from ppdjax.conventions import OBS_KEYS, TIMESTEP
 from ppdjax.dataset import generation, storage, towers
-from ppdjax.infer import evaluation, example, markdown
+from ppdjax.infer import example
+from ppdjax.eval import evaluation
+from ppdjax.report import markdown
 from ppdjax.infer.decompose import make_decompose_fn
-from ppdjax.plots import plot_decomposition, plot_trajectories
+from ppdjax.report.plots import plot_decomposition, plot_trajectories
 from ppdjax.report.provenance import write_provenance
 from ppdjax.sim.mass import mass_properties
 from ppdjax.sim.pushes import default_pushes, push_points

@@ -163,3 +163,20 @@ def test_shipped_estimator_loads_and_reads_the_example():
   logits = np.asarray(model(prims, jnp.asarray(obs["trajectories"], jnp.float32)[None]))[0]
   assert logits.shape == (5, 100) and np.all(np.isfinite(logits))
   assert np.all(logits[~np.asarray(true.valid)] == 0)
+
+
+@pytest.mark.parametrize("model", [MODEL, TOOLS_MODEL, os.path.join(ROOT, "assets",
+                                                                     "video_model")])
+def test_shipped_decompose_settings_are_the_saved_eval_sections(model):
+  """decompose.json shows the settings `make_decompose_fn(model)` runs (its saved eval
+  section, the one source) and the camera of its training data."""
+  from ppdjax.dataset.camera import camera_dict, check_camera
+  from ppdjax.infer.decompose import model_camera, model_settings
+  from ppdjax.training import checkpoints
+  saved = checkpoints.read_decompose(model)
+  assert saved["config"] == model_settings(model)
+  size = ppdjax.load(model)[1].data.image_size
+  camera = check_camera(model_camera(model))
+  expect = check_camera(camera_dict(size, size))
+  assert camera["height"] == camera["width"] == size
+  np.testing.assert_allclose(camera["intrinsics"], expect["intrinsics"])

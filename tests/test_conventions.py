@@ -10,7 +10,8 @@ import numpy as np
 from ppdjax import conventions, metrics, primitives
 from ppdjax.conventions import density_to_slot, density_to_slot_jax, slot_to_density
 from ppdjax.dataset import storage, stream, towers, voxels
-from ppdjax.infer import baselines, decompose, evaluator, fit, groups, joint, refine, sampling
+from ppdjax.infer import decompose, fit, joint, refine, sampling
+from ppdjax.eval import baselines, evaluator, groups
 from ppdjax.nn import losses
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -39,10 +40,10 @@ DEFINITIONS = [
     ("rotation vector", r"arctan2\(", "ppdjax/metrics.py"),
     ("+Sample objective", r"- (self\.)?prior_weight \* ", "ppdjax/infer/sampling.py"),
     ("refine if closer", r"< distance\b|r_score < score", "ppdjax/infer/refine.py"),
-    ("paper Table 2", r"18\.2, 59\.7, 84\.0", "ppdjax/infer/tables.py"),
-    ("paper Table 4", r"142\.2, 87\.1", "ppdjax/infer/tables.py"),
-    ("paper Table 5", r"2\.3, 4\.9, 7\.8, 10\.9", "ppdjax/infer/tables.py"),
-    ("paper shape F1", r"97\.5", "ppdjax/infer/tables.py"),
+    ("paper Table 2", r"18\.2, 59\.7, 84\.0", "ppdjax/report/tables.py"),
+    ("paper Table 4", r"142\.2, 87\.1", "ppdjax/report/tables.py"),
+    ("paper Table 5", r"2\.3, 4\.9, 7\.8, 10\.9", "ppdjax/report/tables.py"),
+    ("paper shape F1", r"97\.5", "ppdjax/report/tables.py"),
 ]
 
 
@@ -60,7 +61,7 @@ def test_consumers_use_the_one_definition():
   assert baselines.rotation_vector is metrics.rotation_vector
   assert decompose.refine_if_closer is refine.refine_if_closer
   assert evaluator.refine_batch is refine.refine_batch  # which calls refine_if_closer
-  assert groups.fit_boxes is fit.fit_boxes and decompose.fit_boxes is fit.fit_boxes
+  assert groups.fit_stage is decompose.fit_stage and decompose.fit_boxes is fit.fit_boxes
   assert decompose.density_prior is refine.density_prior
   assert joint.density_prior is refine.density_prior
   assert stream.TOUCH is voxels.TOUCH and fit.voxelizer is voxels  # one occupancy rule

@@ -125,16 +125,17 @@ def test_train_resume_save_and_load(tmp_path, batch):
 def test_evaluation_adds_the_estimator_rows(tiny_run, tiny_dataset, tmp_path):
   """A tiny estimator (the dataset's 256 steps) joins the evaluation: the +Est rows on the
   fitted boxes, refinement from them, and the estimator's own arg-max row."""
-  from ppdjax.infer import evaluation, groups
+  from ppdjax.eval import evaluation, groups
   config = small_config(steps_in=tiny.get_config().data.steps, pool_size=32, val_size=32,
                         steps=4, eval_every=4)
   work = str(tmp_path / "est")
   est.train_estimator(config, work, progress=False)
-  with pytest.raises(ValueError, match="needs fit or depth"):
-    groups.fit_groups(False, False, estimator=True)
-  assert groups.fit_groups(True, True, True) == ("fit", "fit_depth", "fit_depth_est")
+  from ppdjax.infer.config import FitConfig
+  with pytest.raises(ValueError, match="needs fit.enabled"):
+    groups.fit_groups(FitConfig(enabled=False), estimator=True)
+  assert groups.fit_groups(FitConfig(depth=True), True) == ("fit_depth", "fit_depth_est")
   results = evaluation.evaluate(tiny_run[0], tiny_dataset, samples=4, max_objects=4,
-                                fit=True, refine=True, refine_steps=1, with_baselines=False,
+                                fit=True, refine=True, refine_steps=1, baselines=False,
                                 estimator=work, estimator_weight=0.5, joint=True,
                                 true_shapes=True, progress=False)
   rows = results["table2"]
@@ -149,13 +150,16 @@ def test_evaluation_adds_the_estimator_rows(tiny_run, tiny_dataset, tmp_path):
   assert rows["PPD+True boxes"]["top1"] == rows["PPD"]["top1"]  # the network's scores
   assert results["f1_fit_est"] == results["f1_fit"]
   assert results["estimator"] == work and results["estimator_weight"] == 0.5
+  assert results["headline"] == "PPD+Fit+Est+Sample+Refine"
 
 
 def test_decompose_checks_the_estimator_settings():
+  from ppdjax.infer.config import DecomposeConfig, EstimatorConfig, FitConfig
   from ppdjax.infer.decompose import make_decompose_fn
-  with pytest.raises(ValueError, match="needs fit=True"):
-    make_decompose_fn((None, tiny.get_config()), fit=False, estimator="anything")
+  with pytest.raises(ValueError, match="needs fit.enabled"):
+    DecomposeConfig(fit=FitConfig(enabled=False), estimator=EstimatorConfig(path="anything"))
   weaker = default_pushes(magnitude=1e3)  # the tools' strength
+  with_estimator = DecomposeConfig(estimator=EstimatorConfig(path="anything"))
   for pushes in (pendulum_strike(), weaker):
     with pytest.raises(ValueError, match="paper's four pushes"):
-      make_decompose_fn((None, tiny.get_config()), estimator="anything", pushes=pushes)
+      make_decompose_fn((None, tiny.get_config()), with_estimator, pushes=pushes)

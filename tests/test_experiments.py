@@ -1,4 +1,5 @@
-"""experiments/blocks.py and tools.py: the step list, and (slow) the pipelines on tiny presets."""
+"""python -m ppdjax.reproduce blocks|tools: the step list, and (slow) the pipelines on tiny
+presets; the studies that still run (experiments/<study>/run.py)."""
 
 import json
 import os
@@ -18,7 +19,8 @@ TINY = ["--config=ppdjax/configs/tiny.py", "--config.train.geometry_steps=10",
 def _blocks(*args, timeout=120):
   env = {**os.environ, "JAX_PLATFORMS": "cpu",
          "JAX_COMPILATION_CACHE_DIR": os.path.join(ROOT, ".jax_cache")}
-  return subprocess.run([sys.executable, "experiments/blocks.py", *args], cwd=ROOT, env=env,
+  return subprocess.run([sys.executable, "-m", "ppdjax.reproduce", "blocks", *args], cwd=ROOT,
+                        env=env,
                         capture_output=True, text=True, timeout=timeout)
 
 
@@ -90,7 +92,7 @@ open(os.path.join(root, step), "w").close()
 def test_jobs_start_steps_when_their_inputs_are_done_and_stop_behind_a_failure(tmp_path,
                                                                               capsys):
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import pipeline_steps
+  from ppdjax.reproduce import steps as pipeline_steps
   script = tmp_path / "step.py"
   script.write_text(_FAKE_STEP)
   needs = {"a": (), "b": ("a",), "c": ("a",), "d": ("b", "c"), "bad": (), "e": ("bad",)}
@@ -118,7 +120,7 @@ def test_a_step_out_of_memory_beside_others_starts_again_when_fewer_run(tmp_path
   """Out of accelerator memory beside another step: retried once that step has ended;
   out of memory alone: a failure."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import pipeline_steps
+  from ppdjax.reproduce import steps as pipeline_steps
   script = tmp_path / "step.py"
   script.write_text(_FAKE_STEP)
   needs = {"slow": (), "hungry": ()}
@@ -139,7 +141,7 @@ def test_light_steps_run_beside_the_jobs(tmp_path):
   """A light step (compiling ahead, no accelerator) starts beside a full set of jobs, and
   holds a job's place while it runs: no other step starts beside it then."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import pipeline_steps
+  from ppdjax.reproduce import steps as pipeline_steps
   script = tmp_path / "step.py"
   script.write_text(_FAKE_STEP)
   needs = {"a": (), "b": (), "slow_light": ()}
@@ -155,12 +157,12 @@ def test_light_steps_run_beside_the_jobs(tmp_path):
 
 @pytest.mark.slow  # about 5 minutes on 2 cores
 def test_tools_pipeline_runs_and_reports_table3(tmp_path):
-  """experiments/tools.py on the tools preset's tiny size: every step, two at a time as
+  """ppdjax.reproduce tools on the tools preset's tiny size: every step, two at a time as
   their inputs allow, then the report."""
   root, results, assets = (str(tmp_path / d) for d in ("root", "results", "assets"))
   env = {**os.environ, "JAX_PLATFORMS": "cpu",
          "JAX_COMPILATION_CACHE_DIR": os.path.join(ROOT, ".jax_cache")}
-  run = subprocess.run([sys.executable, "experiments/tools.py",
+  run = subprocess.run([sys.executable, "-m", "ppdjax.reproduce", "tools",
                         "--config=ppdjax/configs/tools.py:tiny", f"--root={root}",
                         f"--results={results}", f"--assets={assets}", "--jobs=2"], cwd=ROOT,
                        env=env, capture_output=True, text=True, timeout=900)
@@ -174,11 +176,11 @@ def test_tools_pipeline_runs_and_reports_table3(tmp_path):
   assert os.path.exists(os.path.join(results, "tools_decomposition.png"))
   assert os.path.exists(os.path.join(results, "tools_learning_curves.png"))
   assert os.path.exists(os.path.join(assets, "tools_model", "config.json"))
-  from ppdjax.infer import partial  # pylint: disable=import-outside-toplevel
+  from ppdjax.eval import partial  # pylint: disable=import-outside-toplevel
   kept = os.path.join(root, "full", "eval", "partial")  # the full model's records, compacted
   assert sorted(os.listdir(kept)) == ["records.npz", "settings.json"]
   assert len(partial.saved_records(kept)[("blocks",)]) == table["objects"]
-  listed = subprocess.run([sys.executable, "experiments/tools.py", "--list",
+  listed = subprocess.run([sys.executable, "-m", "ppdjax.reproduce", "tools", "--list",
                            "--config=ppdjax/configs/tools.py:tiny", f"--root={root}"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
   states = [line.split()[0] for line in listed.stdout.splitlines()]
@@ -187,7 +189,7 @@ def test_tools_pipeline_runs_and_reports_table3(tmp_path):
 
 def test_step_log_counts_overlapping_calls_once(tmp_path):
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import pipeline_steps
+  from ppdjax.reproduce import steps as pipeline_steps
   rows = [{"step": "a", "seconds": 10.0, "start": 0.0, "end": 10.0, "device": "cpu"},
           {"step": "b", "seconds": 10.0, "start": 5.0, "end": 15.0, "device": "cpu"},
           {"step": "a", "seconds": 4.0, "start": 20.0, "end": 24.0, "device": "cpu"},
@@ -203,7 +205,7 @@ def test_step_log_counts_overlapping_calls_once(tmp_path):
 def test_a_call_that_raises_is_logged_unfinished(tmp_path):
   """A step's crashed call (e.g. out of accelerator memory) still counts its time."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import pipeline_steps
+  from ppdjax.reproduce import steps as pipeline_steps
 
   def crash():
     raise RuntimeError("RESOURCE_EXHAUSTED")
@@ -226,7 +228,7 @@ def test_the_whole_split_joins_blocks_json_and_the_targets_read_it(tmp_path):
   (tmp_path / "res" / "blocks.json").write_text(json.dumps(blocks))
   ev = os.path.join(results, "blocks_whole_split")
   run = lambda d: subprocess.run(
-      [sys.executable, "experiments/blocks_whole_split.py", f"--eval={d}",
+      [sys.executable, "experiments/blocks_whole_split/run.py", f"--eval={d}",
        f"--results={tmp_path / 'res'}", "--machine=test"], cwd=ROOT, capture_output=True,
       text=True, timeout=120, env={**os.environ, "JAX_PLATFORMS": "cpu"})
   done = run(ev)
@@ -252,7 +254,7 @@ def test_tool_shape_errors_find_the_attribute_that_misses():
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   import numpy as np
   from ppdjax.primitives import Primitives
-  import tool_shape_errors  # pylint: disable=import-outside-toplevel
+  from tool_shape_errors import run as tool_shape_errors  # pylint: disable=import-outside-toplevel
 
   # two tools of two boxes each: a bar along x and a thin plate beside it
   half = np.array([[[0.3, 0.05, 0.04], [0.1, 0.08, 0.01]]] * 2, np.float32)
@@ -275,7 +277,7 @@ def test_tool_shape_errors_find_the_attribute_that_misses():
 
 
 def test_tools_rerun_replaces_the_full_models_rows_and_keeps_the_ablations(tmp_path):
-  """experiments/tools_rerun.py on the committed results (the shipped run's own evaluation
+  """experiments/tools_rerun/run.py on the committed results (the shipped run's own evaluation
   of the full model, marked): the full model's rows and the τ sweep come from the new
   evaluation; the ablations' rows and the run's steps stay; an evaluation over other
   objects is refused."""
@@ -290,7 +292,7 @@ def test_tools_rerun_replaces_the_full_models_rows_and_keeps_the_ablations(tmp_p
     json.dump(ev, f)
   env = {**os.environ, "PYTHONPATH": os.path.join(ROOT, "experiments")}
   run = lambda: subprocess.run(  # noqa: E731
-      [sys.executable, "experiments/tools_rerun.py", f"--eval={new}", f"--results={tmp_path}",
+      [sys.executable, "experiments/tools_rerun/run.py", f"--eval={new}", f"--results={tmp_path}",
        "--machine=test"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
   done = run()
   assert done.returncode == 0, done.stderr[-2000:]
@@ -314,7 +316,7 @@ def test_table5_errors_reads_saved_records_and_finds_the_tail(tmp_path):
   """Twenty 2-block objects in two saved batches, one of them 10 slots off: it holds all
   of the squared error; padded boxes' NaN faces are skipped. (Run as a command: its flags
   would clash with other modules' in this process.)"""
-  from ppdjax.infer import partial
+  from ppdjax.eval import partial
   store = partial.PartialRecords(str(tmp_path / "partial"), {"test": 1})
   valid = np.zeros((10, 5), bool)
   valid[:, :2] = True
@@ -325,7 +327,7 @@ def test_table5_errors_reads_saved_records_and_finds_the_tail(tmp_path):
       guess[0, 0] = 13
     store.save(start, {("blocks",): valid.sum(-1), ("true_slot",): np.where(valid, 3, -1),
                        ("true_valid",): valid, ("guess", "R"): guess, ("faces", "fit"): faces})
-  run = subprocess.run([sys.executable, "experiments/table5_errors.py", f"--eval={tmp_path}",
+  run = subprocess.run([sys.executable, "experiments/table5_errors/run.py", f"--eval={tmp_path}",
                         "--row=R", "--faces=fit", f"--out={tmp_path / 'out.json'}"],
                        cwd=ROOT, capture_output=True, text=True, timeout=300)
   assert run.returncode == 0, run.stderr[-2000:]
@@ -340,7 +342,7 @@ def test_table5_errors_reads_saved_records_and_finds_the_tail(tmp_path):
 def test_tool_identifiability_measures_the_parts_and_the_box_mismatch():
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   from ppdjax.dataset import tools
-  import tool_identifiability  # pylint: disable=import-outside-toplevel
+  from tool_identifiability import run as tool_identifiability  # pylint: disable=import-outside-toplevel
 
   assert tool_identifiability.other_metal_mode(25) == 84
   assert tool_identifiability.other_metal_mode(90) == 27
@@ -366,7 +368,7 @@ def test_tool_identifiability_measures_the_parts_and_the_box_mismatch():
 def test_tool_mass_calibration_picks_among_candidates_that_hold_the_labels():
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   from ppdjax.dataset import tools
-  import tool_mass_calibration as study  # pylint: disable=import-outside-toplevel
+  from tool_mass_calibration import run as study  # pylint: disable=import-outside-toplevel
 
   labels, valid = np.array([10, 50, 0, 0, 0]), np.array([True, True, False, False, False])
   slots = study.candidate_slots(labels, valid, 64, 20, np.random.default_rng(0))
@@ -390,7 +392,7 @@ def test_tool_mass_calibration_picks_among_candidates_that_hold_the_labels():
 def test_tool_voxel_body_covers_each_voxel_once_and_is_simulated():
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   from ppdjax.dataset import tools
-  import tool_voxel_body as study  # pylint: disable=import-outside-toplevel
+  from tool_voxel_body import run as study  # pylint: disable=import-outside-toplevel
 
   per_part = np.zeros((2, 32, 32, 32), bool)
   per_part[0, 3, 4, 2:9] = True  # one run
@@ -413,7 +415,7 @@ def test_tool_voxel_body_covers_each_voxel_once_and_is_simulated():
 def test_tool_resolution_separates_what_other_parts_can_mimic():
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   from ppdjax.dataset import tools
-  import tool_resolution as study  # pylint: disable=import-outside-toplevel
+  from tool_resolution import run as study  # pylint: disable=import-outside-toplevel
 
   # two columns that are the same motion: neither is unique; a third apart is
   jac = np.array([[1.0, 2.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 3.0]])
@@ -444,7 +446,7 @@ def test_tool_push_study_picks_the_truth_when_it_is_a_candidate():
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   from ppdjax.dataset import tools
   from ppdjax.dataset.materials import material_slots
-  import tool_push_study as study  # pylint: disable=import-outside-toplevel
+  from tool_push_study import run as study  # pylint: disable=import-outside-toplevel
 
   tool = tools.sample_tool(2026, 0, category="hammer")
   drawn = study.draw_candidates(tool, 64, np.random.default_rng(0))
@@ -474,7 +476,7 @@ def test_tool_early_motion_reads_densities_from_velocities():
   and configuration; the summary reads zero errors as zero."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   from ppdjax.dataset import tools
-  import tool_early_motion as study  # pylint: disable=import-outside-toplevel
+  from tool_early_motion import run as study  # pylint: disable=import-outside-toplevel
 
   rng = np.random.default_rng(0)
   x = rng.normal(size=(30, 3))
@@ -505,7 +507,7 @@ def test_tool_density_ceiling_reads_box_parts_exactly_and_floors_hidden_ones():
   import trimesh  # pylint: disable=import-outside-toplevel
   from ppdjax import primitives  # pylint: disable=import-outside-toplevel
   from ppdjax.dataset import materials, tool_scene  # pylint: disable=import-outside-toplevel
-  import tool_density_ceiling as study  # pylint: disable=import-outside-toplevel
+  from tool_density_ceiling import run as study  # pylint: disable=import-outside-toplevel
 
   half = np.array([[0.3, 0.05, 0.04], [0.06, 0.1, 0.05]])
   pos = np.array([[-0.1, 0.0, -0.02], [0.26, 0.02, 0.07]])
@@ -555,7 +557,7 @@ def test_paired_models_reads_the_change_of_one_model_against_another():
   more exact box and one more matched box; the change and F1 are those by hand; records
   of other objects are refused."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import paired_models as study  # pylint: disable=import-outside-toplevel
+  from paired_models import run as study  # pylint: disable=import-outside-toplevel
 
   def records(top1, matched):
     rec = {("true_slot",): np.array([1, 2, 3, 4]), ("mae", "PPD"): np.array([2.0, 2, 2, 2])}
@@ -584,7 +586,7 @@ def test_tools_study_runs_some_variants_from_another_pretraining(tmp_path):
   from ppdjax.training import checkpoints
   env = {**os.environ, "JAX_PLATFORMS": "cpu"}
   lister = lambda *a: subprocess.run(  # noqa: E731
-      [sys.executable, "experiments/tools.py", "--list", "--config=ppdjax/configs/tools.py:tiny",
+      [sys.executable, "-m", "ppdjax.reproduce", "tools", "--list", "--config=ppdjax/configs/tools.py:tiny",
        f"--root={tmp_path / 'root'}", *a], cwd=ROOT, env=env, capture_output=True, text=True,
       timeout=300)
   pretrained = tmp_path / "other" / "pretrain"
@@ -603,7 +605,7 @@ def test_confusion_by_slot_reads_errors_by_true_slot_range():
   """Wood boxes (slot 5) all predicted exactly but one far off: exact and within-2 shares,
   mean error and RMSE by hand; heavy metal (slot 80) off by 8 and 10 slots."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import confusion_by_slot  # pylint: disable=import-outside-toplevel
+  from confusion_by_slot import run as confusion_by_slot  # pylint: disable=import-outside-toplevel
   m = np.zeros((100, 100), int)
   m[4, 4], m[4, 84] = 9, 1  # slot 5 (index 4): nine exact, one 80 slots off
   m[79, 87], m[79, 89] = 1, 1  # slot 80: 8 and 10 off
@@ -623,10 +625,10 @@ def test_tools_by_category_checks_the_records_order_against_rebuilt_tools():
   records hold other slots (same box count) or another tool's fails it, so a wrong order
   is never read as categories."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import tools_by_category as tbc  # pylint: disable=import-outside-toplevel
+  from tools_by_category import run as tbc  # pylint: disable=import-outside-toplevel
   from ppdjax import primitives  # pylint: disable=import-outside-toplevel
   from ppdjax.dataset import storage, tool_generation  # pylint: disable=import-outside-toplevel
-  from ppdjax.infer import baselines  # pylint: disable=import-outside-toplevel
+  from ppdjax.eval import baselines  # pylint: disable=import-outside-toplevel
   ids = tbc.test_tools(40, (0.8, 0.1, 0.1))
   assert len(ids) >= 2 and all(storage.split_of(ids) == 2)
   truths = [tbc.tool_truth(0, int(i)) for i in ids[:2]]
@@ -655,7 +657,7 @@ def test_selection_horizon_study_reads_the_sweep_by_hand_and_chooses_on_the_firs
   change is never negative); records without a horizon sweep, not whole towers, or in
   another order than the evaluation's intervals say, are refused."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import selection_horizon_study as shs  # pylint: disable=import-outside-toplevel
+  from selection_horizon_study import run as shs  # pylint: disable=import-outside-toplevel
   n = 8
   rec = {("blocks",): np.full(n, 2)}
   for h, off_by_tower in ((32, [0, 0, 3, 0]), (0, [0, 3, 3, 0])):
@@ -688,48 +690,3 @@ def test_selection_horizon_study_reads_the_sweep_by_hand_and_chooses_on_the_firs
     shs.tower_groups({"geometries": 3}, n)
   with pytest.raises(ValueError, match="no horizon sweep"):
     shs.horizon_rows({("blocks",): np.full(n, 2)}, groups, 0.0)
-
-
-def test_refine_start_study_pairs_two_evaluations_of_the_same_candidates():
-  """Four towers of two configurations (two boxes each). Refined from all steps, towers 1
-  and 2 are 3 slots off; from 32 steps only tower 2. The rows and the paired change are
-  those numbers, drawn by whole towers and both starts together; two evaluations whose
-  +Sample picks differ are refused, and a spread subset's towers are its objects' own."""
-  sys.path.insert(0, os.path.join(ROOT, "experiments"))
-  import refine_start_study as rss  # pylint: disable=import-outside-toplevel
-  n = 8
-  def records(off_by_tower):
-    off = np.repeat(np.array(off_by_tower, float), 2)
-    rec = {("blocks",): np.full(n, 2), ("true_slot",): np.zeros((n, 2), int),
-           ("guess", rss.SAMPLE): np.ones((n, 2), int), ("mae", rss.SAMPLE): np.ones(n)}
-    for row in (rss.SAMPLE, rss.REFINE):
-      for k, v in (("top1", (off == 0).astype(int) * 2), ("top5", np.full(n, 2)),
-                   ("top10", np.full(n, 2)), ("sq_err", (2 * off * off).astype(int)),
-                   ("count", np.full(n, 2))):
-        rec[("counts", row, k)] = v
-    rec[("mae", rss.REFINE)] = off
-    return rec
-  first, second = records([0, 3, 3, 0]), records([0, 0, 3, 0])
-  groups = rss.tower_ids({"geometries": 4}, n, configs_per_tower=2)
-  np.testing.assert_array_equal(groups, [0, 0, 1, 1, 2, 2, 3, 3])
-  rss.check_same_candidates(first, second, "here")
-  row = rss.row_of(second, rss.REFINE, groups)
-  assert row["top1"] == 75.0 and row["rmse"] == pytest.approx(np.sqrt(4 * 9 / 16))
-  for bound in row["ci95"]["top1"]:
-    assert bound % 25.0 == pytest.approx(0.0)  # whole towers drawn
-  change = rss.paired_change(first, second, groups, rss.REFINE, resamples=200)
-  assert change["top1"] == 25.0 and change["mae"] == pytest.approx(-0.75)
-  assert change["rmse"] == pytest.approx(np.sqrt(4 * 9 / 16) - np.sqrt(8 * 9 / 16))
-  assert change["ci95_top1"][0] >= 0.0 and change["ci95_top1"][1] > 0.0  # paired draws
-  other = {**second, ("guess", rss.SAMPLE): np.zeros((n, 2), int)}
-  with pytest.raises(ValueError, match="did not simulate the same candidates"):
-    rss.check_same_candidates(first, other, "here")
-  # 6 objects spread over 4 towers of 2: objects 0, 1, 3, 4, 6, 7 of the split
-  spread = rss.tower_ids({"geometries": 4, "subset": "spread"}, 6, configs_per_tower=2)
-  np.testing.assert_array_equal(spread, [0, 0, 1, 2, 3, 3])
-  # the same picks simulated in batches of another size: MAEs a few float32 ulps apart pass
-  nudged = {**second, ("mae", rss.SAMPLE): second[("mae", rss.SAMPLE)] + 1e-5}
-  rss.check_same_candidates(first, nudged, "here")
-  moved = {**second, ("mae", rss.SAMPLE): second[("mae", rss.SAMPLE)] + 0.01}
-  with pytest.raises(ValueError, match="mae"):
-    rss.check_same_candidates(first, moved, "here")

@@ -15,7 +15,10 @@ from ppdjax import metrics
 from ppdjax.configs import tiny
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage, towers
-from ppdjax.infer import baselines, batches, evaluation, markdown, partial, refine, sampling, tables
+from ppdjax.infer import refine, sampling
+from ppdjax.infer.config import DecomposeConfig, FitConfig, RefineConfig, SelectConfig
+from ppdjax.eval import baselines, batches, evaluation, partial
+from ppdjax.report import markdown, tables
 from ppdjax.primitives import quat_mul
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, MjxSettings
 from ppdjax.training import checkpoints
@@ -131,14 +134,32 @@ def test_faces_drawn_with_the_densities_are_returned_with_the_winner(tower):
   assert float(sel.score) == pytest.approx(float(np.min(sel.scores)), abs=1e-9)
 
 
-def test_decompose_screens_by_default_only_with_depth_and_four_times_the_survivors():
-  from ppdjax.infer.decompose import default_screen_steps  # pylint: disable=import-outside-toplevel
-  assert default_screen_steps(("depth",), 512, 64) == 32
-  assert default_screen_steps(("depth",), 256, 64) == 32
-  assert default_screen_steps(("depth",), 128, 64) == 0  # the demo's: would keep half
-  assert default_screen_steps(("image",), 512, 64) == 0
-  assert default_screen_steps(("image", "depth"), 512, 128) == 32
-  assert default_screen_steps(("image", "depth"), 511, 128) == 0
+def test_decompose_config_maps_the_eval_section_and_names_bad_settings():
+  """`DecomposeConfig.from_eval` is the one mapping from a preset's eval section; its
+  presets are the paper's inputs and the depth + refinement settings."""
+  from ppdjax.configs import paper  # pylint: disable=import-outside-toplevel
+  from ppdjax.configs.schema import ConfigError  # pylint: disable=import-outside-toplevel
+  cfg = DecomposeConfig.from_eval(paper.get_config().eval)
+  assert cfg.fit == FitConfig(enabled=True, image=True) and cfg.select.horizon == 32
+  assert cfg.select.samples == 512 and not cfg.refine.enabled
+  assert DecomposeConfig.from_eval(cfg.to_eval()) == cfg
+  assert DecomposeConfig.from_dict(cfg.to_dict()) == cfg
+  assert DecomposeConfig.paper().fit == cfg.fit and DecomposeConfig.paper().select == cfg.select
+  best = DecomposeConfig.best()
+  assert best.fit.depth and best.refine.enabled and best.fit.with_ == ("depth",)
+  assert cfg.replace(**{"select.samples": 8}).select.samples == 8
+  with pytest.raises(ValueError, match="no part 'sample'"):
+    cfg.replace(**{"sample.samples": 8})
+  with pytest.raises(ValueError, match="no setting 'sample'"):
+    cfg.replace(**{"select.sample": 8})
+  with pytest.raises(ValueError, match="need fit.enabled"):
+    DecomposeConfig(fit=FitConfig(enabled=False, image=True))
+  with pytest.raises(ValueError, match="samples must be a whole number >= 1"):
+    DecomposeConfig(select=SelectConfig(samples=0))
+  with pytest.raises(ConfigError, match="config.eval has no key sample"):
+    DecomposeConfig.from_eval({"sample": 3})
+  with pytest.raises(ConfigError, match="config.eval.samples must be a whole number"):
+    DecomposeConfig.from_eval({"samples": "many"})
 
 
 def test_the_screen_refuses_bad_settings_and_knows_when_it_is_off():
@@ -198,7 +219,7 @@ def test_selection_over_a_horizon_picks_the_candidate_closest_over_its_first_ste
       sampling.select_densities(prims, logits, observed, PUSHES, num_samples=8,
                                 key=jax.random.key(0), selection_horizon=bad)
     with pytest.raises(ValueError, match="selection_horizon must be a whole number"):
-      ppdjax.make_decompose_fn((None, tiny.get_config()), selection_horizon=bad)
+      DecomposeConfig().replace(**{"select.horizon": bad})
 
 
 def test_the_refinement_horizon_doubles_then_covers_the_trajectory():
@@ -235,7 +256,7 @@ def test_refine_jacobian_names_the_choices():
   with pytest.raises(ValueError, match="jacobian must be one of"):
     refine.check_jacobian("reverse")
   with pytest.raises(ValueError, match="jacobian must be one of"):
-    ppdjax.make_decompose_fn((None, tiny.get_config()), refine_jacobian="auto")
+    DecomposeConfig().replace(**{"refine.jacobian": "auto"})
 
 
 @pytest.mark.slow  # four compilations through MJX: about two minutes on 2 cores
@@ -320,8 +341,9 @@ def decompose(tiny_run):
   the code path is the default one. The fit (on by default) is left out here: the shipped
   example's test (test_demo.py) decomposes with it."""
   cheap = MjxSettings(iterations=1, ls_iterations=1, push_iterations=2, push_ls_iterations=1)
-  return ppdjax.make_decompose_fn(tiny_run[0], num_samples=SAMPLES, fit=False, refine=True,
-                                  refine_steps=2, settings=cheap)
+  config = DecomposeConfig(fit=FitConfig(enabled=False), select=SelectConfig(samples=SAMPLES),
+                           refine=RefineConfig(enabled=True, steps=2))
+  return ppdjax.make_decompose_fn(tiny_run[0], config, engine=cheap)
 
 
 @pytest.mark.slow  # compiling decompose with refinement: about a minute on 2 cores
@@ -368,23 +390,24 @@ def test_the_depth_fit_in_decompose_names_its_errors(tiny_run, tiny_dataset):
   ds = storage.open_dataset(tiny_dataset, "test")
   sample = ds[0]
   obs = {k: sample[k] for k in OBS_KEYS}
-  with pytest.raises(ValueError, match="needs fit=True"):
-    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, fit=False, camera=ds.camera)
-  with pytest.raises(ValueError, match="face_spread moves fitted faces: it needs fit=True"):
-    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, fit=False, face_spread=0.5)
+  two = DecomposeConfig(select=SelectConfig(samples=2))
+  with pytest.raises(ValueError, match="this config reads neither"):
+    ppdjax.make_decompose_fn(tiny_run[0], two, camera=ds.camera)
+  with pytest.raises(ValueError, match="need fit.enabled"):
+    two.replace(**{"fit.enabled": False, "fit.face_spread": 0.5})
   with pytest.raises(ValueError, match=r"face_spread must be in \[0, 0.5\]"):
-    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, face_spread=1.0)
+    two.replace(**{"fit.face_spread": 1.0})
   with pytest.raises(ValueError, match="camera"):
-    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera={"height": 8})
-  with pytest.raises(ValueError, match="fit_with: expected any of"):
-    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera=ds.camera, fit_with=("rgb",))
-  with pytest.raises(ValueError, match="needs the images' camera"):
-    ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, fit_with=("image",))
-  by_image = ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera=ds.camera,
-                                      fit_with=("image",))
+    ppdjax.make_decompose_fn(tiny_run[0], two.replace(**{"fit.image": True}),
+                             camera={"height": 8})
+  with pytest.raises(TypeError, match="expected a DecomposeConfig"):
+    ppdjax.make_decompose_fn(tiny_run[0], {"fit": "image"})
+  # without a camera, the model's own: its training data's
+  by_image = ppdjax.make_decompose_fn(tiny_run[0], two.replace(**{"fit.image": True}))
   with pytest.raises(ValueError, match="image: expected shape"):
     by_image({**obs, "image": sample["image"][:-1]}, jax.random.key(0))
-  decompose = ppdjax.make_decompose_fn(tiny_run[0], num_samples=2, camera=ds.camera)
+  decompose = ppdjax.make_decompose_fn(tiny_run[0], two.replace(**{"fit.depth": True}),
+                                       camera=ds.camera)
   key = jax.random.key(0)
   with pytest.raises(ValueError, match="lacks 'depth'"):
     decompose(obs, key)
@@ -415,8 +438,9 @@ def _evaluate_cli(tiny_run, tiny_dataset, tmp_path, *extra):
 def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
   """Samples, batch size and τ come from the run's preset; refinement's start is recorded
   only where there is a refinement."""
-  results, out = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--refine_horizon=16")
-  assert results["refine"] is False and results["refine_horizon"] == 0
+  results, out = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--config.eval.studies=True")
+  assert results["refine"] is False and results["headline"] == "PPD+Sample"
+  assert results["decompose"] == DecomposeConfig.from_eval(tiny.get_config().eval).to_dict()
   rows = results["table2"]
   assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample"}
   lo, hi = rows["PPD"]["ci95"]["rmse"]
@@ -457,34 +481,36 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
 
 @pytest.mark.slow  # the fits compile inside the evaluation: about a minute more on 2 cores
 def test_evaluate_cli_with_the_fit_rows(tiny_run, tiny_dataset, tmp_path):
-  results, _ = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--fit", "--depth",
-                             "--true_shapes", "--image_fit")
+  results, _ = _evaluate_cli(tiny_run, tiny_dataset, tmp_path, "--config.eval.fit=True",
+                             "--config.eval.depth=True", "--config.eval.true_shapes=True",
+                             "--config.eval.image_fit=True")
   rows = results["table2"]
-  assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample", "PPD+Fit",
-                       "PPD+Fit+Sample", "PPD+Fit(depth)", "PPD+Fit(depth)+Sample",
+  assert set(rows) == {"Frequent", "Nearest", "Oracle", "PPD", "PPD+Sample",
+                       "PPD+Fit(depth)", "PPD+Fit(depth)+Sample",
                        "PPD+True boxes", "PPD+True boxes+Sample"}
-  # the fits read the tiny towers' boxes exactly; densities are the network's either way
-  for key in ("shape_fit", "shape_fit_depth"):
-    assert results[key]["f1"] == 100.0 and results[key]["count_exact"] == 100.0
-  for name in ("PPD+Fit", "PPD+Fit(depth)", "PPD+True boxes"):
+  assert results["headline"] == "PPD+Fit(depth)+Sample"
+  # the fit reads the tiny towers' boxes exactly; densities are the network's either way
+  assert results["shape_fit_depth"]["f1"] == 100.0
+  assert results["shape_fit_depth"]["count_exact"] == 100.0
+  for name in ("PPD+Fit(depth)", "PPD+True boxes"):
     assert {k: rows[name][k] for k in ("top1", "rmse")} == {
         k: rows["PPD"][k] for k in ("top1", "rmse")}
   lo, hi = rows["PPD"]["ci95"]["rmse"]
   assert lo <= rows["PPD"]["rmse"] <= hi
-  assert set(results["table4"]) == {"PPD", "PPD+Fit", "PPD+Fit(depth)", "PPD+True boxes",
+  assert set(results["table4"]) == {"PPD", "PPD+Fit(depth)", "PPD+True boxes",
                                     "Sample Phys.", "Sample Phys.+Shape"}
-  assert results["table4"]["PPD+Fit"]["1"] == pytest.approx(rows["PPD+Fit"]["mae"])
+  assert results["table4"]["PPD+Fit(depth)"]["1"] == pytest.approx(rows["PPD+Fit(depth)"]["mae"])
   assert results["depth"] and results["fit"] and results["true_shapes"] and results["image_fit"]
   faces = results["face_error_mm"]  # the voxel fit's faces lie within half a voxel (15.6 mm)
-  assert set(faces) == {"ppd", "fit", "fit_depth"}
-  # and the image or the depth moves them by half a voxel at most
-  assert faces["fit"]["max"] <= 31.3 and faces["fit_depth"]["max"] <= 31.3
+  assert set(faces) == {"ppd", "fit_depth"}
+  # and the image and the depth move them by half a voxel at most
+  assert faces["fit_depth"]["max"] <= 31.3
 
 
 def test_the_oracle_pick_takes_the_sample_closest_to_the_truth():
   """Hand case: two boxes (a third not in the tower), three samples; the second is one
   slot off on each box, the others far on one; box 0's true slot is in no sample."""
-  from ppdjax.infer import rows
+  from ppdjax.eval import rows
   slots = np.array([[[40, 11, 0], [21, 12, 0], [90, 10, 0]]])  # (B=1, S=3, K=3)
   slot, valid = np.array([[20, 11, -1]]), np.array([[True, True, False]])
   logits = np.zeros((1, 3, 100))
@@ -500,7 +526,7 @@ def test_the_posterior_marginal_sums_the_candidates_of_each_slot():
   and 2 (nearly as close, and together more probable) agree on box 0's slot, so the
   marginal reads their slot on box 0 and candidate 0's on box 1 (its weight is the larger
   of the two that hold slot 12 there); far below T the marginal is the closest pick."""
-  from ppdjax.infer import rows
+  from ppdjax.eval import rows
   slots = np.array([[[30, 12], [31, 12], [31, 13]]])  # (B=1, S=3, K=2)
   dist = np.array([[1.0e-3, 1.1e-3, 1.2e-3]])
   logp = np.log(np.array([[0.2, 0.3, 0.3]]))
@@ -529,12 +555,13 @@ def test_sample_rows_pick_the_closest_candidate_at_micrometre_distances():
   """+Sample's rows read the candidate that `argmin` of the objective picks, however close
   the distances: at τ = 0 they are metres of a few micrometres' difference (a float32
   offset once tied them all and the lowest slot won)."""
-  from ppdjax.infer import rows
+  from ppdjax.eval import rows
   out, slot, base, layout = _fake_batch_output(b=8, s=64)
   out["hdist"] = 2e-3 + 1e-6 * out["hdist"]  # 2 mm apart by at most a micrometre
   out["dist"] = out["hdist"][..., tables.SELECTION_HORIZONS.index(0)]
   rec = rows.batch_records(out, slot, slot >= 0, base, samples=64, prior_weight=0.0,
-                           prefixes=(1, 64), with_baselines=True, refine=False, layout=layout)
+                           prefixes=(1, 64), with_baselines=True, refine=False, layout=layout,
+                           headline="fit", screen=(32, 64))
   for name, group, slots in (("PPD+Sample", "ppd", out["slots"]),
                              ("PPD+Fit+Sample", "fit", out["fit_slots"]["fit"])):
     picked = slots[np.arange(8), np.argmin(out["dist"][:, layout[group]], -1)]
@@ -550,7 +577,7 @@ def _fake_batch_output(b=4, s=16, k=3, seed=0):
   """What `Evaluator.batch` returns for b objects, with random candidates: the network's
   boxes, one voxel-fit group and the baselines."""
   from types import SimpleNamespace
-  from ppdjax.infer.groups import candidate_layout
+  from ppdjax.eval.groups import candidate_layout
   rng = np.random.default_rng(seed)
   layout = candidate_layout(s, ("fit",), True)
   c = max(x.stop for x in layout.values())
@@ -569,13 +596,13 @@ def _fake_batch_output(b=4, s=16, k=3, seed=0):
 
 
 def test_the_selection_horizon_picks_by_the_distance_over_its_steps():
-  from ppdjax.infer import rows
+  from ppdjax.eval import rows
   out, slot, base, layout = _fake_batch_output()
   kw = dict(samples=16, prior_weight=0.0, prefixes=(1, 8, 16), with_baselines=True,
             refine=False, layout=layout)
   full = rows.batch_records(out, slot, slot >= 0, base, **kw)
   swept = rows.batch_records(out, slot, slot >= 0, base, selection_horizon=32,
-                             horizon_sweep=True, **kw)
+                             horizon_sweep=True, studies=True, **kw)
   h32 = tables.SELECTION_HORIZONS.index(32)
   # τ = 0 at 32 steps: the +Sample row's MAE is that of the candidate closest over 32 steps
   d = out["hdist"][:, layout["ppd"], h32]
@@ -590,26 +617,30 @@ def test_the_selection_horizon_picks_by_the_distance_over_its_steps():
     rows.batch_records(out, slot, slot >= 0, base, selection_horizon=33, **kw)
 
 
-def test_refinement_starts_from_the_candidate_closest_over_its_horizon():
-  """`Evaluator._best_sample`: the start is the candidate closest over the first
-  `refine_horizon` steps; the distance handed on is its whole trajectory's (refinement
-  compares its answer with the start on the whole trajectory)."""
+def test_refinement_starts_from_the_closest_candidate_among_the_screens_survivors():
+  """`Evaluator._best_sample`: the start is the candidate closest over the whole trajectory,
+  for `decompose`'s group among those its screen keeps (as `decompose` refines); the
+  distance handed on is the start's."""
   from types import SimpleNamespace
-  from ppdjax.infer.evaluator import Evaluator, slot_to_density
+  from ppdjax.eval.evaluator import Evaluator, slot_to_density
   out, _, _, layout = _fake_batch_output(b=4, s=16)
   fit = out["hdist"][:, layout["fit"]]  # a view: edits reach out["hdist"]
   h32, h0 = tables.SELECTION_HORIZONS.index(32), tables.SELECTION_HORIZONS.index(0)
   fit[:, 3, h0] = -1.0   # candidate 3 is the closest over all steps,
-  fit[:, 7, h32] = -1.0  # candidate 7 over the first 32
+  fit[:, 3, h32] = 9.0   # but the farthest over the first 32: a screen drops it
+  fit[:, 7, h0] = -0.5   # candidate 7 is the next closest and survives
+  fit[:, 7, h32] = -1.0
   out["dist"] = out["hdist"][..., h0]
   boxes = SimpleNamespace(replace=lambda density: density)  # the start's densities
   decoded = {"fitted": {"fit": boxes}, "group_logits": {"fit": out["group_logits"]["fit"]}}
   starts = {}
-  for horizon in (0, 32):
-    ev = SimpleNamespace(layout=layout, refine_horizon=horizon)
-    starts[horizon] = Evaluator._best_sample(ev, out, decoded, "fit", 0.0)
-  for horizon, pick in ((0, 3), (32, 7)):
-    density, _, d0, m0 = starts[horizon]
+  for steps in (0, 32):
+    select = SelectConfig(samples=16, screen_steps=steps, screen_keep=8)
+    ev = SimpleNamespace(layout=layout, refine_group="fit",
+                         decompose=DecomposeConfig(select=select))
+    starts[steps] = Evaluator._best_sample(ev, out, decoded, "fit")
+  for steps, pick in ((0, 3), (32, 7)):
+    density, _, d0, m0 = starts[steps]
     expect = slot_to_density(out["fit_slots"]["fit"][:, pick])
     np.testing.assert_allclose(np.asarray(density), np.asarray(expect, np.float32))
     np.testing.assert_array_equal(d0, out["dist"][:, layout["fit"]][:, pick])
@@ -619,7 +650,7 @@ def test_refinement_starts_from_the_candidate_closest_over_its_horizon():
 def test_the_screen_replay_keeps_the_winner_only_when_it_survives_the_prefix():
   """`rows.screen_records`: the pick is the best by the row's objective among the `keep`
   closest over the first `steps` steps; 'same' says whether that is the exhaustive pick."""
-  from ppdjax.infer import rows
+  from ppdjax.eval import rows
   out, slot, base, layout = _fake_batch_output(b=8, s=64)
   h16, h0 = tables.SELECTION_HORIZONS.index(16), tables.SELECTION_HORIZONS.index(0)
   ppd = out["hdist"][:, layout["ppd"]]  # a view: edits reach out["hdist"]
@@ -628,7 +659,8 @@ def test_the_screen_replay_keeps_the_winner_only_when_it_survives_the_prefix():
   ppd[4:, 5, h16] = 9.0    # objects 4-7: it is the farthest over the first 16 steps
   out["dist"] = out["hdist"][..., h0]
   rec = rows.batch_records(out, slot, slot >= 0, base, samples=64, prior_weight=0.0,
-                           prefixes=(1,), with_baselines=True, refine=False, layout=layout)
+                           prefixes=(1,), with_baselines=True, refine=False, layout=layout,
+                           studies=True)
   same = rec[("screen", "PPD+Sample", 16, 32, "same")]
   np.testing.assert_array_equal(same, [True] * 4 + [False] * 4)
   np.testing.assert_array_equal(rec[("screen", "PPD+Sample", 16, 32, "mae")][:4],
@@ -641,7 +673,7 @@ def test_the_screen_replay_keeps_the_winner_only_when_it_survives_the_prefix():
 
 
 def test_the_records_count_hits_as_the_metrics_do():
-  from ppdjax.infer import rows
+  from ppdjax.eval import rows
   rng = np.random.default_rng(3)
   scores = rng.integers(0, 5, (6, 4, 100)).astype(np.float32)  # many ties
   slot, valid = rng.integers(-1, 100, (6, 4)), rng.random((6, 4)) > 0.3
@@ -692,22 +724,33 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
   empty.mkdir()
   with pytest.raises(storage.DatasetError, match="no dataset|manifest"):
     evaluation.evaluate(tiny_run[0], str(empty))
+  from ppdjax.configs.schema import ConfigError
   with pytest.raises(ValueError, match="face_spread must be in"):
     evaluation.evaluate(tiny_run[0], tiny_dataset, fit=True, face_spread=-0.1)
-  with pytest.raises(ValueError, match="it needs fit"):
+  with pytest.raises(ValueError, match="need fit.enabled"):
     evaluation.evaluate(tiny_run[0], tiny_dataset, face_spread=0.5)
-  with pytest.raises(ValueError, match=r"image_fit refines the \+Fit rows' boxes: it needs fit"):
+  with pytest.raises(ValueError, match="need fit.enabled"):
     evaluation.evaluate(tiny_run[0], tiny_dataset, image_fit=True)
-  with pytest.raises(ValueError, match="refine_horizon must be one of"):
-    evaluation.evaluate(tiny_run[0], tiny_dataset, refine=True, refine_horizon=33)
-  from ppdjax.infer.evaluator import Evaluator
-  with pytest.raises(ValueError, match="refine from the depth fit"):
-    Evaluator(*checkpoints.load(tiny_run[0]), samples=2, refine=True, fit=True,
-              face_spread=0.5)
+  with pytest.raises(ConfigError, match="refine_horizon"):
+    evaluation.evaluate(tiny_run[0], tiny_dataset, refine=True, refine_horizon=32)
+  with pytest.raises(ConfigError, match="config.eval has no key sample"):
+    evaluation.evaluate(tiny_run[0], tiny_dataset, sample=3)
+  with pytest.raises(ValueError, match="selection_horizon must be one of"):
+    evaluation.evaluate(tiny_run[0], tiny_dataset, selection_horizon=33)
+  from ppdjax.eval.evaluator import Evaluator
+  with pytest.raises(ValueError, match="with face_spread, no refinement"):
+    Evaluator(*checkpoints.load(tiny_run[0]), DecomposeConfig(
+        select=SelectConfig(samples=2), fit=FitConfig(face_spread=0.5),
+        refine=RefineConfig(enabled=True)))
   done = subprocess.run([sys.executable, "-m", "ppdjax.evaluate", f"--workdir={tmp_path}",
                          f"--data={tiny_dataset}"], cwd=ROOT, capture_output=True, text=True,
                         env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)
   assert done.returncode != 0 and "not a training workdir" in done.stderr
+  done = subprocess.run([sys.executable, "-m", "ppdjax.evaluate", f"--workdir={tiny_run[0]}",
+                         f"--data={tiny_dataset}", "--config.model.feature=3"], cwd=ROOT,
+                        capture_output=True, text=True,
+                        env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)
+  assert done.returncode != 0 and "reads only config.eval" in done.stderr
 
 
 def test_saved_batch_records_give_back_the_same_tables(tiny_run, tiny_dataset, tmp_path):
@@ -740,23 +783,22 @@ def test_table4_batches_are_spread_and_cover_what_was_asked():
 def _records_of(ev, out, samples, table4):
   """`rows.batch_records` of an `Evaluator.batch` output (every answer slot 0, no baselines'
   scores): what the evaluation would record of that batch."""
-  from ppdjax.infer import rows
+  from ppdjax.eval import rows
   b, k = out["logits"].shape[:2]
   slot = np.zeros((b, k), np.int32)
-  return rows.batch_records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), samples=samples,
-                            prior_weight=0.0, prefixes=(1, 8), with_baselines=True,
-                            refine=False, layout=ev.layout, table4=table4)
+  return ev.records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), prefixes=(1, 8),
+                    table4=table4)
 
 
 def _tiny_evaluator(config, tiny_dataset):
   """(model -> an Evaluator of the tiny preset's evaluation with Table 4 on every batch,
   the evaluate command's first test batch: the CLI test's, whose programs are on disk)."""
-  from ppdjax.infer.evaluator import Evaluator
+  from ppdjax.eval.evaluator import Evaluator
   from ppdjax.sim.rollout_mjx import settings_for
   e = tiny.get_config().eval
   test = storage.open_dataset(tiny_dataset, "test")
   batch = test.take(np.arange(e.batch_size), keys=OBS_KEYS + ("primitives",))
-  return (lambda model: Evaluator(model, config, samples=e.samples, refine=False,
+  return (lambda model: Evaluator(model, config, DecomposeConfig.from_eval(e),
                                   pushes=test.pushes, settings=settings_for(test.engine),
                                   table4_every_batch=True)), batch
 
@@ -787,7 +829,7 @@ def test_stages_compiled_ahead_are_loaded_from_the_persistent_cache(tiny_run, ti
                                                                     tmp_path):
   """`Evaluator.compile(execute=False)`, from a model with other weights, runs nothing and
   puts the stages' programs in the persistent cache, where another Evaluator's `compile`
-  loads them (what `experiments/blocks.py`'s compile:full step relies on)."""
+  loads them (what `ppdjax.reproduce blocks`'s compile:full step relies on)."""
   from flax import nnx
   from jax._src import compilation_cache
   from ppdjax.nn.model import PPD
@@ -817,7 +859,7 @@ def test_table4_is_reported_on_its_batches_only(tiny_run, tiny_dataset):
   """With `table4_objects`, Table 4's sampling baselines run on whole batches covering at
   least that many objects, and Table 4 is reported on those; Table 2 on every object.
   Simulated in a call of their own, they score what the sampling call scores with them."""
-  from ppdjax.infer.evaluator import Evaluator
+  from ppdjax.eval.evaluator import Evaluator
   from ppdjax.sim.rollout_mjx import settings_for
   e = tiny.get_config().eval
   r = evaluation.evaluate(tiny_run[0], tiny_dataset, samples=e.samples, batch_size=4,
@@ -828,10 +870,9 @@ def test_table4_is_reported_on_its_batches_only(tiny_run, tiny_dataset):
   model, config = checkpoints.load(tiny_run[0])
   test = storage.open_dataset(tiny_dataset, "test")
   batch = test.take(np.arange(4), keys=OBS_KEYS + ("primitives",))
-  kw = dict(samples=e.samples, refine=False, pushes=test.pushes,
-            settings=settings_for(test.engine))
-  apart = Evaluator(model, config, **kw)
-  fused = Evaluator(model, config, **kw, table4_every_batch=True)
+  kw = dict(pushes=test.pushes, settings=settings_for(test.engine))
+  apart = Evaluator(model, config, DecomposeConfig.from_eval(e), **kw)
+  fused = Evaluator(model, config, DecomposeConfig.from_eval(e), **kw, table4_every_batch=True)
   both = [ev.batch(batch, None, jax.random.key(0)) for ev in (apart, fused)]
   for key in ("mae", "hdist"):  # the same rollouts, batched differently
     np.testing.assert_allclose(both[0][key], both[1][key], rtol=1e-4, atol=1e-5)
@@ -846,7 +887,7 @@ def test_table4_is_reported_on_its_batches_only(tiny_run, tiny_dataset):
 def test_a_paused_evaluation_resumes_to_the_same_results(tiny_run, tiny_dataset, tmp_path):
   """Records are saved per batch; a call stopped by its time budget goes on where it
   stopped, and the tables equal those of one uninterrupted call."""
-  kw = dict(samples=SAMPLES, batch_size=4, max_objects=8, with_baselines=False,
+  kw = dict(samples=SAMPLES, batch_size=4, max_objects=8, baselines=False,
             progress=False)
   folder = str(tmp_path / "partial")
   with pytest.raises(partial.EvaluationPaused, match="4 of 8 objects") as paused:
@@ -864,7 +905,7 @@ def test_a_paused_evaluation_resumes_to_the_same_results(tiny_run, tiny_dataset,
 _TWO_DEVICES = """
 import json, sys
 import jax
-from ppdjax.infer import evaluation
+from ppdjax.eval import evaluation
 assert jax.local_device_count() == 2, jax.devices()
 workdir, data, out, kw = sys.argv[1], sys.argv[2], sys.argv[3], json.loads(sys.argv[4])
 r = evaluation.evaluate(workdir, data, **kw)

@@ -140,11 +140,12 @@ def test_the_decompose_command_on_a_mesh_file(tiny_run, tmp_path):
   scene.export(tmp_path / "hammer.glb")
   record = decompose.run(str(tmp_path / "hammer.glb"), decompose._parse(
       "head=metal,handle=wood", number=False), None, tiny_run[0], str(tmp_path / "out"),
-      samples=2, engine="box_plane")
+      {"samples": 2, "fit": False}, engine="box_plane")
   assert [p["material"] for p in record["parts"]] == ["wood", "metal"]
   assert 1 <= len(record["boxes"]) <= 5 and len(record["boxes_from_mesh"]) == 2
   assert (tmp_path / "out" / "decomposition.png").stat().st_size > 10_000
   written = json.loads((tmp_path / "out" / "decomposition.json").read_text())
-  assert written["samples"] == 2 and written["fit"] is False  # the network's boxes
+  settings = written["settings"]  # the model's own, with the overrides
+  assert settings["select"]["samples"] == 2 and settings["fit"]["enabled"] is False
   with pytest.raises(ValueError, match="name=value"):
     decompose._parse("head=metal,wood", number=False)

@@ -115,7 +115,7 @@ def test_primitives_from_mesh_recovers_the_parts_of_a_composed_mesh():
 def test_the_split_search_prunes_without_changing_the_boxes():
   """Cuts whose halves' hulls leave no room for the saving are not fitted: the same boxes,
   bit for bit, as fitting every cut, on a bent part (which splits) and on a tool
-  (experiments/bench_tool_boxes.py checks 40 more)."""
+  (experiments/benchmarks/bench_tool_boxes.py checks 40 more)."""
   from ppdjax.dataset import mesh_boxes
   elbow = trimesh.util.concatenate([trimesh.creation.box([0.6, 0.1, 0.1]),
                                     trimesh.creation.box([0.1, 0.5, 0.1]).apply_translation(

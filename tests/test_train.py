@@ -230,7 +230,7 @@ for got, a, b in zip(mu(both), mu(halves[0][0]), mu(halves[1][0]), strict=True):
 
 def test_a_subset_of_the_devices_takes_the_work():
   """`devices=` keeps training and per-object work on the devices named (the peer of
-  experiments/bench_devices.py), and all local devices are the default; either compiles
+  experiments/benchmarks/bench_devices.py), and all local devices are the default; either compiles
   ahead of time from shapes alone."""
   code = f"""
 import jax, jax.numpy as jnp, numpy as np, pytest

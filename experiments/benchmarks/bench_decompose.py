@@ -39,6 +39,7 @@ from ppdjax.conventions import NUM_DENSITY_SLOTS
 from ppdjax.dataset.camera import camera_dict
 from ppdjax.dataset.depth import render_depths
 from ppdjax.infer import sampling
+from ppdjax.infer.decompose import model_settings
 from ppdjax.nn.model import PPD
 from ppdjax.sim import rollout_mjx
 from ppdjax.sim.box_plane import BoxPlaneSettings
@@ -139,8 +140,10 @@ def main(argv):
     runs.append((f"box-plane step, screen {steps} steps -> {keep}", ENGINES["box-plane step"],
                  {"screen_steps": steps, "screen_keep": keep}))
   for engine, settings, screen in runs:
-    decompose = ppdjax.make_decompose_fn((model, config), num_samples=FLAGS.samples,
-                                         settings=settings, camera=camera, **screen)
+    shipped = model_settings((model, config)).replace(**{
+        "select.samples": FLAGS.samples, **{"select." + k: v for k, v in screen.items()}})
+    decompose = ppdjax.make_decompose_fn((model, config), shipped, engine=settings,
+                                         camera=camera)
     block = lambda out: jax.block_until_ready(out.primitives.density)
     if not FLAGS.skip_one:
       t0 = time.perf_counter()
@@ -160,9 +163,9 @@ def main(argv):
     _, s = timed(lambda: jax.block_until_ready(physics_only(cands)), FLAGS.repeats)
     add(f"{engine} rollouts alone", f"{FLAGS.samples} candidates", 1, s)
     if FLAGS.refine:
-      refined = ppdjax.make_decompose_fn((model, config), num_samples=FLAGS.samples,
-                                         refine=True, settings=settings, camera=camera,
-                                         screen_steps=0)
+      refined = ppdjax.make_decompose_fn(
+          (model, config), shipped.replace(**{"refine.enabled": True}), engine=settings,
+          camera=camera)
       _, s = timed(lambda: block(refined(one, key)), FLAGS.repeats)
       add(f"{engine} decompose + refine", "1 object", 1, s)
   if not FLAGS.skip_c:

@@ -95,7 +95,7 @@ def time_training(ds, device_sets) -> list[dict]:
 
 
 def time_evaluation(device_sets) -> list[dict]:
-  from ppdjax.infer import evaluation
+  from ppdjax.eval import evaluation
   from ppdjax.training import checkpoints
   if FLAGS.workdir:
     trained = checkpoints.load(FLAGS.workdir)
@@ -106,9 +106,9 @@ def time_evaluation(device_sets) -> list[dict]:
   settings = evaluation.eval_settings(trained[1])
   rows = []
   for devices in (device_sets[0], device_sets[-1]):
-    kw = dict(settings, batch_size=FLAGS.eval_batch * len(devices))
-    r = evaluation.evaluate(trained, FLAGS.data, split="test", max_objects=FLAGS.objects,
-                            progress=False, devices=devices, **kw)
+    kw = dict(batch_size=FLAGS.eval_batch * len(devices))
+    r = evaluation.evaluate(trained, FLAGS.data, settings, split="test",
+                            max_objects=FLAGS.objects, progress=False, devices=devices, **kw)
     stage = r["seconds_by_stage"]
     after = r["objects"] - kw["batch_size"]
     steady = after / (r["seconds"] - stage["first_batch_wall"])

@@ -18,7 +18,7 @@ import time
 import jax
 from absl import app, flags
 
-from ppdjax.infer import evaluation
+from ppdjax.eval import evaluation
 from ppdjax.training import checkpoints
 
 _WORKDIR = flags.DEFINE_string("workdir", "assets/blocks_model", "The model.")
@@ -33,9 +33,9 @@ def main(argv):
     jax.config.update("jax_compilation_cache_dir", os.path.expanduser("~/.cache/ppdjax-jax"))
   trained = checkpoints.load(_WORKDIR.value)
   settings = evaluation.eval_settings(trained[1])
-  kw = dict(split="test", progress=False, **settings)
+  kw = dict(settings=settings, split="test", progress=False)
   t = time.perf_counter()
-  evaluation.evaluate(trained, _DATA.value, max_objects=settings["batch_size"], **kw)
+  evaluation.evaluate(trained, _DATA.value, max_objects=settings.batch_size, **kw)
   print(f"warm-up (compiles): {time.perf_counter() - t:.0f} s", flush=True)
   rows = {}
   for name, prefetch in (("read in turn", False), ("read ahead (default)", True)):

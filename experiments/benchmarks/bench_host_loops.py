@@ -28,7 +28,7 @@ from absl import app, flags
 
 from ppdjax import metrics
 from ppdjax.dataset import towers
-from ppdjax.infer import baselines
+from ppdjax.eval import baselines
 from ppdjax.sim import scene
 
 flags.DEFINE_integer("shapes", 512, "Random towers in Table 4's shape pool.")

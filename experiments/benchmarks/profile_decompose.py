@@ -28,6 +28,7 @@ import ppdjax
 from ppdjax.configs import paper
 from ppdjax.conventions import NUM_DENSITY_SLOTS
 from ppdjax.infer import sampling
+from ppdjax.infer.decompose import model_settings
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.nn.model import PPD
 from ppdjax.sim import rollout_mjx
@@ -92,11 +93,12 @@ def stages(model, config, samples: int, settings, obs: dict, key) -> dict:
          "density draws": lambda: draws(logits, prims.valid, key),
          f"rollouts + scores ({samples} x 4 pushes)": lambda: score(
              prims, slots, obs["trajectories"])}
-  for name, kwargs in (("decompose, fit=False", dict(fit=False)),
-                       ("decompose (default, fit=True)", {}),
-                       ("decompose, refine=True", dict(refine=True))):
-    fn = ppdjax.make_decompose_fn((model, config), num_samples=samples, settings=settings,
-                                  **kwargs)
+  shipped = model_settings((model, config)).replace(**{"select.samples": samples})
+  for name, kwargs in (("decompose, fit.enabled=False", {"fit.enabled": False,
+                                                         "fit.image": False}),
+                       ("decompose (the model's settings)", {}),
+                       ("decompose, refine.enabled=True", {"refine.enabled": True})):
+    fn = ppdjax.make_decompose_fn((model, config), shipped.replace(**kwargs), engine=settings)
     fns[name] = functools.partial(lambda fn: fn(obs, key).score, fn)
   return fns
 

@@ -25,7 +25,7 @@ import numpy as np
 from absl import app, flags
 
 from ppdjax import metrics
-from ppdjax.infer import partial
+from ppdjax.eval import partial
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # experiments/
 from selection_horizon_study.run import paired_difference  # noqa: E402

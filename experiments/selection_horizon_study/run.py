@@ -32,8 +32,9 @@ import numpy as np  # pylint: disable=wrong-import-position
 from absl import app, flags  # pylint: disable=wrong-import-position
 
 from ppdjax import metrics  # pylint: disable=wrong-import-position
-from ppdjax.infer import partial, tables  # pylint: disable=wrong-import-position
-from ppdjax.infer.markdown import with_ci  # pylint: disable=wrong-import-position
+from ppdjax.eval import partial  # pylint: disable=wrong-import-position
+from ppdjax.report import tables
+from ppdjax.report.markdown import with_ci  # pylint: disable=wrong-import-position
 
 FLAGS = flags.FLAGS
 

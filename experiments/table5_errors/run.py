@@ -17,7 +17,7 @@ import os
 import numpy as np
 from absl import app, flags
 
-from ppdjax.infer import partial
+from ppdjax.eval import partial
 
 _EVAL = flags.DEFINE_string("eval", None, "An evaluation's output folder.", required=True)
 _ROW = flags.DEFINE_string("row", "PPD+Fit+Sample", "The row to break down.")

@@ -44,7 +44,7 @@ from ppdjax.conventions import MAX_DENSITY, density_to_slot, slot_to_density
 from ppdjax.dataset import materials, mesh_boxes, tool_scene, tools
 from ppdjax.dataset.meshes import normalize
 from ppdjax.dataset.tool_generation import density_variants
-from ppdjax.infer import partial
+from ppdjax.eval import partial
 from ppdjax.sim.mass import mass_properties
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # experiments/

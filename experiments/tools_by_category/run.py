@@ -31,8 +31,9 @@ from ppdjax.configs import tools as tools_preset
 from ppdjax.conventions import density_to_slot
 from ppdjax.dataset import storage, tools
 from ppdjax.dataset.mesh_boxes import primitives_from_mesh
-from ppdjax.infer import partial, tables
-from ppdjax.infer.markdown import with_ci
+from ppdjax.eval import partial
+from ppdjax.report import tables
+from ppdjax.report.markdown import with_ci
 
 FLAGS = flags.FLAGS
 

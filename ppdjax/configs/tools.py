@@ -1,8 +1,8 @@
 """Tools preset (paper Sec. 5.2): the procedural tools dataset, pretraining on 2-block towers.
 
   python -m ppdjax.generate --config=ppdjax/configs/tools.py --out=DIR       # the dataset
-  python experiments/tools.py --config=ppdjax/configs/tools.py              # Table 3
-  python experiments/tools.py --config=ppdjax/configs/tools.py:tiny         # on a CPU
+  python -m ppdjax.reproduce tools --config=ppdjax/configs/tools.py              # Table 3
+  python -m ppdjax.reproduce tools --config=ppdjax/configs/tools.py:tiny         # on a CPU
 
 The paper had 204 tools; procedural ones are free, so 3,000 here (the paper's split
 fractions), each observed under `data.configs_per_tool` density configurations, lying on
@@ -93,7 +93,7 @@ def get_config(size: str = "paper"):
   # checked again with the density-branch model: 15.7 at 0.05, 15.6 at 0.1, 20.4 at 0
   # (tool_fill_study/tau_choice_density_branch)
   config.eval.prior_weight = 0.05 if size == "paper" else config.eval.prior_weight
-  # +Sample over all 256 steps (the paper's rule; experiments/tools.py evaluates so): the
+  # +Sample over all 256 steps (the paper's rule; ppdjax.reproduce tools evaluates so): the
   # paper preset's 32 steps were chosen on towers, and tools kept no horizon sweep
   config.eval.selection_horizon = 0
   # the oracle shape column (the true boxes with the network's scores): what right boxes give

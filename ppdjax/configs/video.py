@@ -1,8 +1,8 @@
 """Video preset (paper Sec. 5.3): the real towers' setup rebuilt in simulation.
 
   python -m ppdjax.generate --config=ppdjax/configs/video.py --out=DIR     # the dataset
-  python experiments/video_towers.py                                       # the study
-  python experiments/video_towers.py --config=ppdjax/configs/video.py:tiny # on a CPU
+  python -m ppdjax.reproduce video                                       # the study
+  python -m ppdjax.reproduce video --config=ppdjax/configs/video.py:tiny # on a CPU
 
 Towers of 2-4 blocks of pine, aluminium, steel and copper (their real densities,
 `materials.REAL_MATERIALS`), each struck once by a copper ball on a pendulum

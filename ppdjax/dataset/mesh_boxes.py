@@ -123,7 +123,7 @@ def fit_point_boxes(points: np.ndarray, part: np.ndarray, mesh_volume: float,
                     prune: bool = True) -> list:
   """Boxes (centre, rotation, half sizes) fitted to surface samples labelled by part.
   `prune`: skip the cuts that cannot save `box_cost` (the same boxes; False fits every cut,
-  the peer of experiments/bench_tool_boxes.py)."""
+  the peer of experiments/benchmarks/bench_tool_boxes.py)."""
   groups = [points[part == i] for i in np.unique(part)]
   groups = _merge_parts([g for g in groups if len(g)], max_boxes)
   least = box_cost * mesh_volume  # the saving a split must make

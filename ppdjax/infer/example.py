@@ -13,7 +13,7 @@ from ppdjax.conventions import OBS_KEYS, density_to_slot
 from ppdjax.dataset.storage import DatasetError
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import make_decompose_fn, model_settings
-from ppdjax.plots import plot_decomposition
+from ppdjax.report.plots import plot_decomposition
 from ppdjax.primitives import Primitives
 from ppdjax.training import checkpoints
 

@@ -21,7 +21,7 @@ first; the faces with the better sharp score win. A sweep visits the valid boxes
 only, and a batch goes through in chunks of objects with as many boxes, whose labels test
 only that many box slots (`depth_fit.map_by_box_count(slots=True)`).
 
-Measured on 32 fresh paper-preset towers (224² images, experiments/image_fit_study.py,
+Measured on 32 fresh paper-preset towers (224² images, experiments/image_fit_study/run.py,
 docs/inference.md, "With the image"): the faces' median error goes from about 7.7 mm
 (voxels alone) to 2.5 mm (outline) and 1.7 mm (outline and shadows). On 32 towers of the
 test split's two-block tail the floor anchor and the two starts take the p90 from 10.9 to
@@ -51,7 +51,7 @@ STARTS = ((), (2.0,))
 PASSES = 2  # sweeps over every face (the second places faces whose neighbours moved)
 SWEEP = (SWEEP_COARSE, SWEEP_FINE)  # a sweep's offsets per face: over its interval, per end
 # objects refined together (224² pixels x 33 positions x K boxes per face); on an H100 8 and
-# 16 are as fast, 32 and 64 slower (experiments/bench_image_fit.py)
+# 16 are as fast, 32 and 64 slower (experiments/benchmarks/bench_image_fit.py)
 CHUNK = 8
 EDGE_LEVELS = 1024  # integer steps per unit of colour difference
 SHADOW_EPS = 1e-4  # a shadow ray leaving a box this soon (its exit parameter, m) is not

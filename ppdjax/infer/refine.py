@@ -274,5 +274,5 @@ def refine_batch(prims, logits, obs_traj, sample_dist, sample_mae, *, steps, pri
                          jacobian=jacobian, settings=settings)
     mae = jnp.where(r.closer, metrics.trajectory_mae(r.trajectories, traj), m0)
     return {"density": r.primitives.density, "cost_start": r.cost_start, "cost": r.cost,
-            "dist": r.distance, "mae": mae}
+            "dist": r.distance, "mae": mae, "closer": r.closer}
   return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae, weights)

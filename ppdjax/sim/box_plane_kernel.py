@@ -32,7 +32,7 @@ from ppdjax.sim.box_plane import CORNER_SIGNS, Body, BoxPlaneSettings
 from ppdjax.sim.box_plane_lanes import CANDIDATES, step
 
 # The launch: rollouts and GPU warps per program, by the number of rollouts. Measured on
-# one H100 (experiments/kernel_sweep.py, benchmarks.md): at 2,048 rollouts 32 x 2 was the
+# one H100 (experiments/benchmarks/kernel_sweep.py, benchmarks.md): at 2,048 rollouts 32 x 2 was the
 # fastest of eight shapes (1.09x the 32 x 4 used before; larger blocks leave SMs idle), at
 # 131,072 128 x 8 (1.69x; 32 x 2 1.48x): a program's steps are a long chain of dependent
 # small operations, and more rollouts per program share that chain once many programs

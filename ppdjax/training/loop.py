@@ -18,7 +18,7 @@ from tqdm.auto import tqdm
 
 from ppdjax.dataset import storage
 from ppdjax.configs import schema
-from ppdjax.plots import plot_learning_curve
+from ppdjax.report.plots import plot_learning_curve
 from ppdjax.training import checkpoints, sharding
 from ppdjax.training.loader import Loader
 from ppdjax.training.state import Trainer, batch_norm_mode, density_weight, phase, total_steps

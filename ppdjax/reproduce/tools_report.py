@@ -1,4 +1,4 @@
-"""The tools experiment's report (experiments/tools.py's last step): Table 3 beside the
+"""The tools experiment's report (ppdjax.reproduce tools's last step): Table 3 beside the
 paper's, shape F1, a figure of decomposed test tools, the model exported to assets/."""
 
 from __future__ import annotations
@@ -10,14 +10,16 @@ import jax
 import numpy as np
 from PIL import Image
 
-import pipeline_steps
+from ppdjax.reproduce import steps as pipeline_steps
 
-from ppdjax import make_decompose_fn, plots
+from ppdjax import make_decompose_fn
+from ppdjax.infer.config import DecomposeConfig
+from ppdjax.report import plots
 from ppdjax.conventions import slot_to_density
 from ppdjax.configs import tools as tools_preset
 from ppdjax.dataset import storage, tool_generation
-from ppdjax.infer import tables
-from ppdjax.infer.markdown import intervals_note, oracle_pick_md, prior_sweep_md, table2_md
+from ppdjax.report import tables
+from ppdjax.report.markdown import intervals_note, oracle_pick_md, prior_sweep_md, table2_md
 from ppdjax.training import checkpoints
 
 FIGURE_TOOLS = 4
@@ -59,8 +61,8 @@ def figure(pipe, path: str, model_dir: str) -> str:
   """The first FIGURE_TOOLS test tools decomposed by the full model, stacked in one PNG."""
   test = storage.open_dataset(pipe.data, "test")
   # the network's boxes, as `python -m ppdjax.decompose --mesh` (the fit is worse on tools)
-  decompose = make_decompose_fn(model_dir, num_samples=pipe.config.eval.samples, fit=False,
-                                pushes=test.pushes)
+  decompose = make_decompose_fn(model_dir, DecomposeConfig.from_eval(pipe.config.eval).replace(
+      **{"fit.enabled": False, "fit.image": False, "fit.depth": False}), pushes=test.pushes)
   panels = []
   every = tool_generation.configs_per_tool(pipe.config.data)  # one configuration a tool
   for i in range(0, min(FIGURE_TOOLS * every, len(test)), every):
@@ -101,7 +103,7 @@ def markdown(r: dict, command: str) -> str:
     lines += [f"The full model's rows (the baselines, PPD (full) and every +Fit, +Sample and "
               f"true-box row) come from a later evaluation of the shipped model on the same "
               f"test tools, on {r['rerun']['machine']}, with +Sample at τ = "
-              f"{r['rerun']['prior_weight']} (`experiments/tools_rerun.py`; "
+              f"{r['rerun']['prior_weight']} (`experiments/tools_rerun/run.py`; "
               f"`tools_rerun/results.md`):", "", "```", r["rerun"]["command"], "```", "",
               "The ablations' rows come from the run above.", ""]
   lines += table2_md(rows, {k: observes.get(k, (True, True)) for k in rows})

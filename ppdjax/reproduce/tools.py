@@ -1,11 +1,11 @@
 """The tools experiment (paper Sec. 5.2, Table 3) in resumable steps of <= --step_seconds.
 
-  python experiments/tools.py --config=ppdjax/configs/tools.py        # every step left
-  python experiments/tools.py --config=ppdjax/configs/tools.py:tiny   # the same on a CPU
-  python experiments/tools.py --step=next                             # one call, then exit
-  python experiments/tools.py --jobs=2        # independent steps side by side
-  python experiments/tools.py --list                                  # done and left
-  python experiments/tools.py --root=R2 --config.data.configs_per_tool=8 \
+  python -m ppdjax.reproduce tools --config=ppdjax/configs/tools.py        # every step left
+  python -m ppdjax.reproduce tools --config=ppdjax/configs/tools.py:tiny   # the same on a CPU
+  python -m ppdjax.reproduce tools --step=next                             # one call, then exit
+  python -m ppdjax.reproduce tools --jobs=2        # independent steps side by side
+  python -m ppdjax.reproduce tools --list                                  # done and left
+  python -m ppdjax.reproduce tools --root=R2 --config.data.configs_per_tool=8 \
       --variants=full --pretrained=out/tools/pretrain  # a study: one model, no pretraining
 
 Steps: generate the 2-block pretraining towers (`config.pretrain`) and the tools dataset;
@@ -16,7 +16,7 @@ and, with eval.fit, the +Fit rows); then `report`: experiments/results/tools.{js
 beside the paper's Table 3, a figure of decomposed test tools, and the full model exported
 to assets/tools_model. Generation resumes by shard, training from its last checkpoint
 (a call stops itself after --step_seconds), evaluations by saved batch.
-ROOT/steps.jsonl records each call's wall time and device (experiments/pipeline_steps.py);
+ROOT/steps.jsonl records each call's wall time and device (ppdjax/reproduce/steps.py);
 with --jobs=N, up to N steps whose inputs are ready run at once, e.g. the tools are made
 on the CPU while the model pretrains on the towers.
 
@@ -39,10 +39,11 @@ from ml_collections import config_flags
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
-import blocks_common as common  # noqa: E402
-import pipeline_steps  # noqa: E402
+from ppdjax.reproduce import blocks_common as common
+from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax.dataset import generation  # noqa: E402
-from ppdjax.infer import evaluation, markdown, partial  # noqa: E402
+from ppdjax.eval import evaluation, partial  # noqa: E402
+from ppdjax.report import markdown
 from ppdjax.training import loop  # noqa: E402
 from ppdjax.training.state import total_steps  # noqa: E402
 
@@ -147,32 +148,28 @@ class Pipeline:
                             time_limit_s=FLAGS.step_seconds)
 
   def evaluate(self, variant: str) -> None:
-    e, full = self.config.eval, variant == "full"
+    full = variant == "full"
+    settings = (evaluation.eval_settings(self.config, refine=False) if full else
+                evaluation.eval_settings(self.config, **common.NETWORK_ONLY))
     try:
       results = evaluation.evaluate(
-          self.workdir(variant), self.data, split="test", samples=e.samples if full else 1,
-          batch_size=e.batch_size, with_baselines=full, prior_weight=e.prior_weight if full
-          else 0.0, fit=bool(full and e.fit), true_shapes=bool(full and e.get("true_shapes")),
-          progress=True,
+          self.workdir(variant), self.data, settings, split="test",
           partial_dir=os.path.join(self.eval_dir(variant), "partial"),
           max_seconds=FLAGS.step_seconds)
     except partial.EvaluationPaused as paused:  # saved so far; the next call goes on
       print(f"[{variant}] {paused}", flush=True)
       return
-    command = (f"python -m ppdjax.evaluate --workdir={variant} --data=data --split=test "
-               f"--samples={results['samples']} --norefine"
-               + ("" if full else " --nobaselines") + (" --fit" if results["fit"] else "")
-               + (" --true_shapes" if results["true_shapes"] else ""))
-    markdown.write_results(results, self.eval_dir(variant), command)
+    markdown.write_results(results, self.eval_dir(variant),
+                           common.eval_command(variant, "data", settings, split="test"))
     if full:  # its per-object records in one compressed file, for studies away from the GPU
       partial.compact(os.path.join(self.eval_dir(variant), "partial"))
 
   def report(self) -> None:
-    import tools_report  # pylint: disable=import-outside-toplevel
+    from ppdjax.reproduce import tools_report  # pylint: disable=import-outside-toplevel
     # the side-by-side runner adds --step= to its children's command lines
-    args = [a for a in sys.argv[1:] if not a.startswith("--step=")]
+    args = [a for a in sys.argv[3:] if not a.startswith("--step=")]  # after the pipeline name
     tools_report.write_all(self, FLAGS.results, FLAGS.assets,
-                           "python experiments/tools.py " + " ".join(args))
+                           "python -m ppdjax.reproduce tools " + " ".join(args))
 
 
 def main(argv):
@@ -181,6 +178,3 @@ def main(argv):
   sys.exit(pipeline_steps.run_steps(pipe, FLAGS.step, FLAGS.jobs, sys.argv,
                                     list_only=FLAGS.list))
 
-
-if __name__ == "__main__":
-  app.run(main)

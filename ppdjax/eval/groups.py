@@ -18,7 +18,7 @@ from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
 from ppdjax.infer.config import FitConfig
 from ppdjax.infer.decompose import fit_stage
-from ppdjax.infer.tables import BASELINES
+from ppdjax.report.tables import BASELINES
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import bottom_to_top
 

@@ -1,6 +1,6 @@
 """The full model on the whole test split, added to blocks.json / blocks.md.
 
-`experiments/blocks.py` evaluates the full model on the whole test split by default; run
+`ppdjax.reproduce blocks` evaluates the full model on the whole test split by default; run
 with `--max_objects=N` (e.g. 512, with the +Joint and true-box studies), this adds a
 separate evaluation of every test object
 (`python -m ppdjax.evaluate ... --out=DIR`, the command in its results.json) as
@@ -20,10 +20,10 @@ import shutil
 
 from absl import app, flags
 
-import blocks_common as common
-import blocks_report
+from ppdjax.reproduce import blocks_common as common
+from ppdjax.reproduce import blocks_report
 
-from ppdjax.infer import partial
+from ppdjax.eval import partial
 
 _EVAL = flags.DEFINE_string("eval", None, "The whole-split evaluation's output folder.",
                             required=True)
@@ -59,7 +59,7 @@ def main(argv):
             "Tables in `results.md`; blocks.json's \"whole_split\" and blocks.md's targets "
             "read them (`python experiments/blocks_whole_split.py`).\n"
             + ("\nThe per-object records (`partial/records.npz`, read by "
-               "`ppdjax.infer.partial.saved_records`) let the tables be read again without a "
+               "`ppdjax.eval.partial.saved_records`) let the tables be read again without a "
                "GPU, e.g. `experiments/selection_horizon_study.py`.\n" if records else ""))
   command = ((_DATA_COMMAND.value + "\n") if _DATA_COMMAND.value else "") + full["command"]
   r["whole_split"] = blocks_report.whole_split(r, full, command)

@@ -1,11 +1,11 @@
 """The full tools model evaluated again on the whole tools test split, its rows replacing
 the full model's in tools.json / tools.md (the ablations' rows and the run's logs stay).
 
-`experiments/tools.py` evaluates each model as it trains it; after a change to the
+`ppdjax.reproduce tools` evaluates each model as it trains it; after a change to the
 evaluation (the +Sample ranking fix of 2026-11-25, say), the shipped model is evaluated
 again on the same test tools (the dataset remade from the preset's seed) and merged here:
 
-    python experiments/tools.py --step=generate:tools --root=ROOT
+    python -m ppdjax.reproduce tools --step=generate:tools --root=ROOT
     python -m ppdjax.evaluate --workdir=assets/tools_model --data=ROOT/data --split=test \
         --samples=512 --norefine --fit --nodepth --true_shapes --prior_weight=0 --out=DIR
     python experiments/tools_rerun.py --eval=DIR --machine="one NVIDIA H100 80GB HBM3"
@@ -19,13 +19,13 @@ import os
 
 from absl import app, flags
 
-import blocks_common as common
-import tools_report
+from ppdjax.reproduce import blocks_common as common
+from ppdjax.reproduce import tools_report
 
 _EVAL = flags.DEFINE_string("eval", None, "The evaluation's output folder.", required=True)
 _RESULTS = flags.DEFINE_string("results", "experiments/results", "Where tools.json is.")
 _MACHINE = flags.DEFINE_string("machine", None, "The machine it ran on.", required=True)
-DATA_COMMAND = "python experiments/tools.py --step=generate:tools"
+DATA_COMMAND = "python -m ppdjax.reproduce tools --step=generate:tools"
 FULL_ROWS = {"Frequent": "Frequent", "Nearest": "Nearest", "Oracle": "Oracle",
              "PPD": "PPD (full)", "PPD+Sample": "PPD (full)+Sample"}
 

@@ -1,4 +1,4 @@
-"""The `export` and `report` steps of experiments/blocks.py: the shipped model, the example,
+"""The `export` and `report` steps of ppdjax.reproduce blocks: the shipped model, the example,
 tables and figures.
 
 `export_example` exports the full model to ASSETS/blocks_model, a test tower to
@@ -17,12 +17,13 @@ import shutil
 
 import numpy as np
 
-import blocks_common as common
-import pipeline_steps
+from ppdjax.reproduce import blocks_common as common
+from ppdjax.reproduce import steps as pipeline_steps
 
 from ppdjax.dataset import storage
-from ppdjax.infer import example, markdown, tables
-from ppdjax.plots import plot_confusion, plot_variant_curves
+from ppdjax.infer import example
+from ppdjax.report import markdown, tables
+from ppdjax.report.plots import plot_confusion, plot_variant_curves
 from ppdjax.training import checkpoints
 
 ABLATIONS = {"no_trajectory": "PPD (no trajectory)", "no_image": "PPD (no image)",

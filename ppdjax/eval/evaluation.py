@@ -22,7 +22,7 @@ from the bottom; `docs/inference.md` says how +Sample and +Refine rank slots):
                   arg-max alone;
   ...+Sample+Joint  with `joint`: faces and densities fitted together from the same start
                   as +Refine (`joint.refine_joint`; with depth, on the depth image too);
-  Frequent, Nearest, Oracle (`ppdjax.infer.baselines`), on the true shape.
+  Frequent, Nearest, Oracle (`ppdjax.eval.baselines`), on the true shape.
 MAE: the paper's trajectory MAE in mm (`metrics.trajectory_mae`). Batch records saved as
 they are made (`partial`) are reused by a later call: long evaluations resume.
 """
@@ -45,19 +45,20 @@ from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage
 from ppdjax.configs import schema
 from ppdjax.configs.schema import EvalConfig
-from ppdjax.infer import baselines, partial
-from ppdjax.infer.batches import evaluation_objects, read_ahead, table4_batches
+from ppdjax.eval import baselines, partial
+from ppdjax.eval.batches import evaluation_objects, read_ahead, table4_batches
 from ppdjax.infer.config import DecomposeConfig
-from ppdjax.infer.evaluator import Evaluator, shape_pool
-from ppdjax.infer.tables import PREFIXES, SELECTION_HORIZONS, model_switches, summarize
+from ppdjax.eval.evaluator import Evaluator, shape_pool
+from ppdjax.report.tables import PREFIXES, SELECTION_HORIZONS, model_switches, summarize
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.training import checkpoints
 
 
 # of `rows.batch_records`' layout and what they hold: saved batches of another are not
 # reused (4: Table 4's shape pool drawn by `stream.sample_towers_jax`; 5: Table 4's rows
-# recorded only on the batches that simulate its baselines, `table4_objects`)
-RECORDS_VERSION = 5
+# recorded only on the batches that simulate its baselines, `table4_objects`; 6: the
+# studies' sweeps only when asked, +Refine falls back to the +Sample answer as decompose)
+RECORDS_VERSION = 6
 
 
 def _weights_hash(model) -> str:

@@ -1,4 +1,4 @@
-"""Decomposition of the video test towers and the report of experiments/video_towers.py."""
+"""Decomposition of the video test towers and the report of ppdjax.reproduce video."""
 
 from __future__ import annotations
 
@@ -9,10 +9,11 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-import pipeline_steps
+from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import primitives
 from ppdjax.conventions import density_to_slot
 from ppdjax.dataset import camera, generation, materials
+from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import make_decompose_fn
 from ppdjax.training import checkpoints
 
@@ -47,12 +48,13 @@ def decompose_test(config, workdir: str, test_file: str, out_file: str,
   _, cfg = trained
   e, size = config.eval, int(config.data.image_size)
   refine = bool(e.refine) if refine is None else refine
-  fn = make_decompose_fn(trained, num_samples=int(e.samples), fit=True,
-                         camera=camera.camera_dict(size, size), refine=refine,
-                         refine_steps=int(e.refine_steps), prior_weight=float(e.prior_weight),
-                         selection_horizon=int(e.get("selection_horizon", 0)),
-                         pushes=generation.pushes_of(cfg.data),
-                         screen_steps=0)  # as measured: the screen is unmeasured on tracking
+  # the preset's settings with the depth fit (the test towers carry depth images) and no
+  # screen (as measured: the screen is unmeasured on tracking)
+  settings = DecomposeConfig.from_eval(e).replace(**{
+      "fit.enabled": True, "fit.depth": True, "refine.enabled": refine,
+      "select.screen_steps": 0})
+  fn = make_decompose_fn(trained, settings, camera=camera.camera_dict(size, size),
+                         pushes=generation.pushes_of(cfg.data))
   d = dict(np.load(test_file))
   n, k = d["valid"].shape
   out = {}

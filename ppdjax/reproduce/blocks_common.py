@@ -7,6 +7,8 @@ interruption and scripts can share work.
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import os
 import shutil
@@ -19,8 +21,9 @@ from ml_collections import config_flags
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
-import pipeline_steps  # noqa: E402
-from ppdjax.infer import evaluation, markdown  # noqa: E402
+from ppdjax.reproduce import steps as pipeline_steps
+from ppdjax.eval import evaluation  # noqa: E402
+from ppdjax.report import markdown
 from ppdjax.training import loop  # noqa: E402
 
 # variant -> (model switch turned off, the paper's Table 2 row)
@@ -69,13 +72,31 @@ def ensure_trained(config, data_dir: str, root: str, variant: str) -> str:
   return workdir
 
 
-def horizon_flags(settings: dict) -> str:
-  """The evaluation command's --selection_horizon and --refine_horizon where they are not
-  0 (the refinement's start only where there is a refinement)."""
-  return ((f" --selection_horizon={settings['selection_horizon']}"
-           if settings.get("selection_horizon") else "")
-          + (f" --refine_horizon={settings['refine_horizon']}"
-             if settings.get("refine") and settings.get("refine_horizon") else ""))
+# The network alone (the ablations' rows, and Table 2's PPD rows): its arg-max, no fit,
+# no sampling, no baselines: keys of `schema.EvalConfig` over the preset's eval section.
+NETWORK_ONLY = {"samples": 1, "refine": False, "baselines": False, "fit": False,
+                "image_fit": False, "depth": False, "face_spread": 0.0,
+                "selection_horizon": 0, "screen_steps": 0, "mass_match": False,
+                "estimator": "", "joint": False, "true_shapes": False, "table4_objects": 0}
+
+
+def eval_command(workdir: str, data: str, settings, **extra) -> str:
+  """The `python -m ppdjax.evaluate` command line of an evaluation with the typed eval
+  section `settings`: its values as --config.eval overrides, `extra` as flags."""
+  values = dataclasses.asdict(settings)
+  return (f"python -m ppdjax.evaluate --workdir={workdir} --data={data}"
+          + "".join(f" --{k}={v}" for k, v in extra.items() if v not in (None, ""))
+          + "".join(f" --config.eval.{k}={v}" for k, v in sorted(values.items())))
+
+
+def same_settings(results: dict, settings, **extra) -> bool:
+  """Whether saved results were made with the typed eval section `settings` (the batch
+  size aside: it is padded to the devices) and `extra` (max_objects, subset, split)."""
+  want = {k: v for k, v in dataclasses.asdict(settings).items() if k != "batch_size"}
+  if not settings.baselines:
+    want["table4_objects"] = 0
+  want.update(extra)
+  return all(json.dumps(results.get(k)) == json.dumps(v) for k, v in want.items())
 
 
 def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples: int,
@@ -88,26 +109,14 @@ def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples:
   if os.path.exists(path):
     with open(path) as f:
       results = json.load(f)
-    e = config.eval
-    if (results["samples"], results["refine"], results.get("max_objects", 0),
-        results.get("prior_weight", 0.0), results.get("table4_objects", 0),
-        results.get("refine_jacobian", "forward"), results.get("image_fit", False),
-        results.get("selection_horizon", 0), results.get("refine_horizon", 0)) == (
-            samples, refine, max_objects, e.prior_weight, e.get("table4_objects", 0),
-            e.get("refine_jacobian", "forward") if refine else "forward",
-            settings["image_fit"], settings["selection_horizon"],
-            settings["refine_horizon"] if refine else 0):
+    if same_settings(results, settings, max_objects=max_objects):
       return results
   print(f"[{variant}] evaluating ({samples} samples{', refine' if refine else ''})", flush=True)
   t0 = time.perf_counter()
-  results = evaluation.evaluate(workdir, data_dir, max_objects=max_objects, **settings)
+  results = evaluation.evaluate(workdir, data_dir, settings, max_objects=max_objects)
   results["max_objects"] = max_objects
-  markdown.write_results(results, out, f"python -m ppdjax.evaluate --workdir={workdir} "
-                         f"--data={data_dir} --samples={samples}"
-                         + (" --refine" if refine else "")
-                         + f" --prior_weight={config.eval.prior_weight}"
-                         + horizon_flags(settings)
-                         + (f" --max_objects={max_objects}" if max_objects else ""))
+  markdown.write_results(results, out, eval_command(workdir, data_dir, settings,
+                                                    max_objects=max_objects or None))
   pipeline_steps.log_call(root, f"evaluate {variant}", time.perf_counter() - t0, True)
   return results
 

@@ -7,9 +7,9 @@ import json
 import os
 
 from ppdjax import metrics
-from ppdjax.infer.tables import (FIT_ROWS, PAPER_SHAPE_F1, PAPER_TABLE2_ONE_MODEL,
+from ppdjax.report.tables import (FIT_ROWS, PAPER_SHAPE_F1, PAPER_TABLE2_ONE_MODEL,
                                  PAPER_TABLE4, PAPER_TABLE5)
-from ppdjax.plots import plot_confusion
+from ppdjax.report.plots import plot_confusion
 
 
 def face_md(face_error_mm: dict, image_fit: bool = False) -> list[str]:

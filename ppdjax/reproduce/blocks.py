@@ -1,9 +1,9 @@
 """The whole block-tower experiment (paper Tables 2, 4, 5) in resumable steps of ≤ 10 minutes.
 
-  python experiments/blocks.py                     # every step left, in order
-  python experiments/blocks.py --step=next         # only the next step, then exit
-  python experiments/blocks.py --list              # what is done and what is left
-  python experiments/blocks.py --jobs=4            # independent steps side by side
+  python -m ppdjax.reproduce blocks                     # every step left, in order
+  python -m ppdjax.reproduce blocks --step=next         # only the next step, then exit
+  python -m ppdjax.reproduce blocks --list              # what is done and what is left
+  python -m ppdjax.reproduce blocks --jobs=4            # independent steps side by side
 
 Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder and
 generator on the stream of fresh towers, `train.stream_steps`), then the full model and
@@ -23,11 +23,12 @@ after --step_seconds and the next call goes on); the test-split evaluations save
 as it is made and stop after --step_seconds too (the next call goes on); evaluations are
 skipped once written.
 ROOT/steps.jsonl records each call's wall time and device. With --jobs=N, up to N steps
-whose inputs are ready run at once, each in its own process (experiments/pipeline_steps.py).
+whose inputs are ready run at once, each in its own process (ppdjax/reproduce/steps.py).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -41,11 +42,12 @@ from ml_collections import config_flags
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
-import blocks_common as common  # noqa: E402
-import blocks_report  # noqa: E402
-import pipeline_steps  # noqa: E402
+from ppdjax.reproduce import blocks_common as common
+from ppdjax.reproduce import blocks_report
+from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax.dataset import generation  # noqa: E402
-from ppdjax.infer import evaluation, markdown, partial  # noqa: E402
+from ppdjax.eval import evaluation, partial  # noqa: E402
+from ppdjax.report import markdown
 from ppdjax.nn.model import PPD  # noqa: E402
 from ppdjax.training import checkpoints, loop  # noqa: E402
 from ppdjax.training.state import total_steps  # noqa: E402
@@ -92,29 +94,19 @@ class Pipeline:
   def workdir(self, variant: str) -> str:
     return os.path.join(self.root, variant)
 
-  def eval_settings(self, variant: str) -> dict:
-    e = self.config.eval
+  def eval_settings(self, variant: str):
+    """The typed eval section of a variant's test-split evaluation: the preset's (the
+    full model: `decompose`'s settings and the tables') or the network alone."""
     if variant == "full":
-      return {"samples": e.samples, "refine": e.refine, "with_baselines": True,
-              "prior_weight": e.prior_weight, "fit": e.fit, "depth": e.get("depth", False),
-              "refine_prior": e.refine_prior, "joint": FLAGS.joint,
-              "true_shapes": FLAGS.true_shapes, "table4_objects": e.get("table4_objects", 0),
-              "refine_jacobian": e.get("refine_jacobian", "forward"),
-              "image_fit": e.get("image_fit", False) and e.fit,
-              "selection_horizon": e.get("selection_horizon", 0),
-              "refine_horizon": e.get("refine_horizon", 0)}
-    return {"samples": 1, "refine": False, "with_baselines": False, "prior_weight": 0.0,
-            "fit": False, "depth": False, "refine_prior": 0.0, "joint": False,
-            "true_shapes": False, "table4_objects": 0, "refine_jacobian": "forward",
-            "image_fit": False, "selection_horizon": 0, "refine_horizon": 0}
+      return evaluation.eval_settings(self.config, joint=FLAGS.joint,
+                                      true_shapes=FLAGS.true_shapes)
+    return evaluation.eval_settings(self.config, **common.NETWORK_ONLY)
 
   def evaluation_args(self, variant: str) -> dict:
-    """`evaluation.evaluate`'s settings for a variant's test-split evaluation (and for
+    """`evaluation.evaluate`'s arguments for a variant's test-split evaluation (and for
     compiling it ahead: the same arguments compile the same programs)."""
-    e = self.config.eval
-    return {"refine_steps": e.refine_steps, "batch_size": e.batch_size,
-            "max_objects": self.max_objects(variant), "subset": FLAGS.subset,
-            **self.eval_settings(variant)}
+    return {"settings": self.eval_settings(variant), "max_objects": self.max_objects(variant),
+            "subset": FLAGS.subset}
 
   def max_objects(self, variant: str) -> int:
     """The full model's evaluation (sampling, baselines, fit, refinement) covers
@@ -192,7 +184,8 @@ class Pipeline:
   def compile_stamp(self) -> dict:
     """What the compiled programs depend on: the evaluation's arguments, the model's
     configuration, JAX and the cache they went to."""
-    return {"evaluation": self.evaluation_args("full"),
+    args = self.evaluation_args("full")
+    return {"evaluation": {**dataclasses.asdict(args.pop("settings")), **args},
             "model": self.train_config("full").model.to_dict(), "jax": jax.__version__,
             "cache": os.path.abspath(jax.config.jax_compilation_cache_dir)}
 
@@ -263,20 +256,17 @@ class Pipeline:
       return False
     with open(self.eval_path(variant)) as f:
       r = json.load(f)
-    s = self.eval_settings(variant)
-    refine_prior = s["refine_prior"] if (s["fit"] or s["depth"]) and s["refine"] else 0.0
-    return ((r["samples"], r["refine"], r.get("max_objects", 0), r.get("prior_weight", 0.0),
-             r.get("subset", "first"), r.get("fit", False), r.get("depth", False),
-             r.get("refine_prior", 0.0), r.get("joint", False), r.get("true_shapes", False),
-             r.get("table4_objects", 0), r.get("refine_jacobian", "forward"),
-             r.get("image_fit", False)) ==
-            (s["samples"], s["refine"], self.max_objects(variant), s["prior_weight"],
-             FLAGS.subset, s["fit"], s["depth"], refine_prior, s["joint"], s["true_shapes"],
-             s["table4_objects"] if s["with_baselines"] else 0,
-             s["refine_jacobian"] if s["refine"] else "forward", s["image_fit"]))
+    return common.same_settings(r, self.eval_settings(variant),
+                                max_objects=self.max_objects(variant), subset=FLAGS.subset)
 
   def val_path(self) -> str:
     return os.path.join(self.workdir("full"), "eval_val", "results.json")
+
+  def val_settings(self):
+    """The full model on validation objects, +Sample's studies (τ, horizons) where τ and
+    the horizon are to be chosen: no baselines, no refinement."""
+    return evaluation.eval_settings(self.config, refine=False, baselines=False,
+                                    table4_objects=0, studies=True, horizon_sweep=True)
 
   def validated(self) -> bool:
     """Whether the validation sweep exists with this preset's settings and object count."""
@@ -284,30 +274,18 @@ class Pipeline:
       return False
     with open(self.val_path()) as f:
       r = json.load(f)
-    s = self.eval_settings("full")
-    return ((r["samples"], r.get("max_objects"), r.get("fit"), r.get("depth"),
-             r.get("image_fit", False))
-            == (s["samples"], FLAGS.val_objects, s["fit"], s["depth"], s["image_fit"]))
+    return common.same_settings(r, self.val_settings(), max_objects=FLAGS.val_objects)
 
   def validate(self) -> None:
-    """The full model on --val_objects validation objects: the +Sample rows' τ sweep
-    (network, fitted and depth-fitted boxes), where τ is to be chosen (no baselines, no
-    refinement)."""
-    s, e = self.eval_settings("full"), self.config.eval
-    results = evaluation.evaluate(
-        self.workdir("full"), self.data, split="val", samples=s["samples"], refine=False,
-        batch_size=e.batch_size, max_objects=FLAGS.val_objects, subset="spread",
-        with_baselines=False, prior_weight=s["prior_weight"], fit=s["fit"], depth=s["depth"],
-        image_fit=s["image_fit"], selection_horizon=s["selection_horizon"])
+    """The full model on --val_objects validation objects, spread over the split."""
+    s = self.val_settings()
+    results = evaluation.evaluate(self.workdir("full"), self.data, s, split="val",
+                                  max_objects=FLAGS.val_objects, subset="spread")
     results["max_objects"] = FLAGS.val_objects
     markdown.write_results(
         results, os.path.dirname(self.val_path()),
-        f"python -m ppdjax.evaluate --workdir=full --data=data --split=val "
-        f"--samples={s['samples']} --norefine --nobaselines --prior_weight={s['prior_weight']}"
-        + common.horizon_flags({**s, "refine": False})
-        + (" --fit" if s["fit"] else "") + (" --image_fit" if s["image_fit"] else "")
-        + (" --depth" if s["depth"] else "")
-        + f" --max_objects={FLAGS.val_objects} --subset=spread")
+        common.eval_command("full", "data", s, split="val", max_objects=FLAGS.val_objects,
+                            subset="spread"))
 
   def evaluate(self, variant: str) -> None:
     """One call of an evaluation step: batches are saved as they are made (eval_partial/),
@@ -330,17 +308,8 @@ class Pipeline:
     results["max_objects"] = n
     markdown.write_results(
         results, os.path.dirname(self.eval_path(variant)),
-        f"python -m ppdjax.evaluate --workdir={variant} --data=data --samples={s['samples']}"
-        + (" --refine" if s["refine"] else "") + f" --prior_weight={s['prior_weight']}"
-        + common.horizon_flags(s)
-        + ("" if s["with_baselines"] else " --nobaselines")
-        + (" --fit" if s["fit"] else "") + (" --image_fit" if s["image_fit"] else "")
-        + (" --depth" if s["depth"] else "")
-        + f" --refine_prior={s['refine_prior']}" + (" --joint" if s["joint"] else "")
-        + (" --true_shapes" if s["true_shapes"] else "")
-        + (f" --table4_objects={s['table4_objects']}" if s["table4_objects"] else "")
-        + (f" --refine_jacobian={s['refine_jacobian']}" if s["refine"] else "")
-        + (f" --max_objects={n} --subset={FLAGS.subset}" if n else ""))
+        common.eval_command(variant, "data", s, max_objects=n or None,
+                            subset=FLAGS.subset if n else None))
     if variant == "full":  # its per-object records, kept for studies away from the GPU
       partial.compact(saved)
     else:
@@ -348,9 +317,9 @@ class Pipeline:
 
   def report(self) -> None:
     # the side-by-side runner adds --step= to its children's command lines
-    args = [a for a in sys.argv[1:] if not a.startswith("--step=")]
+    args = [a for a in sys.argv[3:] if not a.startswith("--step=")]  # after the pipeline name
     blocks_report.write_all(self, FLAGS.results, FLAGS.assets,
-                            "python experiments/blocks.py " + " ".join(args),
+                            "python -m ppdjax.reproduce blocks " + " ".join(args),
                             exported=FLAGS.exported)
 
 
@@ -360,6 +329,3 @@ def main(argv):
   sys.exit(pipeline_steps.run_steps(Pipeline(FLAGS.config, FLAGS.root), FLAGS.step,
                                     FLAGS.jobs, sys.argv, list_only=FLAGS.list))
 
-
-if __name__ == "__main__":
-  app.run(main)

@@ -13,7 +13,7 @@ import numpy as np
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, SLOT_DENSITY
 from ppdjax.infer import sampling
-from ppdjax.infer.tables import (BASELINES, FIT_ROWS, POSTERIOR_TEMPERATURES, PRIOR_WEIGHTS,
+from ppdjax.report.tables import (BASELINES, FIT_ROWS, POSTERIOR_TEMPERATURES, PRIOR_WEIGHTS,
                                  SCREENS, SELECTION_HORIZONS, check_horizon)
 
 
@@ -220,6 +220,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   rec.update({("shape", k): np.asarray(v) for k, v in out["shape"].items()})
   rec.update({("faces", g): np.asarray(v) for g, v in out["faces"].items()})  # (B, K, 6) m
   best = np.argmin(objective(prior_weight), -1)
+  pick = (slots[rows, best], omae[rows, best])  # the +Sample answer of `headline`
   scores = {"PPD": logits,
             "PPD+Sample": sample_scores(logits, slots, objective(prior_weight), pvalid)}
   mae = {"PPD": omae[:, 0], "PPD+Sample": omae[rows, best]}
@@ -259,6 +260,8 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
         keep, sampling.selection_objective(fhd[..., h], out["fit_logp"][g], tau), np.inf)
     f_obj = f_objective(prior_weight)
     f_best = np.argmin(f_obj, -1)
+    if group == headline:
+      pick = (out["fit_slots"][group][rows, f_best], fm[rows, f_best])
     scores[name] = glogits
     mae[name] = fm[:, 0]
     scores[name + "+Sample"] = sample_scores(glogits, out["fit_slots"][group], f_obj, fvalid)
@@ -284,10 +287,12 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     scores[sample_row + "+Joint"] = refine_scores(logits, j["density"], pvalid)
     mae[sample_row + "+Joint"] = j["mae"]
     rec[("faces", "joint")] = np.asarray(j["faces"])
-  if refine:
+  if refine:  # `decompose`'s answer: refined where it came closer, else +Sample's
     r = out["refine"]
-    scores[sample_row + "+Refine"] = refine_scores(logits, r["density"], pvalid)
-    mae[sample_row + "+Refine"] = r["mae"]
+    closer = np.asarray(r["closer"], bool)
+    density = np.where(closer[:, None], r["density"], SLOT_DENSITY * (pick[0] + 1.0))
+    scores[sample_row + "+Refine"] = refine_scores(logits, density, pvalid)
+    mae[sample_row + "+Refine"] = np.where(closer, r["mae"], pick[1])
     rec.update({("refine", k): r[k] for k in ("cost_start", "cost", "dist", "sample_dist")})
   if "refine_true" in out:  # the oracle column, refined alike
     scores[FIT_ROWS["true"] + "+Sample+Refine"] = refine_scores(

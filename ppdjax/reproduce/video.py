@@ -1,8 +1,8 @@
 """The paper's real towers rebuilt in simulation (issue 19, paper Sec. 5.3 and 6).
 
-  python experiments/video_towers.py                                  # every step left
-  python experiments/video_towers.py --config=ppdjax/configs/video.py:tiny   # on a CPU
-  python experiments/video_towers.py --step=observe                   # one step
+  python -m ppdjax.reproduce video                                  # every step left
+  python -m ppdjax.reproduce video --config=ppdjax/configs/video.py:tiny   # on a CPU
+  python -m ppdjax.reproduce video --step=observe                   # one step
 
 Steps: generate the pendulum dataset (`configs/video.py`: towers of pine, aluminium,
 steel and copper struck by a copper ball on a pendulum); fine-tune the block towers' model
@@ -30,7 +30,7 @@ jax.config.update("jax_compilation_cache_dir",
 
 import numpy as np  # noqa: E402
 
-import pipeline_steps  # noqa: E402
+from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import primitives  # noqa: E402
 from ppdjax.dataset import camera, depth, generation, materials, render, towers, voxels  # noqa: E402
 from ppdjax.sim import scene  # noqa: E402
@@ -126,9 +126,9 @@ class Pipeline:
 
   def report(self) -> None:
     import video_towers_report as report  # pylint: disable=import-outside-toplevel
-    args = [a for a in sys.argv[1:] if not a.startswith("--step=")]
+    args = [a for a in sys.argv[3:] if not a.startswith("--step=")]  # after the pipeline name
     report.write_report(self, FLAGS.results,
-                        "python experiments/video_towers.py " + " ".join(args),
+                        "python -m ppdjax.reproduce video " + " ".join(args),
                         FLAGS.report_name)
 
 
@@ -137,6 +137,3 @@ def main(argv):
   sys.exit(pipeline_steps.run_steps(Pipeline(FLAGS.config, FLAGS.root), FLAGS.step,
                                     FLAGS.jobs, sys.argv, list_only=FLAGS.list))
 
-
-if __name__ == "__main__":
-  app.run(main)

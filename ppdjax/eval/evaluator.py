@@ -19,14 +19,15 @@ from flax import nnx
 
 from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
                                 slot_to_density_jax)
-from ppdjax.infer import baselines, sampling
+from ppdjax.infer import sampling
+from ppdjax.eval import baselines
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import object_keys
-from ppdjax.infer.groups import candidate_layout, decode_groups, fit_groups
+from ppdjax.eval.groups import candidate_layout, decode_groups, fit_groups
 from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
-from ppdjax.infer.rows import batch_records, screen_mask
-from ppdjax.infer.tables import BASELINES, FIT_ROWS, SELECTION_HORIZONS, check_horizon
+from ppdjax.eval.rows import batch_records, screen_mask
+from ppdjax.report.tables import BASELINES, FIT_ROWS, SELECTION_HORIZONS, check_horizon
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
@@ -242,7 +243,7 @@ class Evaluator:
     shapes): no stage runs (XLA may still run kernels on the device to tune them), and
     with JAX's persistent compilation cache on, another process whose Evaluator has the
     same model configuration, batch and settings then loads the programs instead of
-    compiling them (`experiments/blocks.py` compiles the full model's evaluation while it
+    compiling them (`ppdjax.reproduce blocks` compiles the full model's evaluation while it
     trains)."""
     obs, true = self._inputs(batch)
     b, k = true.density.shape

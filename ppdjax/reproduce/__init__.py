@@ -1,0 +1,1 @@
+"""The pipelines that make the shipped models and tables: `python -m ppdjax.reproduce`."""
