@@ -1,7 +1,8 @@
 """ppdjax: Physical Primitive Decomposition in JAX, with MuJoCo MJX physics.
 
 The public API, re-exported from the subpackages that follow the data flow:
-primitives -> sim (physics) -> dataset -> nn (network) -> training -> infer (decompose).
+primitives -> sim (physics) -> dataset -> nn (network) -> training -> infer (decompose) ->
+eval (the tables) -> report.
 """
 
 import os
@@ -22,10 +23,11 @@ from ppdjax.dataset.mesh_files import load_object  # noqa: E402
 from ppdjax.dataset.mesh_boxes import primitives_from_mesh  # noqa: E402
 from ppdjax.training.checkpoints import load  # noqa: E402
 from ppdjax.infer.fit import fit_boxes  # noqa: E402
+from ppdjax.infer.config import DecomposeConfig  # noqa: E402
 from ppdjax.infer.decompose import make_decompose_fn  # noqa: E402
 
 __all__ = ["Primitives", "MassProperties", "mass_properties", "Pushes", "default_pushes",
            "simulate", "sample_towers", "voxelize", "open_dataset", "load_object",
            "primitives_from_mesh", "load",
-           "fit_boxes", "make_decompose_fn"]
+           "fit_boxes", "DecomposeConfig", "make_decompose_fn"]
 __version__ = "0.1.0"

@@ -51,7 +51,6 @@ def main(argv):
   from ppdjax.dataset.storage import DatasetError
   from ppdjax.eval import evaluation, partial
   from ppdjax.report import markdown
-  from ppdjax.report.provenance import write_provenance
   from ppdjax.training import checkpoints
   try:
     model, config = checkpoints.load(_WORKDIR.value)
@@ -75,11 +74,8 @@ def main(argv):
     return
   results["workdir"] = _WORKDIR.value
   command = "python -m ppdjax.evaluate " + " ".join(sys.argv[1:])
-  paths = markdown.write_results(results, out, command)
+  paths = markdown.write_results(results, out, command, config=config, weights=model)
   headline = results["headline"]
-  write_provenance(paths[0], command=command, config=config, weights=model,
-                   headlines={f"{headline} {m}": f"table2/{headline}/{m}"
-                              for m in ("top1", "rmse")})
   if not _KEEP_RECORDS.value:
     shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)  # written: not needed
   else:  # one compressed file, small enough to keep with the results

@@ -23,7 +23,6 @@ from ppdjax.eval import evaluation
 from ppdjax.report import markdown
 from ppdjax.infer.decompose import make_decompose_fn
 from ppdjax.report.plots import plot_decomposition, plot_trajectories
-from ppdjax.report.provenance import write_provenance
 from ppdjax.sim.mass import mass_properties
 from ppdjax.sim.pushes import default_pushes, push_points
 from ppdjax.sim.scene import rest_position
@@ -139,8 +138,8 @@ def evaluate_and_decompose(config, blocks: str, workdir: str, out: str) -> dict:
         f"(compiles once) -> {out}/eval", flush=True)
   results = evaluation.evaluate(trained, blocks)  # the model's own settings, as decompose
   command = f"python -m ppdjax.evaluate --workdir={workdir} --data={blocks}"
-  paths = markdown.write_results(results, os.path.join(out, "eval"), command)
-  write_provenance(paths[0], command=command, config=trained[1], weights=trained[0])
+  markdown.write_results(results, os.path.join(out, "eval"), command, config=trained[1],
+                         weights=trained[0])
   row = results["table2"][results["headline"]]
   print(f"  test: shape F1 {results['f1']:.1f}, {results['headline']} top-1 {row['top1']:.1f}%"
         f", RMSE {row['rmse']:.1f} slots, trajectory MAE {row['mae']:.0f} mm", flush=True)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 
+from ppdjax.report.provenance import row_headlines, write_provenance
 from ppdjax import metrics
 from ppdjax.report.tables import (FIT_ROWS, PAPER_SHAPE_F1, PAPER_TABLE2_ONE_MODEL,
                                  PAPER_TABLE4, PAPER_TABLE5)
@@ -271,8 +272,18 @@ def shape_line(results: dict) -> str:
   return out
 
 
-def write_results(results: dict, out_dir: str, command: str = "") -> tuple[str, str]:
-  """Writes results.json, results.md and confusion.png (when there is a confusion matrix)."""
+def headline_keys(results: dict) -> dict[str, str]:
+  """The headline figures of an evaluation for its provenance record (name -> key): the
+  row `decompose` returns (top-1 and RMSE with their 95 % intervals), its object count
+  and shape F1."""
+  keys = row_headlines(results["table2"], "table2", [results["headline"]], ("top1", "rmse"))
+  return {**keys, "objects": "objects", "shape F1": "f1"}
+
+
+def write_results(results: dict, out_dir: str, command: str = "", *, config=None,
+                  weights=None) -> tuple[str, str]:
+  """Writes results.json, results.md, confusion.png (when there is a confusion matrix) and
+  results.json's provenance record (the run's `config` and the model, `weights`, hashed)."""
   os.makedirs(out_dir, exist_ok=True)
   json_path, md_path = os.path.join(out_dir, "results.json"), os.path.join(out_dir, "results.md")
   with open(json_path, "w") as f:
@@ -281,4 +292,6 @@ def write_results(results: dict, out_dir: str, command: str = "") -> tuple[str, 
     f.write(results_md(results, command))
   if results.get("confusion"):
     plot_confusion(results["confusion"], os.path.join(out_dir, "confusion.png"))
+  write_provenance(json_path, command=command, config=config, weights=weights,
+                   headlines=headline_keys(results) if results.get("headline") else None)
   return json_path, md_path

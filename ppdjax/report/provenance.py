@@ -147,6 +147,22 @@ def write_provenance(result_path: str | os.PathLike, *, command: str | Iterable[
       "headlines": headline_list, "extra": dict(extra) if extra else None})
 
 
+def row_headlines(table: dict, prefix: str, rows: Iterable[str],
+                  metrics: Iterable[str] = ("top1", "top10", "rmse")) -> dict[str, str]:
+  """Headline keys (name -> key) of a results table's rows that exist: each metric with
+  its 95 % interval ("ci95"), e.g. row_headlines(r["table2"], "table2", ["PPD"])."""
+  units = {"top1": "top-1 (%)", "top10": "top-10 (%)", "rmse": "RMSE (slots)"}
+  out = {}
+  for row in rows:
+    for m in metrics if row in table else ():
+      name = f"{row} {units.get(m, m)}"
+      out[name] = f"{prefix}/{row}/{m}"
+      if m in table[row].get("ci95", {}):
+        out[f"{name}, 95 % CI low"] = f"{prefix}/{row}/ci95/{m}/0"
+        out[f"{name}, 95 % CI high"] = f"{prefix}/{row}/ci95/{m}/1"
+  return out
+
+
 def backfill(result_json: str | os.PathLike, *, headlines: Mapping[str, str],
              command: str | None = None, device: str | None = None) -> str:
   """Writes the record of a result made before records were; returns the record's path.

@@ -21,6 +21,7 @@ from ml_collections import config_flags
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
+from ppdjax.report.provenance import write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax.eval import evaluation  # noqa: E402
 from ppdjax.report import markdown
@@ -125,6 +126,7 @@ def write(out_dir: str, name: str, payload: dict, markdown: str) -> None:
   os.makedirs(out_dir, exist_ok=True)
   with open(os.path.join(out_dir, f"{name}.json"), "w") as f:
     json.dump(payload, f, indent=1)
+  write_provenance(os.path.join(out_dir, f"{name}.json"), command=payload.get("command", ""))
   with open(os.path.join(out_dir, f"{name}.md"), "w") as f:
     f.write(markdown)
   print(f"wrote {out_dir}/{name}.json and {name}.md", flush=True)

@@ -17,6 +17,7 @@ import shutil
 
 import numpy as np
 
+from ppdjax.report.provenance import row_headlines, write_provenance
 from ppdjax.reproduce import blocks_common as common
 from ppdjax.reproduce import steps as pipeline_steps
 
@@ -350,6 +351,10 @@ def write_all(pipe, results_dir: str, assets_dir: str, command: str,
   save_logs(pipe, path("blocks_runs"))
   with open(path("blocks.json"), "w") as f:
     json.dump(r, f, indent=1)
+  write_provenance(path("blocks.json"), command=command, config=pipe.config, headlines={
+      **row_headlines(r["table2"], "table2", ("PPD (full)", "PPD (full)+Sample",
+                                              "PPD (full)+Fit+Sample")),
+      "shape F1 (learned boxes)": "shape/f1"})
   with open(path("blocks.md"), "w") as f:
     f.write(report_md(r, command))
   print(f"wrote {path('blocks.md')}, blocks.json and PNGs; model in "

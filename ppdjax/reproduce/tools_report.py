@@ -10,6 +10,7 @@ import jax
 import numpy as np
 from PIL import Image
 
+from ppdjax.report.provenance import row_headlines, write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
 
 from ppdjax import make_decompose_fn
@@ -162,6 +163,11 @@ def write_all(pipe, results_dir: str, assets_dir: str, command: str) -> dict:
   r["command"] = command
   with open(os.path.join(results_dir, "tools.json"), "w") as f:
     json.dump(r, f, indent=1)
+  write_provenance(os.path.join(results_dir, "tools.json"), command=command,
+                   config=pipe.config, headlines={
+                       **row_headlines(r["rows"], "rows", ("PPD (full)", "PPD (full)+Sample"),
+                                       ("top1", "rmse")),
+                       "shape F1 (learned boxes)": "shape/f1"})
   with open(os.path.join(results_dir, "tools.md"), "w") as f:
     f.write(markdown(r, command))
   print(f"wrote {results_dir}/tools.md, tools.json, tools_decomposition.png; model in "

@@ -9,6 +9,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from ppdjax.report.provenance import row_headlines, write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import primitives
 from ppdjax.conventions import density_to_slot
@@ -219,6 +220,10 @@ def write_report(pipe, results_dir: str, command: str, name: str = "video_towers
   os.makedirs(results_dir, exist_ok=True)
   with open(os.path.join(results_dir, f"{name}.json"), "w") as f:
     json.dump(result, f, indent=1)
+  write_provenance(os.path.join(results_dir, f"{name}.json"), command=command,
+                   config=pipe.config, headlines={
+                       f"density RMSE (slots), all towers, {way} trajectory":
+                       f"density/{way}/rmse_all" for way in WAYS})
   key = "real_towers" if name == "video_towers" else "real_towers_validation"
   figure = "video_heavier.png" if name == "video_towers" else f"{name}_heavier.png"
   video_json = os.path.join(results_dir, "video.json")  # the issue's results file
