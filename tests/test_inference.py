@@ -423,12 +423,17 @@ def _evaluate_cli(tiny_run, tiny_dataset, tmp_path, *extra):
   from absl import flags
   from ppdjax import evaluate as cli
   out = str(tmp_path / "eval")
+  argv = ["ppdjax.evaluate", f"--workdir={tiny_run[0]}", f"--data={tiny_dataset}",
+          f"--out={out}", "--max_objects=8", *extra]
   flags.FLAGS.unparse_flags()
-  flags.FLAGS(["ppdjax.evaluate", f"--workdir={tiny_run[0]}", f"--data={tiny_dataset}",
-               f"--out={out}", "--max_objects=8", *extra])
+  # the --config.* overrides are registered from sys.argv when the config flag is parsed
+  saved_argv, sys.argv = sys.argv, argv
   try:
+    flags.FLAGS["config"].parse(flags.FLAGS["config"].default)
+    flags.FLAGS(argv)
     cli.main([])
   finally:
+    sys.argv = saved_argv
     flags.FLAGS.unparse_flags()
   with open(os.path.join(out, "results.json")) as f:
     results = json.load(f)

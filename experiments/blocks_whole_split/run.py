@@ -6,7 +6,7 @@ separate evaluation of every test object
 (`python -m ppdjax.evaluate ... --out=DIR`, the command in its results.json) as
 blocks.json's "whole_split", which the targets then read, and rewrites blocks.md:
 
-    python experiments/blocks_whole_split.py --eval=DIR --machine="one NVIDIA H100 80GB HBM3" \
+    python experiments/blocks_whole_split/run.py --eval=DIR --machine="one NVIDIA H100 80GB HBM3" \
         --data_command="python -m ppdjax.generate ..."
 
 The evaluation's results.md, results.json and confusion.png are copied to

@@ -271,8 +271,12 @@ def _section(name: str, values: dict):
   if unknown:
     raise ConfigError(f"config.{name} has no key {', '.join(unknown)} (known: "
                       f"{', '.join(sorted(fields))})")
-  return cls(**{k: _check_value(f"{name}.{k}", v, fields[k].default, fields[k].type)
-                for k, v in values.items()})
+  section = cls(**{k: _check_value(f"{name}.{k}", v, fields[k].default, fields[k].type)
+                   for k, v in values.items()})
+  if name == "eval" and section.refine_horizon != 0:
+    raise ConfigError("config.eval.refine_horizon: refinement starts from the candidate "
+                      f"closest over all steps (0); got {section.refine_horizon}")
+  return section
 
 
 def read(config) -> RunConfig:
@@ -291,11 +295,7 @@ def read(config) -> RunConfig:
       out[name] = _section(name, value)
     else:
       out[name] = _check_value(name, value, getattr(RunConfig(), name), SECTIONS[name])
-  run = RunConfig(**out)
-  if run.eval.refine_horizon != 0:
-    raise ConfigError("config.eval.refine_horizon: refinement starts from the candidate "
-                      f"closest over all steps (0); got {run.eval.refine_horizon}")
-  return run
+  return RunConfig(**out)
 
 
 def to_config_dict(run: RunConfig) -> ml_collections.ConfigDict:

@@ -81,9 +81,11 @@ def get_config(size: str = "paper"):
   config.finetune.joint_steps = 1_400 if size == "paper" else 40
   config.finetune.learning_rate = 3e-4 if size == "paper" else config.train.learning_rate
   config.finetune.eval_every = 50 if size == "paper" else config.train.eval_every
-  # Table 3's rows: +Sample, +Fit; no depth (MuJoCo's depth pass, not the exact ray cast
-  # the depth fit's error model was measured on) and no refinement by default.
-  config.eval.fit = True
+  # Table 3's rows: the network's own boxes and +Sample on them (`decompose` with the
+  # model's settings; boxes fitted to voxels read tools worse: docs/data.md); no depth
+  # (MuJoCo's depth pass, not the exact ray cast the depth fit's error model was measured
+  # on) and no refinement by default.
+  config.eval.fit = False
   config.eval.depth = False
   config.eval.image_fit = False  # measured on towers only (infer.image_fit)
   config.eval.refine = False

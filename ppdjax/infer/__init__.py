@@ -1,1 +1,1 @@
-"""Inference: density sampling and refinement through physics, decompose, evaluation."""
+"""Inference: `DecomposeConfig`, the fits, sampling, refinement and `decompose`."""

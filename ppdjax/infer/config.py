@@ -157,10 +157,11 @@ class DecomposeConfig:
     (`configs.schema.EvalConfig`: the one mapping between the two)."""
     from ppdjax.configs import schema  # pylint: disable=import-outside-toplevel
     e = schema._section("eval", dict(eval_section))  # pylint: disable=protected-access
-    fitted = e.fit or e.depth
+    # depth implies the voxel fit it refines; image_fit and face_spread without a fit are
+    # refused by `validate`, not dropped
     return cls(
-        fit=FitConfig(enabled=fitted, image=e.image_fit and fitted, depth=e.depth,
-                      face_spread=e.face_spread if fitted else 0.0),
+        fit=FitConfig(enabled=e.fit or e.depth, image=e.image_fit, depth=e.depth,
+                      face_spread=e.face_spread),
         select=SelectConfig(samples=e.samples, prior_weight=e.prior_weight,
                             horizon=e.selection_horizon, mass_match=e.mass_match,
                             screen_steps=e.screen_steps, screen_keep=e.screen_keep),

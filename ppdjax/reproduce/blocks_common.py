@@ -1,14 +1,13 @@
-"""Shared steps of the block-tower experiment scripts (table2/4/5.py, figures.py).
+"""Shared steps of the reproduction pipelines (`python -m ppdjax.reproduce blocks|tools`).
 
 Each model variant trains into ROOT/<variant> and is evaluated into ROOT/<variant>/eval;
-both steps resume or are skipped when already done, so a script can be rerun after an
-interruption and scripts can share work.
+both steps resume or are skipped when already done, so a pipeline can be rerun after an
+interruption.
 """
 
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import os
 import shutil

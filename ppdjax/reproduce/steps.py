@@ -1,4 +1,4 @@
-"""The step runner of the paper-scale pipelines (ppdjax.reproduce blocks, tools.py).
+"""The step runner of the paper-scale pipelines (`python -m ppdjax.reproduce blocks|tools|video`).
 
 A pipeline is a list of steps (name, done?, action) whose state lives only on disk, and
 a `needs(name)` giving the steps each waits for. `run_steps` runs every step left, the
