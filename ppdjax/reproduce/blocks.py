@@ -9,12 +9,13 @@ Steps: generate the `paper` dataset; train the geometry stage (the voxel encoder
 generator on the stream of fresh towers, `train.stream_steps`), then the full model and
 the no-trajectory and no-image ablations starting from it, and the no-voxels ablation
 from scratch; evaluate the full model on --max_objects test objects spread over the split
-(the whole split by default; +Sample, the +Fit rows (boxes fitted to the voxels and the
-image, the paper's inputs), +Fit+Sample+Refine and the baselines; with
---config.eval.depth=True the +Fit(depth) rows too, which +Refine then starts from; with
---joint +Sample+Joint; with --true_shapes the true-box column), with --val_objects a τ
-sweep on validation objects (validate:full), and the ablations on the whole split
-(plain); `export`, once the full model is trained: it goes to assets/blocks_model, with an
+(the whole split by default) with the preset's settings, which `decompose` then runs for
+the exported model (the network's rows, +Sample, the +Fit rows on boxes fitted to the
+voxels and the image, the paper's inputs, and the baselines; with
+--config.eval.depth=True the fit reads the depth instead, as +Fit(depth); with
+--config.eval.refine=True +Refine; with --joint +Sample+Joint; with --true_shapes the
+true-box column), with --val_objects the +Sample studies on validation objects
+(validate:full), and the ablations' networks on the whole split; `export`, once the full model is trained: it goes to assets/blocks_model, with an
 example tower and the picture of its decomposition; then `report`:
 experiments/results/blocks.{json,md} and PNGs.
 Every step resumes:
