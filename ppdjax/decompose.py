@@ -77,6 +77,7 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
   from ppdjax.dataset import tool_generation, tool_scene
   from ppdjax.dataset.mesh_boxes import boxes_of_parts
   from ppdjax.infer.config import DecomposeConfig
+  from ppdjax.infer.decompose import model_camera
 
   tool, transform = load_object(mesh, part_materials=materials, part_densities=densities)
   trained = load(model)
@@ -97,9 +98,12 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
   # simulated here under the tools' pushes; a tracked trajectory under the model's own
   settings = DecomposeConfig.from_eval({**config.eval, **(overrides or {})})
   if settings.fit.depth and "depth" not in obs:
-    settings = settings.replace(**{"fit.depth": False})  # a mesh observed without depth
+    print("the model's settings fit the boxes to a depth image, which this observation "
+          "lacks: fitting them to the voxels (and the image, where the settings say) only")
+    settings = settings.replace(**{"fit.depth": False})
   decompose = make_decompose_fn(trained, settings, pushes=None if trajectory else pushes,
-                                engine=engine or None)
+                                engine=engine or None,
+                                camera=model_camera(model) if settings.fit.with_ else None)
   samples = settings.select.samples
   print(f"decomposing with {model} ({samples} density candidates; the first call compiles)")
   result = jax.tree.map(np.asarray, decompose(obs, jax.random.key(seed)))

@@ -62,8 +62,7 @@ def main(argv):
                                   partial_dir=("" if _COMPILE_ONLY.value
                                                else os.path.join(out, "partial")),
                                   max_seconds=_MAX_SECONDS.value, ahead=_COMPILE_ONLY.value)
-  except (checkpoints.CheckpointError, DatasetError, partial.OtherEvaluation, ConfigError,
-          ValueError) as e:
+  except (checkpoints.CheckpointError, DatasetError, partial.OtherEvaluation, ConfigError) as e:
     sys.exit(f"error: {e}")
   except partial.EvaluationPaused as e:
     print(f"paused: {e}")

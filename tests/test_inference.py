@@ -193,6 +193,8 @@ def test_screened_selection_keeps_the_survivors_scores_and_the_winner(tower):
   assert float(screened.score) == pytest.approx(float(full.score), abs=1e-7)
 
 
+@pytest.mark.slow  # compiles sampling with a horizon (~110 s on 2 cores); the evaluation's
+# replay of it is pinned by the rows' tests, decompose's by test_one_pipeline's slow tests
 def test_selection_over_a_horizon_picks_the_candidate_closest_over_its_first_steps():
   """`selection_horizon`: the winner is the closest over the first steps, not over the
   whole trajectory; the scores returned stay whole-trajectory. The observation here is
@@ -788,7 +790,6 @@ def test_table4_batches_are_spread_and_cover_what_was_asked():
 def _records_of(ev, out, samples, table4):
   """`rows.batch_records` of an `Evaluator.batch` output (every answer slot 0, no baselines'
   scores): what the evaluation would record of that batch."""
-  from ppdjax.eval import rows
   b, k = out["logits"].shape[:2]
   slot = np.zeros((b, k), np.int32)
   return ev.records(out, slot, slot >= 0, np.zeros((b, 3, k, 100)), prefixes=(1, 8),

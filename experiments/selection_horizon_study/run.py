@@ -3,7 +3,7 @@
   python experiments/selection_horizon_study/run.py \
       --eval val=DIR_VAL --eval test=DIR_TEST --out=experiments/results/selection_horizon_2026-11-27
 
-Each DIR is an evaluation's output (`python -m ppdjax.evaluate ... --horizon_sweep
+Each DIR is an evaluation's output (`python -m ppdjax.evaluate ... --config.eval.horizon_sweep=True
 --keep_records --out=DIR`): its results.json and the per-object records in DIR/partial
 (`partial.saved_records`). The horizon sweep records every +Sample row's pick at each τ
 for the distance over the first 16, 32, 64, 128 or all 256 steps, from the same simulated
@@ -55,7 +55,7 @@ def horizon_rows(rec: dict, groups: np.ndarray, tau: float, resamples: int = 100
   """{row: {horizon: metrics with ci95 and Table 5}} from the records' horizon sweep."""
   horizons = sorted({k[2] for k in rec if k[0] == "hsweep"}, key=lambda h: h or 10**9)
   if not horizons:
-    raise ValueError("the records hold no horizon sweep: evaluate with --horizon_sweep")
+    raise ValueError("the records hold no horizon sweep: evaluate with --config.eval.horizon_sweep=True")
   blocks = np.asarray(rec[("blocks",)])
   out = {}
   for row in ROWS:
@@ -201,7 +201,7 @@ def main(argv):
     for need in ("results.json", os.path.join("partial", partial.RECORDS_FILE)):
       if not os.path.exists(os.path.join(folder, need)):
         raise SystemExit(f"{folder} has no {need}: an evaluation's output with "
-                         "--horizon_sweep --keep_records is expected")
+                         "--config.eval.horizon_sweep=True --keep_records is expected")
     with open(os.path.join(folder, "results.json")) as f:
       results = json.load(f)
     rec = partial.saved_records(os.path.join(folder, "partial"))

@@ -7,7 +7,7 @@ again on the same test tools (the dataset remade from the preset's seed) and mer
 
     python -m ppdjax.reproduce tools --step=generate:tools --root=ROOT
     python -m ppdjax.evaluate --workdir=assets/tools_model --data=ROOT/data --split=test \
-        --config.eval.true_shapes=True --out=DIR
+        --config.eval.true_shapes=True --config.eval.studies=True --out=DIR
     python experiments/tools_rerun/run.py --eval=DIR --machine="one NVIDIA H100 80GB HBM3"
 
 The evaluation's results.md, results.json and confusion.png are copied to

@@ -35,11 +35,3 @@ def model_overrides(sections: tuple[str, ...] = ("eval",)) -> dict[str, dict]:
     out[section][key] = value
   return out
 
-
-def apply(config, overrides: dict[str, dict]):
-  """`config` (a ConfigDict) with `overrides` set, checked against the schema."""
-  config = schema.complete(config)
-  for section, values in overrides.items():
-    for key, value in values.items():
-      config[section][key] = value
-  return schema.complete(config)

@@ -48,7 +48,7 @@ from ppdjax.configs.schema import EvalConfig
 from ppdjax.eval import baselines, partial
 from ppdjax.eval.batches import evaluation_objects, read_ahead, table4_batches
 from ppdjax.infer.config import DecomposeConfig
-from ppdjax.eval.evaluator import Evaluator, shape_pool
+from ppdjax.eval.evaluator import Evaluator, headline_row, shape_pool
 from ppdjax.report.tables import PREFIXES, SELECTION_HORIZONS, model_switches, summarize
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.training import checkpoints
@@ -121,14 +121,15 @@ def evaluate(trained, data_dir: str, settings: EvalConfig | None = None, *,
   """
   t_start = time.perf_counter()
   model, config = checkpoints.load(trained) if isinstance(trained, str) else trained
-  e = eval_settings(config if settings is None else None, **(
-      dataclasses.asdict(settings) if settings is not None else {}), **overrides)
+  e = eval_settings(config if settings is None else None, **{
+      **(dataclasses.asdict(settings) if settings is not None else {}), **overrides})
   decompose = DecomposeConfig.from_eval(dataclasses.asdict(e))
-  samples, refine, joint, seed = e.samples, e.refine, e.joint, e.seed
+  samples, joint, seed = e.samples, e.joint, e.seed
   with_baselines, studies = e.baselines, e.studies or e.horizon_sweep
   if e.selection_horizon not in SELECTION_HORIZONS:
-    raise ValueError(f"selection_horizon must be one of {SELECTION_HORIZONS} (the distances "
-                     f"the evaluation computes; 0: all steps), got {e.selection_horizon}")
+    raise schema.ConfigError(f"selection_horizon must be one of {SELECTION_HORIZONS} (the "
+                             f"distances the evaluation computes; 0: all steps), got "
+                             f"{e.selection_horizon}")
   test = storage.open_dataset(data_dir, split)
   objects = evaluation_objects(len(test), max_objects, subset)
   n = len(objects)
@@ -263,7 +264,7 @@ def evaluate(trained, data_dir: str, settings: EvalConfig | None = None, *,
       "workdir": trained if isinstance(trained, str) else None, "data": data_dir,
       "split": split, "objects": int(n), **settings,
       "data_kind": test.kind,  # what a geometry is, for the reports' interval notes
-      "headline": ev.headline_row() if ev is not None else None,
+      "headline": headline_row(decompose),
       "decompose": decompose.to_dict(), "subset": subset,
       "devices": num_devices, "seconds": round(time.perf_counter() - t_start, 1),
       "seconds_by_part": {"read": round(read.waited, 1),

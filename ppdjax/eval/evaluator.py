@@ -21,6 +21,7 @@ from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density,
                                 slot_to_density_jax)
 from ppdjax.infer import sampling
 from ppdjax.eval import baselines
+from ppdjax.configs.schema import ConfigError
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import object_keys
 from ppdjax.eval.groups import candidate_layout, decode_groups, fit_groups
@@ -33,6 +34,14 @@ from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
 from ppdjax.training import estimator as estimator_module
 from ppdjax.training import sharding
+
+
+def headline_row(decompose: DecomposeConfig) -> str:
+  """The Table 2 row an evaluation with these settings names `decompose`'s answer: the
+  +Sample (+Refine) row of the group its boxes are (`groups.fit_groups`' last)."""
+  fits = fit_groups(decompose.fit, bool(decompose.estimator.path))
+  name = FIT_ROWS.get(fits[-1] if fits else "ppd", "PPD") + "+Sample"
+  return name + "+Refine" if decompose.refine.enabled else name
 
 
 def simultaneous_candidates() -> int:
@@ -131,10 +140,10 @@ class Evaluator:
     if select.screen_steps:
       check_horizon("select.screen_steps", select.screen_steps)
     if select.mass_match:
-      raise ValueError("select.mass_match simulates a second set of candidates: the "
+      raise ConfigError("select.mass_match simulates a second set of candidates: the "
                        "evaluation does not replay it (a study: experiments/mass_match_study)")
     if fit.with_ and camera is None:
-      raise ValueError(f"the fit reads {' and '.join(fit.with_)}: it needs the images' "
+      raise ConfigError(f"the fit reads {' and '.join(fit.with_)}: it needs the images' "
                        "camera (storage.Dataset.camera)")
     samples = select.samples
     self.decompose, self.config, self.samples = decompose, config, samples
@@ -145,7 +154,7 @@ class Evaluator:
     face_spread = fit.face_spread
     self.fits = fit_groups(fit, estimator is not None)
     if joint and not self.fits:
-      raise ValueError("+Joint moves fitted boxes' faces: it needs fit or depth")
+      raise ConfigError("+Joint moves fitted boxes' faces: it needs fit or depth")
     self.baselines_on = baselines_on
     self.seconds = collections.Counter()  # per stage of `batch` (`_timed`)
     pushes = default_pushes() if pushes is None else pushes
@@ -153,7 +162,7 @@ class Evaluator:
     self.groups = self.fits + (("true",) if true_shapes else ())
     self.refine_group = self.fits[-1] if self.fits else "ppd"  # +Refine's and +Joint's boxes
     if face_spread > 0 and (refine.enabled or joint):
-      raise ValueError("fit.face_spread draws the candidates' faces, and +Refine and +Joint "
+      raise ConfigError("fit.face_spread draws the candidates' faces, and +Refine and +Joint "
                        "would start from the fitted ones: with face_spread, no refinement")
     self.layout = candidate_layout(samples, self.groups, baselines_on)
     self.table4_fused = baselines_on and table4_every_batch
@@ -361,5 +370,4 @@ class Evaluator:
 
   def headline_row(self) -> str:
     """The name of the Table 2 row that `decompose` with these settings returns."""
-    name = FIT_ROWS.get(self.refine_group, "PPD") + "+Sample"
-    return name + "+Refine" if self.refine else name
+    return headline_row(self.decompose)

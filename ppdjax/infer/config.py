@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from ppdjax.configs import schema
+from ppdjax.configs.schema import ConfigError
 from ppdjax.infer import faces
 from ppdjax.infer.refine import check_jacobian
 from ppdjax.infer.sampling import check_screen, check_selection_horizon
@@ -91,7 +93,7 @@ class EstimatorConfig:
 
 @dataclasses.dataclass(frozen=True)
 class DecomposeConfig:
-  """Every setting of `decompose`; `validate` names the first bad one."""
+  """Every setting of `decompose`; `validate` names the first bad one (ConfigError)."""
   fit: FitConfig = FitConfig()
   select: SelectConfig = SelectConfig()
   refine: RefineConfig = RefineConfig()
@@ -101,25 +103,28 @@ class DecomposeConfig:
     self.validate()
 
   def validate(self) -> None:
-    """Raises ValueError naming the first setting that cannot run."""
+    """Raises ConfigError (a ValueError) naming the first setting that cannot run."""
     f, s, r = self.fit, self.select, self.refine
     if isinstance(s.samples, bool) or not isinstance(s.samples, int) or s.samples < 1:
-      raise ValueError(f"select.samples must be a whole number >= 1, got {s.samples!r}")
+      raise ConfigError(f"select.samples must be a whole number >= 1, got {s.samples!r}")
     if (f.image or f.depth or f.face_spread) and not f.enabled:
-      raise ValueError("fit.image, fit.depth and fit.face_spread refine fitted boxes: they "
+      raise ConfigError("fit.image, fit.depth and fit.face_spread refine fitted boxes: they "
                        "need fit.enabled")
-    faces.check_spread(f.face_spread, f.enabled)
-    check_selection_horizon(s.horizon)
-    check_screen(s.screen_steps, s.screen_keep, s.samples, 0)
+    try:  # the stages' own checks, named as settings
+      faces.check_spread(f.face_spread, f.enabled)
+      check_selection_horizon(s.horizon)
+      check_screen(s.screen_steps, s.screen_keep, s.samples, 0)
+      check_jacobian(r.jacobian)
+    except ValueError as e:
+      raise ConfigError(str(e)) from e
     if s.prior_weight < 0:
-      raise ValueError(f"select.prior_weight must be >= 0, got {s.prior_weight}")
+      raise ConfigError(f"select.prior_weight must be >= 0, got {s.prior_weight}")
     if isinstance(r.steps, bool) or not isinstance(r.steps, int) or r.steps < 1:
-      raise ValueError(f"refine.steps must be a whole number >= 1, got {r.steps!r}")
+      raise ConfigError(f"refine.steps must be a whole number >= 1, got {r.steps!r}")
     if r.prior_weight < 0:
-      raise ValueError(f"refine.prior_weight must be >= 0, got {r.prior_weight}")
-    check_jacobian(r.jacobian)
+      raise ConfigError(f"refine.prior_weight must be >= 0, got {r.prior_weight}")
     if self.estimator.path and not f.enabled:
-      raise ValueError("the estimator reads fitted boxes: it needs fit.enabled")
+      raise ConfigError("the estimator reads fitted boxes: it needs fit.enabled")
 
   def replace(self, **changes) -> "DecomposeConfig":
     """A copy with dotted changes, e.g. `replace(**{"select.samples": 64})`, or whole parts
@@ -155,8 +160,9 @@ class DecomposeConfig:
   def from_eval(cls, eval_section) -> "DecomposeConfig":
     """The decomposition settings of a preset's (or a saved run's) `eval` section
     (`configs.schema.EvalConfig`: the one mapping between the two)."""
-    from ppdjax.configs import schema  # pylint: disable=import-outside-toplevel
-    e = schema._section("eval", dict(eval_section))  # pylint: disable=protected-access
+    values = (dataclasses.asdict(eval_section) if dataclasses.is_dataclass(eval_section)
+              else dict(eval_section))
+    e = schema._section("eval", values)  # pylint: disable=protected-access
     # depth implies the voxel fit it refines; image_fit and face_spread without a fit are
     # refused by `validate`, not dropped
     return cls(

@@ -12,7 +12,7 @@ from ppdjax import box_overlap, metrics, primitives
 from ppdjax.conventions import OBS_KEYS, density_to_slot
 from ppdjax.dataset.storage import DatasetError
 from ppdjax.infer.config import DecomposeConfig
-from ppdjax.infer.decompose import make_decompose_fn, model_settings
+from ppdjax.infer.decompose import make_decompose_fn, model_camera, model_settings
 from ppdjax.report.plots import plot_decomposition
 from ppdjax.primitives import Primitives
 from ppdjax.training import checkpoints
@@ -92,7 +92,8 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int | Non
   if samples is not None:
     config = config.replace(**{"select.samples": samples})
   samples = config.select.samples
-  camera = load_camera(example) if config.fit.with_ else None
+  # the example's own camera where it saved one, else the model's training data's
+  camera = (load_camera(example) or model_camera(model_dir)) if config.fit.with_ else None
   decompose = make_decompose_fn(trained, config, camera=camera)
   key = jax.random.key(seed)
   jax.block_until_ready(decompose(obs, key))  # compiles

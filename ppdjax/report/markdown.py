@@ -182,7 +182,7 @@ def results_md(results: dict, command: str = "") -> str:
     lines += table4_md(results["table4"])
     if results.get("table4_evaluated", results.get("objects", 0)) < results.get("objects", 0):
       lines += ["", f"On {results['table4_evaluated']} of the {results['objects']} objects: whole "
-                "batches spread over the split (`--table4_objects`)."]
+                "batches spread over the split (`eval.table4_objects`)."]
     lines += ["", "Paper (1×/8×/64×/512×): " + paper_line(PAPER_TABLE4) + ".", ""]
   if results.get("face_error_mm"):
     lines += ["## Face error (mm) against the true boxes, k-th box from the bottom", ""]
@@ -216,16 +216,14 @@ def results_md(results: dict, command: str = "") -> str:
   if results.get("screens"):
     lines += ["## Screened selection, replayed on the same candidates", "",
               "Each screen keeps the candidates closest over the first steps and picks the "
-              "best of them by the row's objective (`make_decompose_fn(screen_steps=, "
-              "screen_keep=)`); same pick: the exhaustive winner is among the survivors.", ""]
+              "best of them by the row's objective (`SelectConfig.screen_steps`, "
+              "`screen_keep`); same pick: the exhaustive winner is among the survivors.", ""]
     lines += screen_md(results)
     lines += [""]
   if "refine_stats" in results:
     r = results["refine_stats"]
     lines += ["## Refinement", "",
               "Lowered the trajectory distance of the closest sample"
-              + (f" (closest over the first {results['refine_horizon']} steps)"
-                 if results.get("refine_horizon") else "")
               + f" on {100 * r['improved_fraction']:.0f}% of objects; median ratio refined / "
               f"sampled {r['median_distance_ratio']:.3f}; mean distance "
               f"{r['mean_distance_sample_m']:.4f} → {r['mean_distance_refined_m']:.4f} m.", ""]

@@ -14,41 +14,19 @@ import shutil
 import time
 
 import jax
-from absl import app, flags, logging
-from ml_collections import config_flags
+from absl import app, logging
 
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
 from ppdjax.report.provenance import write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
-from ppdjax.eval import evaluation  # noqa: E402
-from ppdjax.report import markdown
 from ppdjax.training import loop  # noqa: E402
 
 # variant -> (model switch turned off, the paper's Table 2 row)
 VARIANTS = {"full": (None, "PPD (full)"), "no_trajectory": ("use_trajectory", "PPD (no trajectory)"),
             "no_image": ("use_image", "PPD (no image)"), "no_voxels": ("use_voxels", "PPD (no voxels)")}
 
-
-
-def define_flags() -> None:
-  """The flags every table script takes."""
-  config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
-  flags.DEFINE_string("data", None, "Block-tower dataset directory.", required=True)
-  flags.DEFINE_string("root", "out/blocks_runs", "Where the variants train and evaluate.")
-  flags.DEFINE_string("out", "experiments/results/tiny", "Where the tables go.")
-  flags.DEFINE_integer("samples", None, "Density samples (default: the preset's eval.samples).")
-  flags.DEFINE_bool("refine", None, "Refine the full model (default: the preset's eval.refine).")
-  flags.DEFINE_integer("max_objects", 0, "Evaluate the first N test objects (0: all).")
-
-
-def evaluation_settings() -> tuple:
-  """(config, samples, refine) from the flags."""
-  f = flags.FLAGS
-  config = f.config
-  samples = f.samples or config.eval.samples
-  return config, samples, config.eval.refine if f.refine is None else f.refine
 
 
 def variant_config(config, variant: str):
@@ -97,28 +75,6 @@ def same_settings(results: dict, settings, **extra) -> bool:
     want["table4_objects"] = 0
   want.update(extra)
   return all(json.dumps(results.get(k)) == json.dumps(v) for k, v in want.items())
-
-
-def ensure_evaluated(config, data_dir: str, root: str, variant: str, *, samples: int,
-                     refine: bool, max_objects: int = 0) -> dict:
-  """Evaluates a trained variant unless results with the same settings exist."""
-  workdir = ensure_trained(config, data_dir, root, variant)
-  out = os.path.join(workdir, "eval")
-  path = os.path.join(out, "results.json")
-  settings = evaluation.eval_settings(config, samples=samples, refine=refine)
-  if os.path.exists(path):
-    with open(path) as f:
-      results = json.load(f)
-    if same_settings(results, settings, max_objects=max_objects):
-      return results
-  print(f"[{variant}] evaluating ({samples} samples{', refine' if refine else ''})", flush=True)
-  t0 = time.perf_counter()
-  results = evaluation.evaluate(workdir, data_dir, settings, max_objects=max_objects)
-  results["max_objects"] = max_objects
-  markdown.write_results(results, out, eval_command(workdir, data_dir, settings,
-                                                    max_objects=max_objects or None))
-  pipeline_steps.log_call(root, f"evaluate {variant}", time.perf_counter() - t0, True)
-  return results
 
 
 def write(out_dir: str, name: str, payload: dict, markdown: str) -> None:

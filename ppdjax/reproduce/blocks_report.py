@@ -266,7 +266,8 @@ def whole_split_md(ws: dict, ablations_by_objects: bool = False) -> list[str]:
   (the pipeline's own evaluations) have intervals over objects, unlike the full model's."""
   lines = ["", f"## Table 2 on the whole test split ({ws['objects']} objects)", "", "```",
            ws["command"], "```", "",
-           f"{ws['samples']} density samples, LM refinement from the closest sample, "
+           f"{ws['samples']} density samples"
+           + (", LM refinement from the closest sample" if ws.get("refine") else "") + ", "
            f"+Sample at τ = {ws['prior_weight']} on {steps_note(ws.get('selection_horizon'))}"
            + f"; {ws['seconds']:.0f} s on "
            f"{ws.get('machine', 'the machine in blocks_whole_split/README.md')}. Objects in "

@@ -135,14 +135,16 @@ def markdown(r: dict, command: str) -> str:
               "error). τ is not chosen here, on the test tools: the tools preset's τ = "
               f"{PRESET_TAU} was chosen on 200 tools of another seed, none trained on, by "
               "density RMSE (`tool_fill_study/tau_choice/`)."]
-    at = r["rerun"]["prior_sweeps"]["PPD+Sample"].get(str(PRESET_TAU))
+    # the sweeps exist where the rerun evaluated with eval.studies (tools_rerun/run.py)
+    at = r["rerun"].get("prior_sweeps", {}).get("PPD+Sample", {}).get(str(PRESET_TAU))
     if at:
       lines += [f"At τ = {PRESET_TAU} the test tools read PPD (full)+Sample top-1 "
                 f"{at['top1']:.1f}, top-5 {at['top5']:.1f}, top-10 {at['top10']:.1f}, RMSE "
                 f"{at['rmse']:.1f}, MAE {at['mae']:.1f} mm (the table above: τ = 0, the "
                 "paper's rule)."]
-    lines += [""] + prior_sweep_md(r["rerun"]["prior_sweeps"]) + [""]
-    picks = {k.replace("PPD", "PPD (full)"): v for k, v in r["rerun"]["oracle_pick"].items()}
+    lines += [""] + prior_sweep_md(r["rerun"].get("prior_sweeps", {})) + [""]
+    picks = {k.replace("PPD", "PPD (full)"): v
+             for k, v in r["rerun"].get("oracle_pick", {}).items()}
     lines += oracle_pick_md({"table2": rows, "oracle_pick": picks}) + [""]
   lines += ["Fine-tuning on the tools (validation every 50 steps; the joint stage starts where "
             "the density loss appears):", "",

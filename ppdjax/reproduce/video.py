@@ -22,7 +22,7 @@ import os
 import sys
 
 import jax
-from absl import app, flags
+from absl import flags
 from ml_collections import config_flags
 
 jax.config.update("jax_compilation_cache_dir",
@@ -118,14 +118,14 @@ class Pipeline:
         **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS})
 
   def evaluate(self) -> None:
-    import video_towers_report as report  # pylint: disable=import-outside-toplevel
+    from ppdjax.reproduce import video_report as report  # pylint: disable=import-outside-toplevel
     for variant, path in self.eval_files.items():  # both, to show what refinement does
       if not os.path.exists(path):
         report.decompose_test(self.config, self.workdir, self.test_file, path,
                               refine=variant == "refine")
 
   def report(self) -> None:
-    import video_towers_report as report  # pylint: disable=import-outside-toplevel
+    from ppdjax.reproduce import video_report as report  # pylint: disable=import-outside-toplevel
     args = [a for a in sys.argv[3:] if not a.startswith("--step=")]  # after the pipeline name
     report.write_report(self, FLAGS.results,
                         "python -m ppdjax.reproduce video " + " ".join(args),

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from ppdjax.report.provenance import row_headlines, write_provenance
+from ppdjax.report.provenance import write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import primitives
 from ppdjax.conventions import density_to_slot
@@ -52,7 +52,7 @@ def decompose_test(config, workdir: str, test_file: str, out_file: str,
   # the preset's settings with the depth fit (the test towers carry depth images) and no
   # screen (as measured: the screen is unmeasured on tracking)
   settings = DecomposeConfig.from_eval(e).replace(**{
-      "fit.enabled": True, "fit.depth": True, "refine.enabled": refine,
+      "fit.enabled": True, "fit.depth": True, "fit.image": False, "refine.enabled": refine,
       "select.screen_steps": 0})
   fn = make_decompose_fn(trained, settings, camera=camera.camera_dict(size, size),
                          pushes=generation.pushes_of(cfg.data))

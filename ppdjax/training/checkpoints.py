@@ -117,7 +117,12 @@ def save_config(workdir: str, config: ml_collections.ConfigDict,
     f.write(config.to_json_best_effort(indent=1, sort_keys=True))
   size = config.data.image_size
   camera = camera_dict(size, size) if camera is None else camera
-  record = {"config": DecomposeConfig.from_eval(config.eval).to_dict(),
+  try:  # a run whose eval section cannot decompose is refused before it trains
+    settings = DecomposeConfig.from_eval(config.eval)
+  except ValueError as e:
+    raise schema.ConfigError(f"config.eval: {e} (fit.* is eval.fit, eval.image_fit, "
+                             "eval.depth, eval.face_spread)") from e
+  record = {"config": settings.to_dict(),
             "camera": {k: np.asarray(v).tolist() if v is not None else None
                        for k, v in camera.items()}}
   with open(os.path.join(workdir, DECOMPOSE_FILE), "w") as f:
