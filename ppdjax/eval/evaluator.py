@@ -24,24 +24,16 @@ from ppdjax.eval import baselines
 from ppdjax.configs.schema import ConfigError
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import object_keys
-from ppdjax.eval.groups import candidate_layout, decode_groups, fit_groups
+from ppdjax.eval.groups import candidate_layout, decode_groups, fit_groups, headline_row
 from ppdjax.infer.joint import joint_batch
 from ppdjax.infer.refine import refine_batch
 from ppdjax.eval.rows import batch_records, screen_mask
-from ppdjax.report.tables import BASELINES, FIT_ROWS, SELECTION_HORIZONS, check_horizon
+from ppdjax.report.tables import BASELINES, SELECTION_HORIZONS, check_horizon
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
 from ppdjax.training import estimator as estimator_module
 from ppdjax.training import sharding
-
-
-def headline_row(decompose: DecomposeConfig) -> str:
-  """The Table 2 row an evaluation with these settings names `decompose`'s answer: the
-  +Sample (+Refine) row of the group its boxes are (`groups.fit_groups`' last)."""
-  fits = fit_groups(decompose.fit, bool(decompose.estimator.path))
-  name = FIT_ROWS.get(fits[-1] if fits else "ppd", "PPD") + "+Sample"
-  return name + "+Refine" if decompose.refine.enabled else name
 
 
 def simultaneous_candidates() -> int:

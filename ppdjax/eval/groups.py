@@ -16,9 +16,9 @@ from flax import nnx
 
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
-from ppdjax.infer.config import FitConfig
+from ppdjax.infer.config import DecomposeConfig, FitConfig
 from ppdjax.infer.decompose import fit_stage
-from ppdjax.report.tables import BASELINES
+from ppdjax.report.tables import BASELINES, FIT_ROWS
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import bottom_to_top
 
@@ -33,6 +33,14 @@ def fit_groups(fit: FitConfig, estimator: bool = False) -> tuple[str, ...]:
     return ()
   group = "fit_depth" if fit.depth else "fit"
   return (group,) + ((group + "_est",) if estimator else ())
+
+
+def headline_row(decompose: DecomposeConfig) -> str:
+  """The Table 2 row an evaluation with these settings names `decompose`'s answer: the
+  +Sample (+Refine) row of the group its boxes are (`fit_groups`' last)."""
+  fits = fit_groups(decompose.fit, bool(decompose.estimator.path))
+  name = FIT_ROWS.get(fits[-1] if fits else "ppd", "PPD") + "+Sample"
+  return name + "+Refine" if decompose.refine.enabled else name
 
 
 def candidate_layout(samples: int, fits: tuple[str, ...], with_baselines: bool) -> dict:
