@@ -21,7 +21,7 @@ from ppdjax.dataset import generation, storage, towers
 from ppdjax.infer import example
 from ppdjax.eval import evaluation
 from ppdjax.report import markdown
-from ppdjax.infer.decompose import make_decompose_fn
+from ppdjax.infer.decompose import make_decompose_fn, model_settings
 from ppdjax.report.plots import plot_decomposition, plot_trajectories
 from ppdjax.sim.mass import mass_properties
 from ppdjax.sim.pushes import default_pushes, push_points
@@ -30,12 +30,17 @@ from ppdjax.sim.simulate import simulate
 from ppdjax.training import checkpoints, loop
 
 
-def shipped_example(model_dir: str, example_path: str, out_dir: str, samples: int) -> dict:
-  """Decomposes the example tower; writes OUT/example.png and OUT/example.md (the answer
+def shipped_example(model_dir: str, example_path: str, out_dir: str, samples: int,
+                    image_fit: bool = True) -> dict:
+  """Decomposes the example tower with the model's settings (`samples` candidates; without
+  the image fit unless `image_fit`); writes OUT/example.png and OUT/example.md (the answer
   beside the truth); returns `example.decompose_example`'s record."""
   os.makedirs(out_dir, exist_ok=True)
+  config = model_settings(model_dir)
+  config = config.replace(**{"select.samples": samples,
+                             "fit.image": config.fit.image and image_fit})
   r = example.decompose_example(model_dir, example_path, os.path.join(out_dir, "example.png"),
-                                samples=samples)
+                                config=config)
   with open(os.path.join(out_dir, "example.md"), "w") as f:
     f.write(example.report_md(r, model_dir, example_path))
   return r

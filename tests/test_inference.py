@@ -109,6 +109,51 @@ def test_sampling_finds_the_truth_when_the_prior_contains_it(tower):
   assert 7 <= len(distinct) == len({tuple(r) for r in distinct}) <= 9  # of the 9 in support
 
 
+def test_the_cpu_engine_picks_the_candidate_the_jax_engine_picks():
+  """MuJoCo C inside the jitted selection (`MujocoSettings`, `decompose`'s engine on a
+  CPU) against MJX (the JAX engine) on three towers observed in MJX: the same winner among
+  the same 16 candidates, and each candidate's distance within the engines' gap (MJX
+  departs from C by millimetres to centimetres after a box lands: docs/physics.md)."""
+  from ppdjax.sim.rollout_mujoco import MujocoSettings
+  for seed in (3, 11, 12):
+    prims = jax.tree.map(jnp.asarray, towers.sample_towers(seed, 1, num_blocks=2))
+    prims, observed = jax.tree.map(lambda x: x[0], prims), _simulate(prims)[0]
+    true = np.asarray(jnp.rint(prims.density / 100.0) - 1).astype(int)
+    logits = jnp.full((5, 100), -1e9)
+    for k in range(2):  # as the test above (its program, compiled once)
+      t = true[k]
+      logits = logits.at[k, t - 3].set(0.0).at[k, t].set(0.5).at[k, t + 3].set(1.0)
+    run = lambda settings: jax.jit(lambda p, lg, o, key: sampling.select_densities(
+        p, lg, o, PUSHES, num_samples=16, key=key, **settings))(
+            prims, logits, observed, jax.random.key(0))
+    mjx, c = run({}), run({"settings": MujocoSettings()})
+    assert int(c.best) == int(mjx.best), seed
+    np.testing.assert_allclose(c.density, mjx.density)
+    np.testing.assert_array_equal(c.slots, mjx.slots)
+    np.testing.assert_allclose(c.scores, mjx.scores, atol=0.02)  # metres, mean over steps
+
+
+def test_a_horizon_simulates_the_candidates_that_far_for_the_same_pick(tower):
+  """`whole_scores=False` (decompose without refinement): the candidates are simulated over
+  the selection horizon only, the winner over every step: the same pick, score and
+  trajectories as simulating every candidate whole (on the C engine: cheap to compile)."""
+  from ppdjax.sim.rollout_mujoco import MujocoSettings
+  prims, observed = tower
+  logits = jnp.zeros((5, 100))  # every slot equally likely: 32 spread-out candidates
+  run = lambda whole: jax.jit(lambda p, lg, o, key: sampling.select_densities(
+      p, lg, o, PUSHES, num_samples=32, key=key, selection_horizon=24, whole_scores=whole,
+      settings=MujocoSettings()))(prims, logits, observed, jax.random.key(2))
+  whole, short = run(True), run(False)
+  assert int(short.best) == int(whole.best)
+  np.testing.assert_allclose(short.density, whole.density)
+  np.testing.assert_allclose(short.score, whole.score, rtol=1e-6)
+  np.testing.assert_allclose(short.trajectories, whole.trajectories, atol=1e-6)
+  sims = ppdjax.simulate(jax.tree.map(np.asarray, short.boxes), PUSHES, steps=24,
+                         backend="mujoco")  # (S, P, 24, 7): the distance over the horizon
+  np.testing.assert_allclose(short.scores, metrics.trajectory_distance(
+      jnp.asarray(sims, jnp.float32), observed[:, :24]), rtol=1e-5, atol=1e-7)
+
+
 @pytest.mark.slow  # compiles a second sampling call
 def test_faces_drawn_with_the_densities_are_returned_with_the_winner(tower):
   """`face_spread`: every candidate's boxes come back (candidate 0 the given ones, the

@@ -67,8 +67,9 @@ def test_evaluation_and_decompose_agree_on_the_networks_boxes_with_refinement(
   pick and refined densities."""
   ds = storage.open_dataset(tiny_dataset, "test")
   batch = ds.take(np.arange(4), keys=OBS_KEYS + ("primitives",))
+  # refinement by differences: plain rollouts, no forward-mode program to compile
   config = DecomposeConfig(fit=FitConfig(enabled=False), select=SelectConfig(samples=8),
-                           refine=RefineConfig(enabled=True, steps=2))
+                           refine=RefineConfig(enabled=True, steps=2, jacobian="differences"))
   got, out, rec, row = _both(tiny_trained, config, {k: batch[k] for k in OBS_KEYS},
                              batch["primitives"], jax.random.key(5), pushes=ds.pushes,
                              engine=CHEAP)

@@ -1,190 +1,232 @@
-"""`decompose` speed: one object (latency) and a batch (objects/s), MJX and the box-plane step
-vs MuJoCo C.
+"""The front door's speed: `make_decompose_fn` as users call it, with the shipped model's
+settings, beside MuJoCo C on every core simulating the same rollouts, in one process.
 
-  python experiments/benchmarks/bench_decompose.py --samples 512 --batch 64 --out FILE.json
+  python experiments/benchmarks/bench_decompose.py --model=assets/blocks_model --batch=64 \
+      --out=FILE.json [--front_door=experiments/results/bench_front_door.json]
 
-Both engines run the same sampling in one process: the paper preset's network (random
-weights: the cost does not depend on them) decodes the objects on the accelerator and
-draws `samples` density assignments per object; then
-  * MJX, and the box-plane step (`ppdjax.sim.box_plane`): everything above plus
-    simulation under the four pushes, scoring and selection is the one jitted
-    `ppdjax.make_decompose_fn` function;
-  * C (peer): the same decode and draws (jitted), then all candidates simulated with
-    `mujoco.batch` on every CPU core, scored with the same distance and selected.
-Latency: median of --repeats warm calls for one object; throughput: objects / s of a
-batch. `--depth` gives the observations depth images, which `decompose` then fits the
-boxes to (and screens by default; the engine rows here are exhaustive, `screen_steps=0`).
-`--screens 32:64,64:64` also times the GPU default engine with screened selection
-(every candidate over the first 32 steps, the 64 closest over all 256; `make_decompose_fn(
-screen_steps=, screen_keep=)`). Prints a markdown table.
+Settings timed: the model's own (`make_decompose_fn(model)`, no config: for the blocks
+model the paper's inputs, image fit and 32-step selection) and `DecomposeConfig.best()`
+(depth fit, screen, refinement by differences). Objects: the shipped example tower (one
+object) and `--batch` fresh towers of a seed never trained on, generated as the model's
+dataset (rendered images and depth). Each call is the public one, warm (median of
+`--repeats`), except "first call", which compiles (run in a fresh process, without the
+persistent compilation cache). On a CPU the call simulates with MuJoCo C (the default
+`simulator="auto"`); on a GPU with the JAX engine of the model's data.
+
+Peer: MuJoCo C (`mujoco.batch`, `os.cpu_count()` threads) simulating what the call
+simulates: as many rollouts of each length, from the call's own candidates (its fitted
+boxes with the density slots it draws: `sampling.candidate_slots` from `object_keys`).
+`--front_door` merges the figures into that results file (keys of issue 59).
 """
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
 import platform
+import shlex
+import subprocess
+import sys
+import tempfile
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from absl import app, flags
-from flax import nnx
 
 import ppdjax
-from ppdjax import metrics
-from ppdjax.configs import paper
-from ppdjax.conventions import NUM_DENSITY_SLOTS
-from ppdjax.dataset.camera import camera_dict
-from ppdjax.dataset.depth import render_depths
-from ppdjax.infer import sampling
-from ppdjax.infer.decompose import model_settings
-from ppdjax.nn.model import PPD
-from ppdjax.sim import rollout_mjx
-from ppdjax.sim.box_plane import BoxPlaneSettings
+from ppdjax.conventions import OBS_KEYS
+from ppdjax.dataset import generation, storage
+from ppdjax.infer import example, sampling
+from ppdjax.infer.config import DecomposeConfig
+from ppdjax.infer.decompose import model_settings, object_keys
+from ppdjax.sim import rollout_mujoco
+from ppdjax.training import checkpoints
 
-# The accelerator's engines, each at its package default settings.
-# On a GPU the box-plane step runs as its Pallas kernel ("auto"); "(XLA)" is its reference.
-ENGINES = {"MJX": rollout_mjx.MjxSettings(), "box-plane step": BoxPlaneSettings(),
-           "box-plane step (XLA)": BoxPlaneSettings(kernel="reference")}
-
-flags.DEFINE_integer("samples", 512, "Density samples per object.")
-flags.DEFINE_integer("batch", 64, "Objects in the timed batch.")
+flags.DEFINE_string("model", "assets/blocks_model", "The model (exported or a workdir).")
+flags.DEFINE_string("example", "assets/blocks_example.npz", "The one object.")
+flags.DEFINE_integer("batch", 64, "Objects in the timed batch (0: none).")
 flags.DEFINE_integer("repeats", 5, "Warm calls timed (median).")
-flags.DEFINE_bool("refine", False, "Also time decompose(refine=True).")
-flags.DEFINE_bool("skip_c", False, "The accelerator's engines only.")
-flags.DEFINE_string("engines", ",".join(ENGINES), f"Comma-separated, of {list(ENGINES)}.")
-flags.DEFINE_bool("skip_batch", False, "One object only.")
-flags.DEFINE_bool("skip_one", False, "The batch only.")
-flags.DEFINE_bool("skip_rollouts", False, "Not the rollouts alone (one more compilation per "
-                  "engine).")
-flags.DEFINE_bool("depth", False, "Observations with depth images: decompose fits the boxes to "
-                  "them.")
-flags.DEFINE_string("screens", "", "Comma-separated STEPS:KEEP screens to time on the box-plane "
-                    "step.")
+flags.DEFINE_integer("seed", 90_101, "Seed of the fresh towers (never used for training).")
+flags.DEFINE_list("settings", ["model", "best"], "Which settings: model, best.")
+flags.DEFINE_bool("first_call", True, "Also time a first call (compilation) in a fresh "
+                  "process without the persistent cache.")
 flags.DEFINE_string("out", "", "Write the rows as JSON here.")
+flags.DEFINE_string("front_door", "", "Merge the figures into this results file.")
 FLAGS = flags.FLAGS
 
 
-def observations(seed: int, count: int, image_size: int, depth: bool = False) -> dict:
-  """Random towers' voxels, trajectories and (with `depth`) depth images from the
-  datasets' camera; the image is noise (the network's weights are random too)."""
-  prims = ppdjax.sample_towers(seed, count)
-  rng = np.random.default_rng(seed)
-  obs = {"voxels": ppdjax.voxelize(prims),
-         "image": rng.integers(0, 255, (count, image_size, image_size, 3), np.uint8),
-         "trajectories": np.asarray(ppdjax.simulate(prims))}
-  if depth:
-    obs["depth"] = np.asarray(render_depths(jax.tree.map(jnp.asarray, prims),
-                                            camera_dict(image_size, image_size)))
-  return obs
+def fresh_objects(model_dir: str, count: int, seed: int, folder: str) -> dict:
+  """`count` observations (with depth) of fresh towers made as the model's dataset."""
+  config = checkpoints.read_config(model_dir)
+  config.seed = seed
+  per = config.data.configs_per_tower
+  config.data.num_towers = -(-count // per)
+  config.data.towers_per_shard = config.data.num_towers
+  config.data.split_fractions = (0.0, 0.0, 1.0)
+  config.data.render_workers = 0
+  generation.generate(config, folder, progress=False)
+  test = storage.open_dataset(folder, "test")
+  return test.take(np.arange(count), keys=OBS_KEYS + ("depth",)), test.camera
 
 
-def timed(fn, repeats: int) -> tuple[object, float]:
-  out = fn()  # warm-up (compiles)
+def timed(fn, repeats: int) -> float:
+  fn()  # warm
   times = []
   for _ in range(repeats):
     t0 = time.perf_counter()
-    out = fn()
+    fn()
     times.append(time.perf_counter() - t0)
-  return out, float(np.median(times))
+  return float(np.median(times))
 
 
-def c_peer(model, samples: int):
-  """Decode + draws jitted on the accelerator; simulation and scoring in MuJoCo C."""
-  graphdef, state = nnx.split(model)
+def simulated_rollouts(config: DecomposeConfig, steps: int, num_boxes: int) -> list:
+  """[(candidates, steps)] per object: the rollouts (under every push) the call simulates."""
+  s = config.select
+  out = []
+  if 0 < s.screen_steps < steps and s.screen_keep < s.samples:
+    out += [(s.samples, s.screen_steps), (s.screen_keep, steps)]
+  elif 0 < s.horizon < steps and not config.refine.enabled:
+    out += [(s.samples, s.horizon), (1, steps)]  # the winner alone over every step
+  else:
+    out += [(s.samples, steps)]
+  if config.refine.enabled:  # LM: steps + 1 passes of K + 1 rollouts (differences), last one
+    per = num_boxes + 1 if config.refine.jacobian == "differences" else 2 * num_boxes + 1
+    out += [((config.refine.steps + 1) * per + 1, steps)]
+  return out
 
-  @jax.jit
-  def propose(state, obs, key):
-    prims, raw = nnx.merge(graphdef, state).decode(obs)
-    logits = raw.density_logits[:, :prims.num_slots, :NUM_DENSITY_SLOTS]
-    keys = jax.random.split(key, logits.shape[0])
-    slots = jax.vmap(lambda lg, v, k: sampling.candidate_slots(lg, v, samples, k)[0])(
-        logits, prims.valid, keys)
-    return jax.vmap(sampling.with_slots)(prims, slots)
 
-  def run(obs, key):
-    cands = jax.device_get(propose(state, obs, key))  # (B, S, K)
-    sim = ppdjax.simulate(cands, backend="mujoco")  # (B, S, P, T, 7), all cores
-    dist = np.asarray(metrics.trajectory_distance(
-        jnp.asarray(sim, jnp.float32), jnp.asarray(obs["trajectories"])[:, None]))
-    return cands.density[np.arange(len(dist)), np.argmin(dist, -1)]
-  return run
+def c_peer(result, obs, config: DecomposeConfig, key, pushes):
+  """MuJoCo C on every core simulating the call's rollouts from its candidates."""
+  prims = jax.device_get(result.primitives)
+  logits = jnp.asarray(result.density_logits)
+  batch = prims.density.shape[0]
+  keys = object_keys(key, batch)
+  slots = jax.jit(jax.vmap(lambda lg, v, k: sampling.candidate_slots(
+      lg, v, config.select.samples, k)[0]))(logits, jnp.asarray(prims.valid), keys)
+  cands = jax.device_get(jax.vmap(sampling.with_slots)(jax.tree.map(jnp.asarray, prims),
+                                                       slots))  # (B, S, K)
+  steps = np.shape(obs["trajectories"])[-2]
+  plan = simulated_rollouts(config, steps, prims.valid.shape[-1])
+
+  def run():
+    for count, length in plan:
+      reps = -(-count // config.select.samples)
+      part = jax.tree.map(lambda x: np.concatenate([x] * reps, 1)[:, :count], cands)
+      rollout_mujoco.simulate(part, pushes, steps=length)
+  return run, plan
+
+
+def first_call_seconds(model: str, example_path: str) -> float:
+  """The model's settings on the example, first call (compiles) in a fresh process."""
+  code = ("import time, jax, ppdjax\nfrom ppdjax.infer import example\n"
+          f"obs, _ = example.load_example({example_path!r})\n"
+          f"d = ppdjax.make_decompose_fn({model!r})\n"
+          "t = time.perf_counter(); jax.block_until_ready(d(obs, jax.random.key(0)))\n"
+          "print(time.perf_counter() - t)\n")
+  env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+  out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       check=True)
+  return float(out.stdout.strip().splitlines()[-1])
 
 
 def main(argv):
   del argv
-  config = paper.get_config()
-  model = PPD(config.model, rngs=nnx.Rngs(0))
-  size = config.data.image_size
-  obs = observations(0, FLAGS.batch, size, FLAGS.depth)
-  camera = camera_dict(size, size) if FLAGS.depth else None
-  one = jax.tree.map(lambda x: x[:1], obs)
+  platform_name = jax.default_backend()
+  device = jax.devices()[0].device_kind
+  threads = os.cpu_count()
+  print(f"{platform_name}: {device}; MuJoCo C on {threads} threads", flush=True)
+  trained = checkpoints.load(FLAGS.model)
+  pushes = generation.pushes_of(trained[1].data)
+  one_obs, _ = example.load_example(FLAGS.example)
+  camera = example.load_camera(FLAGS.example)
+  many = None
+  if FLAGS.batch:
+    with tempfile.TemporaryDirectory() as folder:
+      many, data_camera = fresh_objects(FLAGS.model, FLAGS.batch, FLAGS.seed, folder)
+  rows = {}
   key = jax.random.key(0)
-  meta = {"device": jax.devices()[0].device_kind, "cpu_count": os.cpu_count(),
+  meta = {"device": device, "platform": platform_name, "cpu_count": threads,
           "jax": jax.__version__, "python": platform.python_version(),
-          "samples": FLAGS.samples, "batch": FLAGS.batch, "depth_fit": FLAGS.depth}
-  rows = []
+          "date": datetime.date.today().isoformat(),
+          "command": "python " + " ".join(shlex.quote(a) for a in sys.argv)}
 
-  def add(engine, what, n, seconds):
-    rows.append({"engine": engine, "case": what, "objects": n, "seconds": seconds,
-                 "objects_per_s": n / seconds})
-    print(f"{engine:28s} {what:22s} {seconds * 1e3:9.1f} ms  {n / seconds:8.2f} objects/s",
-          flush=True)
+  def save():  # after every row: a run cut short keeps what it measured
+    if FLAGS.out:
+      with open(FLAGS.out, "w") as f:
+        json.dump({"meta": meta, "rows": rows}, f, indent=1)
 
-  runs = [(engine, settings, {"screen_steps": 0}) for engine, settings in ENGINES.items()
-          if engine in FLAGS.engines.split(",")]
-  for screen in filter(None, FLAGS.screens.split(",")):
-    steps, keep = (int(x) for x in screen.split(":"))
-    runs.append((f"box-plane step, screen {steps} steps -> {keep}", ENGINES["box-plane step"],
-                 {"screen_steps": steps, "screen_keep": keep}))
-  for engine, settings, screen in runs:
-    shipped = model_settings((model, config)).replace(**{
-        "select.samples": FLAGS.samples, **{"select." + k: v for k, v in screen.items()}})
-    decompose = ppdjax.make_decompose_fn((model, config), shipped, engine=settings,
-                                         camera=camera)
-    block = lambda out: jax.block_until_ready(out.primitives.density)
-    if not FLAGS.skip_one:
-      t0 = time.perf_counter()
-      block(decompose(one, key))
-      meta[f"compile_one_s {engine}"] = time.perf_counter() - t0
-      _, s = timed(lambda: block(decompose(one, key)), FLAGS.repeats)
-      add(f"{engine} (jitted decompose)", "1 object", 1, s)
-    if not FLAGS.skip_batch:
-      _, s = timed(lambda: block(decompose(obs, key)), max(1, FLAGS.repeats // 2))
-      add(f"{engine} (jitted decompose)", f"batch of {FLAGS.batch}", FLAGS.batch, s)
-    if screen["screen_steps"] or FLAGS.skip_rollouts:
-      continue  # the rest is the engine's, timed above
-    physics_only = jax.jit(lambda c, s=settings: rollout_mjx.simulate(
-        c, ppdjax.default_pushes(), settings=s))
-    cands = jax.tree.map(lambda x: jnp.broadcast_to(x[0], (FLAGS.samples,) + x.shape[1:]),
-                         jax.tree.map(jnp.asarray, ppdjax.sample_towers(1, 1)))
-    _, s = timed(lambda: jax.block_until_ready(physics_only(cands)), FLAGS.repeats)
-    add(f"{engine} rollouts alone", f"{FLAGS.samples} candidates", 1, s)
-    if FLAGS.refine:
-      refined = ppdjax.make_decompose_fn(
-          (model, config), shipped.replace(**{"refine.enabled": True}), engine=settings,
-          camera=camera)
-      _, s = timed(lambda: block(refined(one, key)), FLAGS.repeats)
-      add(f"{engine} decompose + refine", "1 object", 1, s)
-  if not FLAGS.skip_c:
-    peer = c_peer(model, FLAGS.samples)
-    if not FLAGS.skip_one:
-      _, s = timed(lambda: peer(one, key), max(1, FLAGS.repeats // 2))
-      add(f"MuJoCo C, {os.cpu_count()} threads", "1 object", 1, s)
-    if not FLAGS.skip_batch:
-      _, s = timed(lambda: peer(obs, key), 1)
-      add(f"MuJoCo C, {os.cpu_count()} threads", f"batch of {FLAGS.batch}", FLAGS.batch, s)
-  c = {r["case"]: r["seconds"] for r in rows if r["engine"].startswith("MuJoCo C")}
-  print("\n| engine | case | ms | objects/s | × C |\n|---|---|--:|--:|--:|")
-  for r in rows:
-    ratio = c.get(r["case"], float("nan")) / r["seconds"]
-    print(f"| {r['engine']} | {r['case']} | {r['seconds'] * 1e3:.1f} | "
-          f"{r['objects_per_s']:.2f} | {ratio:.2f} |")
-  if FLAGS.out:
-    with open(FLAGS.out, "w") as f:
-      json.dump({"meta": meta, "rows": rows}, f, indent=1)
+  def add(name, seconds, objects, peer, plan):
+    rows[name] = {"seconds": seconds, "objects": objects, "objects_per_s": objects / seconds,
+                  "c_peer_seconds": peer, "ratio_to_c": seconds / peer if peer else None,
+                  "rollouts_per_object": [list(p) for p in plan]}
+    print(f"{name:34s} {seconds * 1e3:10.1f} ms  {objects / seconds:8.2f} objects/s  "
+          f"C peer {peer * 1e3 if peer else float('nan'):10.1f} ms  "
+          f"(x{seconds / peer if peer else float('nan'):.2f})", flush=True)
+    save()
+
+  for which in FLAGS.settings:
+    config = model_settings(trained) if which == "model" else DecomposeConfig.best()
+    if config.fit.depth and "depth" not in one_obs:
+      print(f"{which}: the example has no depth; skipped", flush=True)
+      continue
+    decompose = ppdjax.make_decompose_fn(trained, config, camera=camera if config.fit.with_
+                                         else None)
+    print(f"{which}: {config} on {decompose.settings}", flush=True)
+    block = lambda out: jax.block_until_ready(out)
+    result = block(decompose(one_obs, key))
+    seconds = timed(lambda: block(decompose(one_obs, key)), FLAGS.repeats)
+    batched = jax.tree.map(lambda x: np.asarray(x)[None], result)
+    run, plan = c_peer(batched, jax.tree.map(lambda x: np.asarray(x)[None], one_obs), config,
+                       key, pushes)
+    add(f"{which}: one object", seconds, 1, timed(run, FLAGS.repeats), plan)
+    if many is not None:
+      decompose_many = ppdjax.make_decompose_fn(
+          trained, config, camera=data_camera if config.fit.with_ else None)
+      obs = {k: many[k] for k in OBS_KEYS + (("depth",) if config.fit.depth else ())}
+      result = block(decompose_many(obs, key))
+      seconds = timed(lambda: block(decompose_many(obs, key)), max(1, FLAGS.repeats // 2))
+      run, plan = c_peer(result, obs, config, key, pushes)
+      add(f"{which}: batch of {FLAGS.batch}", seconds, FLAGS.batch, timed(run, 1), plan)
+  if FLAGS.first_call and "model" in FLAGS.settings:
+    seconds = first_call_seconds(FLAGS.model, FLAGS.example)
+    rows["model: first call"] = {"seconds": seconds, "objects": 1}
+    print(f"model: first call (compiles)      {seconds:10.1f} s", flush=True)
+  save()
+  if FLAGS.front_door:
+    merge_front_door(FLAGS.front_door, rows, meta)
+
+
+def merge_front_door(path: str, rows: dict, meta: dict) -> None:
+  """The results file's rows for this platform (issue 59's keys)."""
+  machine = f"{meta['device']}, {meta['cpu_count']} CPU cores"
+  entry = lambda value, unit: {"value": round(value, 4), "unit": unit, "machine": machine,
+                               "date": meta["date"], "command": meta["command"]}
+  out = json.load(open(path)) if os.path.exists(path) else {}
+  batch = next((k for k in rows if k.startswith("model: batch")), None)
+  best = next((k for k in rows if k.startswith("best: batch")), None)
+  if meta["platform"] == "cpu":
+    if "model: one object" in rows:
+      r = rows["model: one object"]
+      out["cpu_one_object_s"] = entry(r["seconds"], "s")
+      out["c_peer_cpu_one_object_s"] = entry(r["c_peer_seconds"], "s")
+    if "model: first call" in rows:
+      out["cpu_first_call_s"] = entry(rows["model: first call"]["seconds"], "s")
+  else:
+    if "model: one object" in rows:
+      r = rows["model: one object"]
+      out["gpu_one_object_ms"] = entry(r["seconds"] * 1e3, "ms")
+      out["c_peer_gpu_one_object_ms"] = entry(r["c_peer_seconds"] * 1e3, "ms")
+    for key, name in ((batch, "gpu_batch64_paper_objects_per_s"),
+                      (best, "gpu_batch64_depth_refine_objects_per_s")):
+      if key is not None:
+        r = rows[key]
+        out[name] = entry(r["objects_per_s"], "objects/s")
+        out["c_peer_" + name] = entry(r["objects"] / r["c_peer_seconds"], "objects/s")
+  with open(path, "w") as f:
+    json.dump(out, f, indent=1, sort_keys=True)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,10 @@ class DemoConfig:
   steps: int = 256
   backend: str = "mjx"  # the engine whose trajectories are shown
   reference_backend: str = "mujoco"  # compared against; "" to skip
-  example_samples: int = 128  # density samples for the shipped example (paper: 512)
+  example_samples: int = 512  # density samples for the shipped example (the model's)
+  # the image fit (the shipped model's default) takes about a minute per object on 2 CPU
+  # cores; the demo's example fits the boxes to the voxels alone unless this is set
+  example_image_fit: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,6 +156,7 @@ class EvalConfig:
   refine_jacobian: str = "forward"  # forward | differences | central (infer.refine)
   estimator: str = ""  # a trained density estimator's folder: its scores join the network's
   estimator_weight: float = 1.0  # its log-probabilities' weight beside the network's
+  simulator: str = "auto"  # the candidates' engine: auto (C on a CPU) | jax | mujoco
   # --- evaluation only ------------------------------------------------------------------
   seed: int = 0  # the candidates' draws (object i of batch b: `decompose`'s key for it)
   batch_size: int = 8

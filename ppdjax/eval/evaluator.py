@@ -31,7 +31,7 @@ from ppdjax.eval.rows import batch_records, screen_mask
 from ppdjax.report.tables import BASELINES, SELECTION_HORIZONS, check_horizon
 from ppdjax.primitives import bottom_to_top
 from ppdjax.sim.pushes import default_pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, engine_settings, jax_engine
 from ppdjax.training import estimator as estimator_module
 from ppdjax.training import sharding
 
@@ -139,6 +139,9 @@ class Evaluator:
                        "camera (storage.Dataset.camera)")
     samples = select.samples
     self.decompose, self.config, self.samples = decompose, config, samples
+    # `settings`: the data's JAX engine; the candidates run on decompose's simulator (on a
+    # CPU, MuJoCo C), refinement on the JAX engine, as in `decompose`
+    settings, jax_settings = engine_settings(decompose.simulator, settings), jax_engine(settings)
     self.refine, self.joint = refine.enabled, joint
     estimator = (estimator_module.load(decompose.estimator.path)[0]
                  if decompose.estimator.path else None)
@@ -199,12 +202,12 @@ class Evaluator:
     # fit, the fitted boxes, as a MAP step when refine_prior > 0 (the presets: 0)
     self._refine = per_device(functools.partial(
         refine_batch, steps=refine.steps, prior_weight=refine.prior_weight,
-        pushes=pushes, settings=settings, jacobian=refine.jacobian))
+        pushes=pushes, settings=jax_settings, jacobian=refine.jacobian))
     # +Joint vectorised over 64 objects at once on an accelerator (a batch of 64 in 4.1 s
     # on an H100, 20.6 s 8 at once: benchmarks.md), 8 on a CPU
     self._joint = per_device(functools.partial(
         joint_batch, steps=refine.steps, prior_weight=refine.prior_weight,
-        camera=camera if fit.depth else None, pushes=pushes, settings=settings,
+        camera=camera if fit.depth else None, pushes=pushes, settings=jax_settings,
         at_once=8 if jax.default_backend() == "cpu" else 64))
 
   def _timed(self, stage: str, fn, *args):

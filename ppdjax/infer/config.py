@@ -16,6 +16,7 @@ from ppdjax.configs.schema import ConfigError
 from ppdjax.infer import faces
 from ppdjax.infer.refine import check_jacobian
 from ppdjax.infer.sampling import check_screen, check_selection_horizon
+from ppdjax.sim.rollout_mjx import check_simulator
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,13 +92,24 @@ class EstimatorConfig:
   weight: float = 1.0
 
 
+PARTS = ("fit", "select", "refine", "estimator")
+
+
 @dataclasses.dataclass(frozen=True)
 class DecomposeConfig:
-  """Every setting of `decompose`; `validate` names the first bad one (ConfigError)."""
+  """Every setting of `decompose`; `validate` names the first bad one (ConfigError).
+
+  Beside the parts, `simulator` picks the engine that simulates the selection's
+  candidates: "auto" (MuJoCo's C engine on every core where JAX runs on a CPU, the JAX
+  engine of the model's data on an accelerator), "jax" or "mujoco"
+  (`rollout_mjx.engine_settings`). C is the reference both JAX engines follow
+  (docs/physics.md); refinement always runs the JAX engine of the observations.
+  """
   fit: FitConfig = FitConfig()
   select: SelectConfig = SelectConfig()
   refine: RefineConfig = RefineConfig()
   estimator: EstimatorConfig = EstimatorConfig()
+  simulator: str = "auto"
 
   def __post_init__(self):
     self.validate()
@@ -115,6 +127,7 @@ class DecomposeConfig:
       check_selection_horizon(s.horizon)
       check_screen(s.screen_steps, s.screen_keep, s.samples, 0)
       check_jacobian(r.jacobian)
+      check_simulator(self.simulator)
     except ValueError as e:
       raise ConfigError(str(e)) from e
     if s.prior_weight < 0:
@@ -127,14 +140,18 @@ class DecomposeConfig:
       raise ConfigError("the estimator reads fitted boxes: it needs fit.enabled")
 
   def replace(self, **changes) -> "DecomposeConfig":
-    """A copy with dotted changes, e.g. `replace(**{"select.samples": 64})`, or whole parts
-    (`replace(refine=RefineConfig(enabled=True))`)."""
+    """A copy with dotted changes, e.g. `replace(**{"select.samples": 64})`, whole parts
+    (`replace(refine=RefineConfig(enabled=True))`) or the simulator
+    (`replace(simulator="jax")`)."""
     parts = {}
     for key, value in changes.items():
       part, _, field = key.partition(".")
-      if part not in ("fit", "select", "refine", "estimator"):
-        raise ValueError(f"DecomposeConfig has no part {part!r} (fit, select, refine, "
-                         "estimator)")
+      if part == "simulator" and not field:
+        parts[part] = value
+        continue
+      if part not in PARTS:
+        raise ValueError(f"DecomposeConfig has no part {part!r} ({', '.join(PARTS)}, or "
+                         "simulator)")
       if not field:
         parts[part] = value
         continue
@@ -151,10 +168,10 @@ class DecomposeConfig:
   def from_dict(cls, d: dict) -> "DecomposeConfig":
     parts = {"fit": FitConfig, "select": SelectConfig, "refine": RefineConfig,
              "estimator": EstimatorConfig}
-    unknown = set(d) - set(parts)
+    unknown = set(d) - set(parts) - {"simulator"}
     if unknown:
       raise ValueError(f"DecomposeConfig has no part {sorted(unknown)}")
-    return cls(**{k: parts[k](**v) for k, v in d.items()})
+    return cls(**{k: parts[k](**v) if k in parts else v for k, v in d.items()})
 
   @classmethod
   def from_eval(cls, eval_section) -> "DecomposeConfig":
@@ -173,7 +190,8 @@ class DecomposeConfig:
                             screen_steps=e.screen_steps, screen_keep=e.screen_keep),
         refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
                             prior_weight=e.refine_prior, jacobian=e.refine_jacobian),
-        estimator=EstimatorConfig(path=e.estimator, weight=e.estimator_weight))
+        estimator=EstimatorConfig(path=e.estimator, weight=e.estimator_weight),
+        simulator=e.simulator)
 
   def to_eval(self) -> dict:
     """The `eval` section's keys for these settings (`from_eval`'s inverse)."""
@@ -184,7 +202,7 @@ class DecomposeConfig:
             "screen_steps": s.screen_steps, "screen_keep": s.screen_keep,
             "refine": r.enabled, "refine_steps": r.steps, "refine_prior": r.prior_weight,
             "refine_jacobian": r.jacobian, "estimator": e.path,
-            "estimator_weight": e.weight}
+            "estimator_weight": e.weight, "simulator": self.simulator}
 
   @classmethod
   def paper(cls) -> "DecomposeConfig":

@@ -18,7 +18,7 @@ from ppdjax.infer import sampling
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, default_pushes
-from ppdjax.sim.rollout_mjx import Settings, settings_for
+from ppdjax.sim.rollout_mjx import Settings, engine_settings, jax_engine
 from ppdjax.training import checkpoints
 from ppdjax.training import estimator as estimator_module
 
@@ -35,7 +35,9 @@ class Decomposition:
       combined (`ppdjax.nn.estimator.combine_logits`).
     score: (B,) trajectory distance (metres) of the returned densities.
     scores: (B, S) every sampled candidate's distance (candidate 0: the arg-max; inf for
-      one screened out, `SelectConfig.screen_steps`).
+      one screened out, `SelectConfig.screen_steps`). With a selection horizon
+      (`SelectConfig.horizon`) and no refinement, the distance over that horizon: the
+      candidates are simulated that far only (the winner over every step).
     trajectories: (B, P, T, 7) the returned object simulated under the pushes.
   """
 
@@ -135,7 +137,9 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
     pushes: the pushes the observations were recorded with (None: those of the model's
       training data, the paper's four for towers).
     engine: the simulator the observations come from: "mjx", "box_plane" (or their
-      `Settings`); None: the engine of the model's training data.
+      `Settings`); None: the engine of the model's training data. Its JAX step refines,
+      and simulates the candidates on an accelerator; on a CPU MuJoCo's C engine
+      simulates them (`config.simulator`).
 
   Returns:
     decompose(observation, key): observation is a dict with "voxels" (32,32,32), "image"
@@ -167,7 +171,10 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
     estimator = estimator_module.load(config.estimator.path)[0]
   if engine is None:
     engine = run_config.data.get("backend", "mjx")
-  settings = settings_for(engine) if isinstance(engine, str) else engine
+  settings = engine_settings(config.simulator, engine)
+  # refinement through the observations' own physics: C's small late departures from
+  # the JAX step cost top-1 after refinement (experiments/cpu_engine)
+  refine_settings = jax_engine(engine)
   graphdef, state = nnx.split(net)
   est_graphdef, est_state = nnx.split(estimator) if estimator is not None else (None, None)
 
@@ -185,7 +192,7 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
         prior_weight=select.prior_weight, mass_match=select.mass_match,
         screen_steps=select.screen_steps, screen_keep=select.screen_keep,
         face_spread=fit.face_spread, selection_horizon=select.horizon,
-        settings=settings))(prims, logits, traj, object_keys(key, traj.shape[0]))
+        whole_scores=refine.enabled, settings=settings))(prims, logits, traj, object_keys(key, traj.shape[0]))
     pick = lambda index: jax.tree.map(  # each object's candidate `index` (B,)
         lambda x: jnp.take_along_axis(x, index.reshape((-1,) + (1,) * (x.ndim - 1)), 1)[:, 0],
         sel.boxes)
@@ -197,7 +204,7 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
           p, o, d, pushes, steps=refine.steps,
           prior=density_prior(lg) if refine.prior_weight > 0 else None,
           prior_weight=refine.prior_weight, jacobian=refine.jacobian,
-          settings=settings))(start, logits, traj, sel.scores.min(-1))
+          settings=refine_settings))(start, logits, traj, sel.scores.min(-1))
       # kept where it is closer than every candidate; else the +Sample answer stays
       prims = jax.tree.map(
           lambda r, p: jnp.where(ref.closer.reshape((-1,) + (1,) * (p.ndim - 1)), r, p),
@@ -223,6 +230,7 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
     return out if batched else jax.tree.map(lambda x: x[0], out)
 
   decompose.config = config  # what it runs, for reports and the evaluation
+  decompose.settings = settings  # the engine that simulates the candidates
   return decompose
 
 

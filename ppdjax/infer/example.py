@@ -83,8 +83,8 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int | Non
     {"densities": recovered kg/m³ of the valid boxes (bottom to top), "true_densities",
      "boxes", "true_boxes", "shape_matched" (boxes with IoU > 0.5), "iou" of the k-th
      recovered with the k-th true box, "distance_m", "mae_mm", "samples", "seconds" of the
-     call (its compilation included), "path", "engine" (the model's training data's, which simulates the
-     candidates)}.
+     call (its compilation included), "path", "engine" (the one that simulated the
+     candidates: on a CPU MuJoCo C, else the JAX engine of the model's training data)}.
   """
   trained = checkpoints.load(model_dir)
   obs, true = load_example(example)
@@ -119,9 +119,10 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int | Non
           "iou": [float(iou[k, k]) for k in range(min(valid.sum(), true_valid.sum()))],
           "distance_m": float(got.score),
           "mae_mm": float(metrics.trajectory_mae(got.trajectories, obs["trajectories"])),
-          "samples": samples, "fit_with": list(config.fit.with_), "seconds": seconds,
+          "samples": samples, "fit": config.fit.enabled, "fit_with": list(config.fit.with_),
+          "seconds": seconds,
           "path": out,
-          "engine": trained[1].data.get("backend", "mjx")}
+          "engine": engine_name(decompose.settings)}
 
 
 def heaviest_line(r: dict, count: int = 2) -> str:
@@ -135,11 +136,27 @@ def heaviest_line(r: dict, count: int = 2) -> str:
 ENGINES = {"mjx": "MJX", "box_plane": "the box-plane step", "mujoco": "MuJoCo C"}
 
 
+def boxes_line(r: dict) -> str:
+  """'fitted to the voxels and the image' (or 'the network's own')."""
+  if not r.get("fit", True):
+    return "the network's own"
+  return "fitted to " + " and ".join(["the voxels"] + ["the " + x for x in r.get("fit_with", [])])
+
+
+def engine_name(settings) -> str:
+  """The key in ENGINES of a simulator's settings (`decompose.settings`)."""
+  from ppdjax.sim.box_plane import BoxPlaneSettings  # pylint: disable=import-outside-toplevel
+  from ppdjax.sim.rollout_mujoco import MujocoSettings  # pylint: disable=import-outside-toplevel
+  return ("mujoco" if isinstance(settings, MujocoSettings) else
+          "box_plane" if isinstance(settings, BoxPlaneSettings) else "mjx")
+
+
 def report_md(r: dict, model_dir: str, example: str) -> str:
   """A short report: each box's recovered density and geometry beside the truth."""
   lines = [f"# `{os.path.basename(os.path.normpath(model_dir))}` on "
            f"`{os.path.basename(example)}`", "",
-           f"{len(r['densities'])} boxes recovered, {len(r['true_densities'])} true; "
+           f"{len(r['densities'])} boxes recovered ({boxes_line(r)}), "
+           f"{len(r['true_densities'])} true; "
            f"{r['shape_matched']} match a true box at IoU > 0.5. {r['samples']} density "
            f"samples simulated with {ENGINES.get(r.get('engine', 'mjx'), r.get('engine'))}; "
            f"the closest trajectories are "

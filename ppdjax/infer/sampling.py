@@ -201,7 +201,7 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
                      include_mode: bool = True, prior_weight: float = 0.0,
                      mass_match: bool = False, screen_steps: int = 0,
                      screen_keep: int = 64, face_spread: float = 0.0,
-                     selection_horizon: int = 0,
+                     selection_horizon: int = 0, whole_scores: bool = True,
                      settings: Settings = DEFAULT_SETTINGS) -> Selection:
   """Samples joint density assignments and keeps the one that best explains the motion.
 
@@ -231,6 +231,10 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
       horizon=)`; 0, or the trajectory's length or more: all steps, the paper's). The
       returned scores stay whole-trajectory distances. With a screen, the winner is the
       best of its survivors over this horizon. A Python int (it shapes the program).
+    whole_scores: with a horizon shorter than the trajectory, False simulates the
+      candidates over the horizon only (the pick is the same; `horizon` / T of the
+      steps) and the winner alone over every step: `scores` and `mae` are then
+      distances over the horizon, `score` and `trajectories` still the winner's whole.
     settings: the engine's settings (those the dataset was simulated with: MJX or box-plane).
 
   Returns:
@@ -247,9 +251,13 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   survivors = (screen_survivors(candidates, observed, pushes, settings, steps=screen_steps,
                                 keep=screen_keep) if screened else jnp.arange(num_samples))
   kept = jax.tree.map(lambda x: x[survivors], candidates) if screened else candidates
-  # each candidate's distance over all steps (column 0) and over the selection horizon
-  score = lambda boxes: score_candidates(boxes, observed, pushes, settings,
-                                         keep_trajectories=True, horizons=(0, selection_horizon))
+  steps = observed.shape[-2]
+  short = not whole_scores and 0 < selection_horizon < steps
+  # each candidate's distance over all steps (column 0) and over the selection horizon;
+  # `short`: both over the horizon, the only steps simulated
+  seen = observed[..., :selection_horizon, :] if short else observed
+  score = lambda boxes: score_candidates(boxes, seen, pushes, settings, keep_trajectories=True,
+                                         horizons=(0, 0 if short else selection_horizon))
   dists, err, sims = score(kept)
   kept_logp = logp[survivors] if screened else logp
   if mass_match:  # the mass of the closest by the same rule as the winner's
@@ -260,6 +268,12 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   best = jnp.argmin(selection_objective(dists[:, 1], kept_logp, prior_weight))
   everyone = lambda x: (jnp.full((num_samples,), jnp.inf, x.dtype).at[survivors].set(x)
                         if screened else x)
-  return Selection(density=kept.density[best], score=dist[best], scores=everyone(dist),
+  winner_score, winner_sim = dist[best], sims[best]
+  if short:  # the winner alone over every step
+    winner = jax.tree.map(lambda x: x[best][None], kept)
+    whole, _, whole_sim = score_candidates(winner, observed, pushes, settings,
+                                           keep_trajectories=True)
+    winner_score, winner_sim = whole[0], whole_sim[0]
+  return Selection(density=kept.density[best], score=winner_score, scores=everyone(dist),
                    slots=slots, distinct=distinct, mae=everyone(err),
-                   trajectories=sims[best], best=survivors[best], boxes=candidates)
+                   trajectories=winner_sim, best=survivors[best], boxes=candidates)

@@ -1,8 +1,9 @@
-"""Batched, jitted rollouts in JAX: one compiled function serves every object of up to K boxes.
+"""Batched, jitted rollouts: one compiled function serves every object of up to K boxes.
 
-The settings' type picks the step: `MjxSettings` runs MJX (`mjx.step` or
+The settings' type picks the engine: `MjxSettings` runs MJX (`mjx.step` or
 `ppdjax.sim.mjx_step`), `BoxPlaneSettings` the step written for this scene
-(`ppdjax.sim.box_plane`).
+(`ppdjax.sim.box_plane`), `MujocoSettings` MuJoCo's C engine through a host callback (the
+CPU engine). `engine_settings` picks one for a simulator choice and a backend.
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ from mujoco import mjx
 
 from ppdjax.conventions import STEPS
 from ppdjax.primitives import Primitives, flatten, unflatten
-from ppdjax.sim import box_plane, box_plane_kernel, mjx_step, scene
+from ppdjax.sim import box_plane, box_plane_kernel, mjx_step, rollout_mujoco, scene
 from ppdjax.sim.box_plane import BoxPlaneSettings
+from ppdjax.sim.rollout_mujoco import MujocoSettings
 from ppdjax.sim.mass import mass_properties
 from ppdjax.sim.pushes import Pushes, push_wrenches
 
@@ -55,7 +57,8 @@ class MjxSettings:
 
 
 DEFAULT_SETTINGS = MjxSettings()
-Settings = MjxSettings | BoxPlaneSettings
+Settings = MjxSettings | BoxPlaneSettings | MujocoSettings
+SIMULATORS = ("auto", "jax", "mujoco")
 
 # A candidate far lighter than the object it explains can be launched by the push (a
 # 1,000 N tool push sends 0.1 kg flying at 30 m/s), then spin until float32 integration
@@ -88,6 +91,37 @@ def settings_for(backend: str) -> Settings:
   """The JAX engine's default settings for data simulated by `backend`: the box-plane
   step for "box_plane", MJX otherwise (data made by MuJoCo C is read through MJX)."""
   return BoxPlaneSettings() if backend == "box_plane" else DEFAULT_SETTINGS
+
+
+def check_simulator(simulator: str) -> str:
+  """`simulator` if it is one of SIMULATORS, else ValueError."""
+  if simulator not in SIMULATORS:
+    raise ValueError(f"simulator must be one of {SIMULATORS}, got {simulator!r}")
+  return simulator
+
+
+def engine_settings(simulator: str, data_engine: str | Settings) -> Settings:
+  """The engine that simulates the candidates of `decompose`'s selection (and the
+  evaluation's).
+
+  Args:
+    simulator: "jax": the JAX engine of the data (`settings_for(data_engine)`), the GPU
+      engine; "mujoco": MuJoCo's C engine on every CPU core (`MujocoSettings`); "auto":
+      C where JAX runs on a CPU, else JAX.
+    data_engine: the engine the observations come from ("mjx", "box_plane", "mujoco") or
+      the JAX engine's settings themselves.
+  """
+  check_simulator(simulator)
+  if simulator == "mujoco" or (simulator == "auto" and jax.default_backend() == "cpu"):
+    return MujocoSettings()
+  return jax_engine(data_engine)
+
+
+def jax_engine(data_engine: str | Settings) -> Settings:
+  """The JAX engine for data from `data_engine` (a name, or settings kept as they are;
+  data from MuJoCo C is read through MJX): the engine refinement differentiates."""
+  settings = settings_for(data_engine) if isinstance(data_engine, str) else data_engine
+  return DEFAULT_SETTINGS if isinstance(settings, MujocoSettings) else settings
 
 
 # Above this many push iterations the push step keeps MJX's while_loop (unrolling 100
@@ -182,5 +216,9 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS,
                       pos=flat.pos.astype(jnp.float32), quat=flat.quat.astype(jnp.float32),
                       density=flat.density.astype(jnp.float32),
                       valid=flat.valid.astype(bool))
-  out = _batched_fn(steps, settings)(flat, pushes.float32())
+  if isinstance(settings, MujocoSettings):
+    out = hold_escapes(rollout_mujoco.simulate_traced(flat, pushes, steps=steps,
+                                                      settings=settings))
+  else:
+    out = _batched_fn(steps, settings)(flat, pushes.float32())
   return unflatten(out, batch)
