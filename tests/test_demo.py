@@ -27,7 +27,7 @@ def test_physics_tour_writes_plot_and_summary(tmp_path):
 def test_shipped_example_report_puts_the_answer_beside_the_truth(tmp_path):
   r = showcase.shipped_example(os.path.join(ROOT, "assets", "blocks_model"),
                                os.path.join(ROOT, "assets", "blocks_example.npz"),
-                               str(tmp_path), samples=16)
+                               str(tmp_path), samples=16, image_fit=False)
   assert os.path.getsize(tmp_path / "example.png") > 1000
   text = (tmp_path / "example.md").read_text()
   assert text.count("\n| ") == 1 + len(r["true_densities"])  # header + one row per box

@@ -42,6 +42,7 @@ from ppdjax.dataset import generation, storage
 from ppdjax.infer import example, sampling
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import model_settings, object_keys
+from ppdjax.report.provenance import write_provenance
 from ppdjax.sim import rollout_mujoco
 from ppdjax.training import checkpoints
 
@@ -195,6 +196,9 @@ def main(argv):
     rows["model: first call"] = {"seconds": seconds, "objects": 1}
     print(f"model: first call (compiles)      {seconds:10.1f} s", flush=True)
   save()
+  if FLAGS.out:
+    write_provenance(FLAGS.out, command=sys.argv, weights=FLAGS.model, headlines={
+        f"{name} (s)": f"rows/{name}/seconds" for name in rows})
   if FLAGS.front_door:
     merge_front_door(FLAGS.front_door, rows, meta)
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import tempfile
 import time
 
@@ -32,6 +33,7 @@ from ppdjax.dataset import generation, storage
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import model_settings
 from ppdjax.primitives import bottom_to_top
+from ppdjax.report.provenance import write_provenance
 from ppdjax.training import checkpoints
 
 flags.DEFINE_string("model", "assets/blocks_model", "The model.")
@@ -116,8 +118,12 @@ def main(argv):
     print(f"{name}: same slot on {100 * same:.1f} % of boxes; "
           f"{out[name]['paired_mujoco_minus_jax']}", flush=True)
   os.makedirs(FLAGS.out, exist_ok=True)
-  with open(os.path.join(FLAGS.out, f"cpu_engine_{'_'.join(FLAGS.settings)}.json"), "w") as f:
+  path = os.path.join(FLAGS.out, f"cpu_engine_{'_'.join(FLAGS.settings)}.json")
+  with open(path, "w") as f:
     json.dump(out, f, indent=1, default=float)
+  write_provenance(path, command=sys.argv, weights=FLAGS.model, headlines={
+      f"{name}: top-1, C − JAX (points)": f"{name}/paired_mujoco_minus_jax/top1_diff"
+      for name in FLAGS.settings})
 
 
 if __name__ == "__main__":
