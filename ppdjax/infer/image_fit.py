@@ -85,54 +85,73 @@ def face_labels(prims: Primitives, origin, dirs_Nx3, light=None) -> jax.Array:
 
 def labeller(prims: Primitives, origin, dirs_Nx3, light=None):
   """`face_labels` as a function of boxes with the rotations of `prims` (the sweep moves
-  faces only): the rays' directions in each box's frame are computed once."""
+  faces only): the rays' directions in each box's frame are computed once.
+
+  Written box by box and axis by axis over (N,) arrays, the nearest box and its entry
+  face kept by comparisons (an arg-min and gathers over (N, K, 3) arrays ran 6x slower
+  on a CPU, with the same labels: experiments/results/benchmarks.md, the front door)."""
   rot = quat_to_mat(prims.quat)  # (K, 3, 3); at rest the object is only lifted
-  d = _nonzero(jnp.einsum("kji,nj->nki", rot, dirs_Nx3))  # (N, K, 3) in the box frames
+  d = jnp.moveaxis(_nonzero(jnp.einsum("kji,nj->nki", rot, dirs_Nx3)), 0, -1)  # (K, 3, N)
   inv_d = 1.0 / d
   if light is not None:  # from each point toward the light, in the box frames
     toward = -jnp.asarray(light, jnp.float32) / jnp.linalg.norm(jnp.asarray(light, jnp.float32))
     inv_light = 1.0 / _nonzero(jnp.einsum("kji,j->ki", rot, toward))  # (K, 3)
   down = dirs_Nx3[:, 2] < -1e-9  # rays that meet the floor unless a box is in the way
   t_floor = jnp.where(down, -origin[2] / jnp.where(down, dirs_Nx3[:, 2], -1.0), 0.0)
-  empty = 6 * prims.valid.shape[-1]
+  num_slots = prims.valid.shape[-1]
+  empty = 6 * num_slots
 
   def labels(boxes: Primitives) -> jax.Array:
     world = to_world(boxes)
     o = jnp.einsum("kji,kj->ki", rot, origin[None] - world.pos)  # (K, 3) camera, box frames
-    near, far = _slabs(o[None], inv_d, world.half_size)
-    t_in, t_out = near.max(-1), far.min(-1)
-    hit = (t_in <= t_out) & (t_out > 0) & world.valid[None]
-    t_hit = jnp.where(hit, t_in, jnp.inf)
-    box = jnp.argmin(t_hit, -1)  # (N,)
-    axis = jnp.take_along_axis(near.argmax(-1), box[:, None], -1)[:, 0]
-    d_box = jnp.take_along_axis(d, box[:, None, None], 1)[:, 0]  # (N, 3)
-    enters_lo = jnp.take_along_axis(d_box, axis[:, None], -1)[:, 0] > 0  # up the axis
-    any_hit = hit.any(-1)
-    out = jnp.where(any_hit, box * 6 + axis + jnp.where(enters_lo, 0, 3), empty)
-    if light is None:
-      return out
-    seen = any_hit | down  # rays into the sky meet nothing
-    t = jnp.where(any_hit, t_hit.min(-1), jnp.where(seen, t_floor, 0.0))
-    points = o[None] + t[:, None, None] * d  # (N, K, 3): where each ray ends, box frames
-    near_l, far_l = _slabs(points, inv_light[None], world.half_size)
-    t_out_l = far_l.min(-1)
-    # a point on a lit face leaves its own box at once (exit 0): SHADOW_EPS keeps it lit
-    shadow = ((near_l.max(-1) <= t_out_l) & (t_out_l > SHADOW_EPS)
-              & world.valid[None]).any(-1) & seen
-    return 2 * out + shadow
+    h = world.half_size
+    t_best = jnp.full(d.shape[-1], jnp.inf, d.dtype)
+    out = jnp.full(d.shape[-1], empty, jnp.int32)
+    for k in range(num_slots):  # the first box at the least entry wins (arg-min's tie)
+      near, far = _slab(o[k][:, None], inv_d[k], h[k][:, None])
+      t_in = jnp.maximum(jnp.maximum(near[0], near[1]), near[2])
+      t_out = jnp.minimum(jnp.minimum(far[0], far[1]), far[2])
+      hit = (t_in <= t_out) & (t_out > 0) & world.valid[k]
+      # the entry axis (the first of the largest near parameters, as arg-max) and side
+      axis = jnp.where(near[0] >= jnp.maximum(near[1], near[2]), 0,
+                       jnp.where(near[1] >= near[2], 1, 2))
+      d_axis = jnp.where(axis == 0, d[k, 0], jnp.where(axis == 1, d[k, 1], d[k, 2]))
+      label = 6 * k + axis + jnp.where(d_axis > 0, 0, 3)  # entering a lower face: up the axis
+      closer = hit & (t_in < t_best)
+      t_best = jnp.where(closer, t_in, t_best)
+      out = jnp.where(closer, label, out)
+    if light is not None:
+      any_hit = t_best < jnp.inf
+      seen = any_hit | down  # rays into the sky meet nothing
+      t = jnp.where(any_hit, t_best, jnp.where(seen, t_floor, 0.0))
+      shadow = jnp.zeros(d.shape[-1], bool)
+      for k in range(num_slots):  # where each ray ends, toward the light, through box k
+        points = o[k][:, None] + t[None] * d[k]  # (3, N) in box k's frame
+        near, far = _slab(points, inv_light[k][:, None], h[k][:, None])
+        t_in = jnp.maximum(jnp.maximum(near[0], near[1]), near[2])
+        t_out = jnp.minimum(jnp.minimum(far[0], far[1]), far[2])
+        # a point on a lit face leaves its own box at once (exit 0): SHADOW_EPS keeps it lit
+        shadow = shadow | ((t_in <= t_out) & (t_out > SHADOW_EPS) & world.valid[k])
+      out = 2 * out + (shadow & seen)
+    # Read back through an identity gather XLA cannot see through: otherwise it fuses
+    # this whole computation into each of `edge_score`'s four shifted reads and runs it
+    # four times over (10x slower per scored render on a CPU).
+    zero = jnp.minimum(jnp.sum(world.valid), 0)
+    return out.at[jnp.arange(out.shape[0]) + zero].get(
+        mode="promise_in_bounds", unique_indices=True, indices_are_sorted=True)
 
   return labels
 
 
-def _nonzero(d):
-  return jnp.where(jnp.abs(d) < 1e-9, 1e-9, d)
-
-
-def _slabs(o, inv_d, half_size):
-  """Per axis, the ray parameters where rays (origins `o`, inverse directions `inv_d`, in
-  box frames) cross the boxes' lower and upper slab planes: (near, far), each (..., 3)."""
+def _slab(o, inv_d, half_size):
+  """Per axis (leading 3), the ray parameters where rays (origins `o`, inverse directions
+  `inv_d`, in a box's frame) cross its lower and upper slab planes: (near, far)."""
   t1, t2 = (-half_size - o) * inv_d, (half_size - o) * inv_d
   return jnp.minimum(t1, t2), jnp.maximum(t1, t2)
+
+
+def _nonzero(d):
+  return jnp.where(jnp.abs(d) < 1e-9, 1e-9, d)
 
 
 def blur_strength(strength_HW, sigma: float) -> jax.Array:
