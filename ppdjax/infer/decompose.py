@@ -192,7 +192,8 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
         prior_weight=select.prior_weight, mass_match=select.mass_match,
         screen_steps=select.screen_steps, screen_keep=select.screen_keep,
         face_spread=fit.face_spread, selection_horizon=select.horizon,
-        whole_scores=refine.enabled, settings=settings))(prims, logits, traj, object_keys(key, traj.shape[0]))
+        whole_scores=refine.enabled, settings=settings))(
+            prims, logits, traj, object_keys(key, traj.shape[0]))
     pick = lambda index: jax.tree.map(  # each object's candidate `index` (B,)
         lambda x: jnp.take_along_axis(x, index.reshape((-1,) + (1,) * (x.ndim - 1)), 1)[:, 0],
         sel.boxes)

@@ -235,7 +235,7 @@ def select_densities(prims: Primitives, density_logits: jax.Array, observed: jax
       candidates over the horizon only (the pick is the same; `horizon` / T of the
       steps) and the winner alone over every step: `scores` and `mae` are then
       distances over the horizon, `score` and `trajectories` still the winner's whole.
-    settings: the engine's settings (those the dataset was simulated with: MJX or box-plane).
+    settings: the engine's settings (MJX, box-plane or MuJoCo C: `rollout_mjx.Settings`).
 
   Returns:
     Selection: best densities, its score and every candidate's score and MAE.
