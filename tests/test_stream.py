@@ -76,7 +76,7 @@ def test_geometry_batch_is_a_training_batch():
 
 
 def test_table4_shape_pool_is_the_stream_and_a_function_of_its_key():
-  from ppdjax.eval.evaluator import shape_pool
+  from ppdjax.eval.candidates import shape_pool
   key = jax.random.key(11)
   a, b = shape_pool(key, 64, 5), shape_pool(key, 64, 5)
   np.testing.assert_array_equal(np.asarray(a.half_size), np.asarray(b.half_size))

@@ -48,7 +48,8 @@ from ppdjax.configs.schema import EvalConfig
 from ppdjax.eval import baselines, partial
 from ppdjax.eval.batches import evaluation_objects, read_ahead, table4_batches
 from ppdjax.infer.config import DecomposeConfig
-from ppdjax.eval.evaluator import Evaluator, headline_row, shape_pool
+from ppdjax.eval.candidates import shape_pool
+from ppdjax.eval.evaluator import Evaluator, headline_row
 from ppdjax.report.tables import PREFIXES, SELECTION_HORIZONS, model_switches, summarize
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.training import checkpoints
