@@ -38,7 +38,7 @@ from absl import app, flags
 
 import ppdjax
 from ppdjax.conventions import OBS_KEYS
-from ppdjax.dataset import generation, storage
+from ppdjax.dataset import generation
 from ppdjax.infer import example, sampling
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import model_settings, object_keys
@@ -59,17 +59,11 @@ flags.DEFINE_string("front_door", "", "Merge the figures into this results file.
 FLAGS = flags.FLAGS
 
 
-def fresh_objects(model_dir: str, count: int, seed: int, folder: str) -> dict:
-  """`count` observations (with depth) of fresh towers made as the model's dataset."""
-  config = checkpoints.read_config(model_dir)
-  config.seed = seed
-  per = config.data.configs_per_tower
-  config.data.num_towers = -(-count // per)
-  config.data.towers_per_shard = config.data.num_towers
-  config.data.split_fractions = (0.0, 0.0, 1.0)
-  config.data.render_workers = 0
-  generation.generate(config, folder, progress=False)
-  test = storage.open_dataset(folder, "test")
+def fresh_objects(trained, count: int, seed: int, folder: str) -> tuple[dict, dict]:
+  """`count` observations (with depth) of fresh towers made as the model's dataset, and
+  their camera."""
+  per = trained[1].data.configs_per_tower
+  test = generation.generate_fresh(trained[1], folder, -(-count // per), seed)
   return test.take(np.arange(count), keys=OBS_KEYS + ("depth",)), test.camera
 
 
@@ -146,7 +140,7 @@ def main(argv):
   many = None
   if FLAGS.batch:
     with tempfile.TemporaryDirectory() as folder:
-      many, data_camera = fresh_objects(FLAGS.model, FLAGS.batch, FLAGS.seed, folder)
+      many, data_camera = fresh_objects(trained, FLAGS.batch, FLAGS.seed, folder)
   rows = {}
   key = jax.random.key(0)
   meta = {"device": device, "platform": platform_name, "cpu_count": threads,

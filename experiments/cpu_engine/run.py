@@ -29,7 +29,7 @@ from absl import app, flags
 import ppdjax
 from ppdjax import metrics
 from ppdjax.conventions import OBS_KEYS, density_to_slot
-from ppdjax.dataset import generation, storage
+from ppdjax.dataset import generation
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import model_settings
 from ppdjax.primitives import bottom_to_top
@@ -74,14 +74,8 @@ def paired(a: np.ndarray, b: np.ndarray, towers: np.ndarray) -> dict:
 def main(argv):
   del argv
   trained = checkpoints.load(FLAGS.model)
-  config = checkpoints.read_config(FLAGS.model)
-  config.seed = FLAGS.seed
-  config.data.num_towers = config.data.towers_per_shard = FLAGS.towers
-  config.data.split_fractions = (0.0, 0.0, 1.0)
-  config.data.render_workers = 0
   with tempfile.TemporaryDirectory() as folder:
-    generation.generate(config, folder, progress=False)
-    test = storage.open_dataset(folder, "test")
+    test = generation.generate_fresh(trained[1], folder, FLAGS.towers, FLAGS.seed)
     data = test.take(np.arange(len(test)), keys=OBS_KEYS + ("depth", "primitives", "tower_id"))
     camera = test.camera
   n = len(data["voxels"])

@@ -206,3 +206,17 @@ def generate(config, out: str, progress: bool = True) -> dict:
     print(f"{manifest['samples']} samples in {num_shards} shards at {out} "
           f"({time.perf_counter() - t0:.0f} s this run); card: {out}/card.md")
   return manifest
+
+
+def generate_fresh(config, out: str, towers: int, seed: int):
+  """A test split of `towers` towers of `seed` (one never used for training) made as
+  `config`'s dataset, one shard, rendered in this process: fresh data for benchmarks and
+  studies. Returns the opened split (`storage.Dataset`)."""
+  config = ml_collections.ConfigDict(config.to_dict())
+  config.seed = seed
+  config.data.num_towers = config.data.towers_per_shard = towers
+  config.data.split_fractions = (0.0, 0.0, 1.0)
+  config.data.render_workers = 0
+  generate(config, out, progress=False)
+  return storage.open_dataset(out, "test")
+

@@ -92,7 +92,8 @@ class EstimatorConfig:
   weight: float = 1.0
 
 
-PARTS = ("fit", "select", "refine", "estimator")
+PARTS = {"fit": FitConfig, "select": SelectConfig, "refine": RefineConfig,
+         "estimator": EstimatorConfig}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,12 +167,10 @@ class DecomposeConfig:
 
   @classmethod
   def from_dict(cls, d: dict) -> "DecomposeConfig":
-    parts = {"fit": FitConfig, "select": SelectConfig, "refine": RefineConfig,
-             "estimator": EstimatorConfig}
-    unknown = set(d) - set(parts) - {"simulator"}
+    unknown = set(d) - set(PARTS) - {"simulator"}
     if unknown:
       raise ValueError(f"DecomposeConfig has no part {sorted(unknown)}")
-    return cls(**{k: parts[k](**v) if k in parts else v for k, v in d.items()})
+    return cls(**{k: PARTS[k](**v) if k in PARTS else v for k, v in d.items()})
 
   @classmethod
   def from_eval(cls, eval_section) -> "DecomposeConfig":
