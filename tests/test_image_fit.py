@@ -119,6 +119,46 @@ def test_the_edge_score_is_best_at_the_true_outline(light):
                              pos=prims.pos.at[top, 2].add(0.02))) > best
 
 
+@pytest.mark.parametrize("face", [5, 3, 2])  # a top, a side, a bottom (tied to a top)
+def test_a_sweeps_tiled_score_differs_from_the_whole_by_a_constant(face):
+  """`image_regions`: over a sweep's positions of one face (touching faces with it), the
+  score summed over the changed rectangle in tiles minus the window's score is the same
+  for every position, and the rectangle is a fraction of the window."""
+  from ppdjax.infer import depth_fit, image_regions
+  prims = _one_tower()
+  light = tuple(camera_lib.LIGHT_DIR)
+  image, cam = _painted(prims, SIZE, light)
+  window = image_fit.object_window(cam, light=light)
+  r0, r1, c0, c1 = window
+  h, w = r1 - r0, c1 - c0
+  origin, dirs = rays(cam)
+  strengths = image_fit.edge_strength(image[r0:r1, c0:c1])
+  labels = image_fit.labeller(prims, origin, dirs[r0:r1, c0:c1].reshape(-1, 3), light)
+  top = int(np.argmax(np.where(prims.valid, prims.pos[:, 2], -1)))  # a block on another
+  move = depth_fit._tied_offsets(6 * top + face, depth_fit.touching_faces(prims))
+  assert face != 2 or float(move.sum()) == 2.0  # the bottom carries the top below it
+  start = jnp.concatenate([-prims.half_size, prims.half_size], -1)
+  ends = start - 0.02 * move, start + 0.02 * move
+  project = image_regions.window_projector(jnp.asarray(cam["intrinsics"], jnp.float32),
+                                           jnp.asarray(cam["camera_from_world"], jnp.float32),
+                                           window)
+  rect = image_regions.changed_rect(prims, *ends, move, project, (h, w), light)
+  area = int((rect[1] - rect[0]) * (rect[3] - rect[2]))
+  assert 0 < area < 0.5 * h * w
+
+  @jax.jit
+  def both(offset):
+    boxes = depth_fit.boxes_from_faces(prims, start + offset * move)
+    whole = image_fit.edge_score(labels(boxes).reshape(h, w), *strengths)
+    tiled = image_regions.tiled_edge_score(functools.partial(labels, boxes), rect,
+                                           *strengths, (8, 16))
+    return whole, tiled
+
+  scores = np.array([both(o) for o in np.linspace(-0.02, 0.02, 9)])
+  assert len(set(scores[:, 0].tolist())) > 1  # the positions score differently
+  assert len(set((scores[:, 1] - scores[:, 0]).tolist())) == 1
+
+
 def test_faces_across_z_are_bounded_by_heights_above_the_floor():
   """The image shows heights above the floor, not where the frame's origin sits: the
   floor faces stay, the other z faces may move a voxel, x and y faces half a voxel."""
@@ -242,14 +282,17 @@ def test_the_image_brings_the_faces_closer_than_the_voxels(rendered):
   assert np.array_equal(np.asarray(fitted.valid), np.asarray(plain.valid))
 
 
-@pytest.mark.slow  # two compilations of the fit on 2 cores; `make test-all`
-def test_labels_cut_to_each_chunks_boxes_leave_the_faces_as_they_were(rendered):
-  """`refine_batch(slots=True)` (each chunk's labels test only its valid boxes' slots)
-  against every slot: the same faces, on towers of different box counts in chunks of 2."""
+@pytest.mark.slow  # three compilations of the fit on 2 cores; `make test-all`
+def test_labels_cut_to_each_chunks_boxes_or_tiles_leave_the_faces_as_they_were(rendered):
+  """`refine_batch`: labels of each chunk's valid boxes' slots only (`slots=True`), of
+  every slot, and each face scored in tiles of the region it can change (`tile`, the CPU's
+  default): the same faces, on towers of different box counts in chunks of 2."""
   prims, vox, images, cam = rendered
   start = ppdjax.fit_boxes(vox)
   assert len(set(np.asarray(start.valid).sum(-1).tolist())) > 1  # chunks of different widths
-  cut = image_fit.refine_batch(start, images, cam, chunk=2)
-  every = image_fit.refine_batch(start, images, cam, chunk=2, slots=False)
-  for a, b in zip(jax.tree.leaves(cut), jax.tree.leaves(every)):
+  cut = image_fit.refine_batch(start, images, cam, chunk=2, tile=None)
+  every = image_fit.refine_batch(start, images, cam, chunk=2, slots=False, tile=None)
+  tiled = image_fit.refine_batch(start, images, cam, chunk=2, tile=(8, 16))
+  for a, b, c in zip(jax.tree.leaves(cut), jax.tree.leaves(every), jax.tree.leaves(tiled)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(c))

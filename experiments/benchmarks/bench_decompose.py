@@ -93,8 +93,10 @@ def simulated_rollouts(config: DecomposeConfig, steps: int, num_boxes: int) -> l
   return out
 
 
-def c_peer(result, obs, config: DecomposeConfig, key, pushes):
-  """MuJoCo C on every core simulating the call's rollouts from its candidates."""
+def c_peer(result, obs, config: DecomposeConfig, key, pushes, full: bool = False):
+  """MuJoCo C on every core simulating the call's rollouts from its candidates; with
+  `full`, every candidate over the whole trajectory (what the call simulated before the
+  selection horizon stopped early: issue 59's peer)."""
   prims = jax.device_get(result.primitives)
   logits = jnp.asarray(result.density_logits)
   batch = prims.density.shape[0]
@@ -104,7 +106,8 @@ def c_peer(result, obs, config: DecomposeConfig, key, pushes):
   cands = jax.device_get(jax.vmap(sampling.with_slots)(jax.tree.map(jnp.asarray, prims),
                                                        slots))  # (B, S, K)
   steps = np.shape(obs["trajectories"])[-2]
-  plan = simulated_rollouts(config, steps, prims.valid.shape[-1])
+  plan = ([(config.select.samples, steps)] if full else
+          simulated_rollouts(config, steps, prims.valid.shape[-1]))
 
   def run():
     for count, length in plan:
@@ -177,6 +180,14 @@ def main(argv):
     run, plan = c_peer(batched, jax.tree.map(lambda x: np.asarray(x)[None], one_obs), config,
                        key, pushes)
     add(f"{which}: one object", seconds, 1, timed(run, FLAGS.repeats), plan)
+    run_full, _ = c_peer(batched, jax.tree.map(lambda x: np.asarray(x)[None], one_obs), config,
+                         key, pushes, full=True)
+    peer_full = timed(run_full, FLAGS.repeats)
+    rows[f"{which}: one object"].update(c_peer_full_seconds=peer_full,
+                                        ratio_to_c_full=seconds / peer_full)
+    print(f"{'':34s} C, every candidate over every step {peer_full * 1e3:10.1f} ms  "
+          f"(x{seconds / peer_full:.2f})", flush=True)
+    save()
     if many is not None:
       decompose_many = ppdjax.make_decompose_fn(
           trained, config, camera=data_camera if config.fit.with_ else None)
@@ -210,6 +221,8 @@ def merge_front_door(path: str, rows: dict, meta: dict) -> None:
       r = rows["model: one object"]
       out["cpu_one_object_s"] = entry(r["seconds"], "s")
       out["c_peer_cpu_one_object_s"] = entry(r["c_peer_seconds"], "s")
+      if "c_peer_full_seconds" in r:
+        out["c_peer_full_cpu_one_object_s"] = entry(r["c_peer_full_seconds"], "s")
     if "model: first call" in rows:
       out["cpu_first_call_s"] = entry(rows["model: first call"]["seconds"], "s")
   else:
@@ -217,6 +230,8 @@ def merge_front_door(path: str, rows: dict, meta: dict) -> None:
       r = rows["model: one object"]
       out["gpu_one_object_ms"] = entry(r["seconds"] * 1e3, "ms")
       out["c_peer_gpu_one_object_ms"] = entry(r["c_peer_seconds"] * 1e3, "ms")
+      if "c_peer_full_seconds" in r:
+        out["c_peer_full_gpu_one_object_ms"] = entry(r["c_peer_full_seconds"] * 1e3, "ms")
     for key, name in ((batch, "gpu_batch64_paper_objects_per_s"),
                       (best, "gpu_batch64_depth_refine_objects_per_s")):
       if key is not None:

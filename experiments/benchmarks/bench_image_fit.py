@@ -15,7 +15,11 @@ then, in one process and after compiling each variant once:
     (`refine_batch(slots=False)`, the fit before 2026-11-26, late evening), at the first
     chunk size;
   * with --sweeps, "two starts, chunk C, sweep AxB": fewer offsets scored per face
-    (`refine_batch(sweep=(A, B))`; the default is `image_fit.SWEEP`).
+    (`refine_batch(sweep=(A, B))`; the default is `image_fit.SWEEP`);
+  * with --tiles, "two starts, chunk C, tiles RxC" (each face scored on the pixels it can
+    change, in tiles: `refine_batch(tile=(R, C))`, a CPU's default) or "..., window" (every
+    pixel of the window: a GPU's default).
+The rows without a tile use the machine's default (`refine_batch(tile="auto")`).
 Each time is the median of --repeats calls on the whole batch; ratios are against the peer.
 Agreement: per object, the face difference (mm) of each two-start row from the single
 start it matches best, the largest over objects (the fit keeps one start's faces, so 0 at
@@ -50,6 +54,8 @@ _REPEATS = flags.DEFINE_integer("repeats", 3, "timed calls per variant (median)"
 _SWEEPS = flags.DEFINE_list("sweeps", [], "other sweeps to time with two starts at the first "
                             "chunk size, as COARSExFINE offsets per face (default "
                             f"{image_fit.SWEEP[0]}x{image_fit.SWEEP[1]}), e.g. 17x9")
+_TILES = flags.DEFINE_list("tiles", [], "tile sizes to time at the first chunk size, as "
+                           "ROWSxCOLUMNS, or 'window' for none")
 _OUT = flags.DEFINE_string("out", "experiments/results/bench_image_fit.json", "results JSON")
 
 
@@ -70,8 +76,9 @@ def main(argv):
   _, images, voxel_fit = image_fit_common.fresh_towers(_SEED.value, n, size)
   cam = camera_lib.camera_dict(size, size)
   chunks = [int(c) for c in _CHUNKS.value]
-  fit = lambda starts, chunk, sweep=image_fit.SWEEP, slots=True: lambda: image_fit.refine_batch(
-      voxel_fit, images, cam, starts=starts, chunk=chunk, sweep=sweep, slots=slots)
+  fit = (lambda starts, chunk, sweep=image_fit.SWEEP, slots=True, tile="auto":
+         lambda: image_fit.refine_batch(voxel_fit, images, cam, starts=starts, chunk=chunk,
+                                        sweep=sweep, slots=slots, tile=tile))
   rows, faces = {}, {}
   singles = [timed(fit((start,), chunks[0]), _REPEATS.value) for start in image_fit.STARTS]
   rows["one after the other (peer)"] = sum(seconds for _, seconds in singles)
@@ -88,6 +95,11 @@ def main(argv):
     sweep = tuple(int(x) for x in text.split("x"))
     name = f"two starts, chunk {chunks[0]}, sweep {sweep[0]}x{sweep[1]}"
     out, rows[name] = timed(fit(image_fit.STARTS, chunks[0], sweep), _REPEATS.value)
+    faces[name] = np.asarray(box_faces(out))
+  for text in _TILES.value:
+    tile = None if text == "window" else tuple(int(x) for x in text.split("x"))
+    name = f"two starts, chunk {chunks[0]}, " + ("window" if tile is None else f"tiles {text}")
+    out, rows[name] = timed(fit(image_fit.STARTS, chunks[0], tile=tile), _REPEATS.value)
     faces[name] = np.asarray(box_faces(out))
   valid = np.asarray(voxel_fit.valid, bool)[..., None]
 
@@ -107,7 +119,8 @@ def main(argv):
       "command": f"python experiments/benchmarks/bench_image_fit.py --towers={n} "
                  f"--seed={_SEED.value} --size={size} --chunks={','.join(map(str, chunks))} "
                  f"--repeats={_REPEATS.value}"
-                 + (f" --sweeps={','.join(_SWEEPS.value)}" if _SWEEPS.value else "")}
+                 + (f" --sweeps={','.join(_SWEEPS.value)}" if _SWEEPS.value else "")
+                 + (f" --tiles={','.join(_TILES.value)}" if _TILES.value else "")}
   os.makedirs(os.path.dirname(_OUT.value) or ".", exist_ok=True)
   with open(_OUT.value, "w") as f:
     json.dump(result, f, indent=1)

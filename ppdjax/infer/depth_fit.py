@@ -175,7 +175,8 @@ def _tied_offsets(face, ties_KxKx3):
 
 
 def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch, *,
-                coarse_steps: int = SWEEP_COARSE, fine_steps: int = SWEEP_FINE):
+                coarse_steps: int = SWEEP_COARSE, fine_steps: int = SWEEP_FINE,
+                local=None):
   """Each valid face in turn moved to the middle of the run of positions within
   [lo, hi] where `mismatch(faces)` (pixels the boxes fail to explain) is least, touching
   faces moving with it: the run around the face's own position, or around the nearest
@@ -183,7 +184,12 @@ def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch, *,
   (the face's own position counts: a face seen head-on agrees at one point only); a finer
   scan across each end places that end. A face no pixel sees keeps a flat count: it goes
   to the middle of its interval (the voxels' verdict). `coarse_steps` offsets span the
-  interval, `fine_steps` each end's scan."""
+  interval, `fine_steps` each end's scan.
+
+  `local(faces_a, faces_b, move)`, if given, returns the mismatch to use for one face's
+  positions, from the faces at both ends of its sweep and which faces move (K, 6): one
+  that leaves out what no position changes (`image_regions`); the positions' ranking
+  must stay that of `mismatch`."""
   coarse = jnp.linspace(0.0, 1.0, coarse_steps)
   fine = jnp.linspace(0.0, 1.0, fine_steps)
 
@@ -192,19 +198,25 @@ def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch, *,
     lo, hi = lo_Kx6.reshape(-1)[face], hi_Kx6.reshape(-1)[face]
     now = faces.reshape(-1)[face]
     at = lambda value: faces + move * (value - now)
-    counts = lambda values: jax.vmap(lambda v: mismatch(at(v)))(values)
+    if local is not None:
+      score = local(at(jnp.minimum(lo, now)), at(jnp.maximum(hi, now)), move)
+    else:
+      score = mismatch
+    counts = lambda values: jax.vmap(lambda v: score(at(v)))(values)
     grid = lo + (hi - lo) * coarse
-    grid_counts = counts(grid)
+    # one batch of scores for the coarse scan and the face's own position, one for both
+    # ends' fine scans: two calls of `score` to compile per sweep, not four
+    both = counts(jnp.append(grid, now))
+    grid_counts, own = both[:-1], both[-1]
     # the anchor: the face itself, or the nearest coarse offset that explains more pixels
     nearest_best = grid[jnp.argmin(jnp.where(grid_counts == grid_counts.min(),
                                              jnp.abs(grid - now), jnp.inf))]
-    own = mismatch(faces)
     least = jnp.minimum(own, grid_counts.min())
     anchor = jnp.where(grid_counts.min() < own, nearest_best, now)
     worse = grid_counts > least
     idx = jnp.arange(coarse_steps)
 
-    def end(side):  # side -1: the run's lower end, +1: its upper end
+    def scan(side):  # side -1: the run's lower end, +1: its upper end
       ahead = side * (grid - anchor) > 0  # coarse offsets on this side of the anchor
       # the nearest worse coarse offset on this side
       block = -side * jnp.where(ahead & worse, -side * idx, -coarse_steps).max()
@@ -212,13 +224,21 @@ def sweep_faces(faces_Kx6, lo_Kx6, hi_Kx6, ties_KxKx3, valid_K, mismatch, *,
       inner_i = jnp.clip(block - side, 0, coarse_steps - 1)  # the last agreeing one before
       inner = jnp.where(found & (side * (grid[inner_i] - anchor) > 0), grid[inner_i], anchor)
       outer = grid[jnp.clip(block, 0, coarse_steps - 1)]
-      values = inner + (outer - inner) * fine
-      agree = counts(values) <= least
+      return inner + (outer - inner) * fine, found
+
+    (values_lo, found_lo), (values_hi, found_hi) = scan(-1), scan(1)
+    fine_counts = counts(jnp.concatenate([values_lo, values_hi]))
+
+    def end(side, values, found, fine_counts):
+      agree = fine_counts <= least
       last = jnp.where(jnp.cumprod(agree) > 0, jnp.arange(fine_steps), 0).max()
       return jnp.where(found, values[last], jnp.where(side < 0, lo, hi))
 
+    lower = end(-1, values_lo, found_lo, fine_counts[:fine_steps])
+    upper = end(1, values_hi, found_hi, fine_counts[fine_steps:])
+
     keep = valid_K[face // 6]
-    return jnp.where(keep, at(0.5 * (end(-1) + end(1))), faces), None
+    return jnp.where(keep, at(0.5 * (lower + upper)), faces), None
 
   # the valid boxes' faces in order (an invalid box's step leaves the faces as they are):
   # a loop as long as this object's valid faces, so that two blocks cost 12 steps, not 30

@@ -16,10 +16,16 @@ outline no pixel sees keeps the voxels' verdict.
 An object stands on the floor wherever its frame's origin is, so the image shows heights
 above the floor and never where along z the origin sits: the faces on the floor stay and the
 other z faces may move a whole voxel (`face_spans`). The sweep is local, so it runs from
-two starts (`STARTS`), side by side: sharp edges alone, and a sweep on blurred edges
-first; the faces with the better sharp score win. A sweep visits the valid boxes' faces
-only, and a batch goes through in chunks of objects with as many boxes, whose labels test
-only that many box slots (`depth_fit.map_by_box_count(slots=True)`).
+two starts (`STARTS`): sharp edges alone, and a sweep on blurred edges first; the faces
+with the better sharp score win. Every sweep of every start is one step of one loop, so
+the sweep compiles once. A sweep visits the valid boxes' faces only, and a batch goes
+through in chunks of objects with as many boxes.
+
+Where JAX runs on a CPU, each face's positions are scored only on the rectangle of pixels
+they can change (the face's slab and its shadow: `image_regions`), in small tiles: the
+same faces as scoring the whole window, 16x faster on 24 rendered towers. On a GPU the
+whole window is scored at once, and each chunk's labels test only as many box slots as
+its objects have (`depth_fit.map_by_box_count(slots=True)`).
 
 Measured on 32 fresh paper-preset towers (224² images, experiments/image_fit_study/run.py,
 docs/inference.md, "With the image"): the faces' median error goes from about 7.7 mm
@@ -38,6 +44,7 @@ import numpy as np
 
 from ppdjax.dataset.camera import check_camera
 from ppdjax.dataset.depth import camera_rays, to_world
+from ppdjax.infer import image_regions
 from ppdjax.infer.depth_fit import (MIN_HALF, SWEEP_COARSE, SWEEP_FINE, TOUCHING, VOXEL,
                                     boxes_from_faces, map_by_box_count, sweep_faces,
                                     touching_faces)
@@ -91,18 +98,22 @@ def labeller(prims: Primitives, origin, dirs_Nx3, light=None):
   face kept by comparisons (an arg-min and gathers over (N, K, 3) arrays ran 6x slower
   on a CPU, with the same labels: experiments/results/benchmarks.md, the front door)."""
   rot = quat_to_mat(prims.quat)  # (K, 3, 3); at rest the object is only lifted
-  d = jnp.moveaxis(_nonzero(jnp.einsum("kji,nj->nki", rot, dirs_Nx3)), 0, -1)  # (K, 3, N)
-  inv_d = 1.0 / d
+  d_all = jnp.moveaxis(_nonzero(jnp.einsum("kji,nj->nki", rot, dirs_Nx3)), 0, -1)  # (K, 3, N)
+  inv_d_all = 1.0 / d_all
   if light is not None:  # from each point toward the light, in the box frames
     toward = -jnp.asarray(light, jnp.float32) / jnp.linalg.norm(jnp.asarray(light, jnp.float32))
     inv_light = 1.0 / _nonzero(jnp.einsum("kji,j->ki", rot, toward))  # (K, 3)
-  down = dirs_Nx3[:, 2] < -1e-9  # rays that meet the floor unless a box is in the way
-  t_floor = jnp.where(down, -origin[2] / jnp.where(down, dirs_Nx3[:, 2], -1.0), 0.0)
+  down_all = dirs_Nx3[:, 2] < -1e-9  # rays that meet the floor unless a box is in the way
+  t_floor_all = jnp.where(down_all, -origin[2] / jnp.where(down_all, dirs_Nx3[:, 2], -1.0), 0.0)
   num_slots = prims.valid.shape[-1]
   empty = 6 * num_slots
 
-  def labels(boxes: Primitives) -> jax.Array:
+  def labels(boxes: Primitives, rays=None) -> jax.Array:
+    """The labels of every ray, or of the rays `rays` (M,) int only."""
     world = to_world(boxes)
+    d, inv_d, t_floor, down = ((d_all, inv_d_all, t_floor_all, down_all) if rays is None else
+                               (d_all[..., rays], inv_d_all[..., rays], t_floor_all[rays],
+                                down_all[rays]))
     o = jnp.einsum("kji,kj->ki", rot, origin[None] - world.pos)  # (K, 3) camera, box frames
     h = world.half_size
     t_best = jnp.full(d.shape[-1], jnp.inf, d.dtype)
@@ -219,7 +230,8 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
                       window: tuple[int, int, int, int] | None = None,
                       light: tuple[float, float, float] | None = None,
                       starts: tuple[tuple[float, ...], ...] = STARTS,
-                      sweep: tuple[int, int] = SWEEP) -> Primitives:
+                      sweep: tuple[int, int] = SWEEP,
+                      tile: tuple[int, int] | None = None) -> Primitives:
   """One object's boxes (K, object frame) refined against its image (H, W, 3).
 
   Args:
@@ -237,6 +249,9 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
       (`blur_strength`); every start begins at `prims`, and the faces that end on the best
       sharp score win (`STARTS`).
     sweep: (coarse, fine) offsets a sweep scores per face (`depth_fit.sweep_faces`).
+    tile: (rows, columns): score each face's positions only where they can change the
+      labels, in tiles of this size (`image_regions`; the same ranking of positions);
+      None: every pixel of the window.
   """
   h, w = image_HW3.shape[:2]
   r0, r1, c0, c1 = window or (0, h, 0, w)
@@ -247,6 +262,13 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
   labels = labeller(prims, origin, dirs, light)
   scorer = lambda strengths: lambda f: edge_score(
       labels(boxes_from_faces(prims, f)).reshape(h, w), *strengths)
+  local = None
+  if tile is not None:  # each face's positions scored where they can differ only
+    project = image_regions.window_projector(intrinsics, camera_from_world, (r0, r1, c0, c1))
+    local = lambda strengths: lambda f_a, f_b, move: (lambda f: image_regions.tiled_edge_score(
+        functools.partial(labels, boxes_from_faces(prims, f)),
+        image_regions.changed_rect(prims, f_a, f_b, move, project, (h, w), light),
+        *strengths, tile))
   ties = touching_faces(prims)
   start = jnp.concatenate([-prims.half_size, prims.half_size], -1)  # (K, 6)
   # within `face_spans` of the start, and no box thinner than 2·MIN_HALF
@@ -258,7 +280,9 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
   faces = _run_starts(start, starts, passes, sharp,
                       lambda f, strengths: sweep_faces(
                           f, lo, hi, ties, prims.valid, scorer(strengths),
-                          coarse_steps=sweep[0], fine_steps=sweep[1]))
+                          coarse_steps=sweep[0], fine_steps=sweep[1],
+                          local=None if local is None else local(strengths)),
+                      side_by_side=tile is None)
   # the best sharp score (argmin: the earlier start on a tie)
   faces = faces[jnp.argmin(jax.vmap(scorer(sharp))(faces))]
   out = boxes_from_faces(prims, faces)
@@ -267,35 +291,60 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
                      pos=jnp.where(keep, out.pos, prims.pos))
 
 
-def _run_starts(start_Kx6, starts, passes, sharp, sweep_fn):
+def _run_starts(start_Kx6, starts, passes, sharp, sweep_fn, side_by_side: bool):
   """(S, K, 6) the faces each start ends on: its blurred sweeps (`blur_strength`), then
-  `passes` sharp ones. The starts sweeping at one step run side by side under one
-  `jax.vmap` (on an H100 1.3x faster than one after the other; the work is compute-bound,
-  so two starts still cost 1.9x one), those without a blurred sweep left there wait."""
+  `passes` sharp ones, in the rounds of one `jax.lax.fori_loop`, so that the sweep
+  compiles once. `side_by_side`: each round sweeps every start that has a sweep left under
+  one `jax.vmap` (on a GPU 1.1-1.3x faster than one after the other; a start left without
+  a sweep idles through the round); otherwise one start's sweep per round (on a CPU the
+  vmap buys nothing, and an idle start would cost a sweep)."""
+  sigmas = sorted({sigma for b in starts for sigma in b})
+  maps = [sharp] + [[blur_strength(x, sigma) for x in sharp] for sigma in sigmas]
+  edges = [jnp.stack([m[axis] for m in maps]) for axis in (0, 1)]  # (E, H, W) each
+  # each start's sweeps in order, as edge maps (0: sharp)
+  plans = [[1 + sigmas.index(sigma) for sigma in b] + [0] * passes for b in starts]
+  if side_by_side:  # round r: the r-th sweep of every start that has one
+    rounds = [[(i, p[r]) for i, p in enumerate(plans) if r < len(p)]
+              for r in range(max(map(len, plans)))]
+  else:
+    rounds = [[(i, e)] for i, p in enumerate(plans) for e in p]
+  if not any(rounds):
+    return jnp.broadcast_to(start_Kx6, (len(starts),) + start_Kx6.shape)
+  width = max(map(len, rounds))
+  # a round with fewer sweeps than the widest idles the other starts (swept, then kept)
+  pad = lambda rnd: rnd + [(i, 0) for i in range(len(starts))
+                           if i not in {u[0] for u in rnd}][:width - len(rnd)]
+  which = jnp.array([[u[0] for u in pad(r)] for r in rounds if r], jnp.int32)  # (R, W)
+  edge = jnp.array([[u[1] for u in pad(r)] for r in rounds if r], jnp.int32)
+  live = jnp.array([[j < len(r) for j in range(width)] for r in rounds if r], bool)
+
+  def round_(r, faces):
+    one = lambda f, e: sweep_fn(f, (edges[0][e], edges[1][e]))
+    if width == 1:  # no vmap: it would batch the sweep's loops, 1.5x slower on a CPU
+      new = one(faces[which[r, 0]], edge[r, 0])[None]
+    else:
+      new = jax.vmap(one)(faces[which[r]], edge[r])
+    keep = jnp.where(live[r][:, None, None], new, faces[which[r]])
+    return faces.at[which[r]].set(keep)
+
   faces = jnp.broadcast_to(start_Kx6, (len(starts),) + start_Kx6.shape)
-  blurred = {sigma: [blur_strength(x, sigma) for x in sharp]
-             for sigma in sorted({sigma for blurs in starts for sigma in blurs})}
-  for step in range(max(len(blurs) for blurs in starts)):
-    which = [i for i, blurs in enumerate(starts) if step < len(blurs)]
-    edges = [jnp.stack([blurred[starts[i][step]][axis] for i in which]) for axis in (0, 1)]
-    idx = jnp.array(which)
-    faces = faces.at[idx].set(jax.vmap(lambda f, a, d: sweep_fn(f, (a, d)))(faces[idx], *edges))
-  for _ in range(passes):
-    faces = jax.vmap(lambda f: sweep_fn(f, sharp))(faces)
-  return faces
+  return jax.lax.fori_loop(0, which.shape[0], round_, faces)
 
 
 def refine_batch(prims: Primitives, images_BxHxWx3, camera: dict, *,
                  passes: int = PASSES, bound: float = VOXEL / 2,
                  starts: tuple[tuple[float, ...], ...] = STARTS,
                  chunk: int = CHUNK, sweep: tuple[int, int] = SWEEP,
-                 slots: bool = True) -> Primitives:
+                 slots: bool = True, tile="auto") -> Primitives:
   """`refine_with_image` over a batch (B, K) of objects seen by one camera (jitted once per
   image size and option; `chunk` objects at a time, ordered by their number of boxes:
   `depth_fit.map_by_box_count`; with `slots`, each chunk's labels test only as many box
   slots as its objects have valid boxes: the same faces, 1.25x faster on an H100). The
   camera's "light_dir" (the dataset's light unless set to None, `camera.check_camera`)
-  adds the boxes' shadows to the outline."""
+  adds the boxes' shadows to the outline. `tile`: `refine_with_image`'s; "auto":
+  `image_regions.CPU_TILE` where JAX runs on a CPU, the whole window elsewhere."""
+  if tile == "auto":
+    tile = image_regions.CPU_TILE if jax.default_backend() == "cpu" else None
   if not starts or passes < 0 or chunk < 1 or min(sweep) < 2:
     raise ValueError(f"image fit: need at least one start, passes >= 0, chunk >= 1 and at "
                      f"least 2 offsets per scan, got starts {starts!r}, passes {passes}, "
@@ -308,18 +357,21 @@ def refine_batch(prims: Primitives, images_BxHxWx3, camera: dict, *,
                        passes=passes, bound=float(bound), window=object_window(cam, light=light),
                        light=light,
                        starts=tuple(tuple(map(float, b)) for b in starts), chunk=int(chunk),
-                       sweep=tuple(map(int, sweep)), slots=bool(slots))
+                       sweep=tuple(map(int, sweep)), slots=bool(slots),
+                       tile=None if tile is None else tuple(map(int, tile)))
 
 
 @functools.partial(jax.jit, static_argnames=("passes", "bound", "window", "light", "starts",
-                                             "chunk", "sweep", "slots"))
+                                             "chunk", "sweep", "slots", "tile"))
 def _refine_batch(prims, images, intrinsics, camera_from_world, passes, bound, window, light,
-                  starts, chunk, sweep, slots):
+                  starts, chunk, sweep, slots, tile):
   one = lambda p, im: refine_with_image(p, im, intrinsics, camera_from_world, bound=bound,
                                         passes=passes, window=window, light=light, starts=starts,
-                                        sweep=sweep)
+                                        sweep=sweep, tile=tile)
   with jax.default_matmul_precision("highest"):  # GPUs' TF32 default: mm at 2.6 m
-    return map_by_box_count(one, prims, images, chunk=chunk, slots=slots)
+    # with tiles, one program for every box count: on the example tower (4 boxes) the
+    # chunks' K - 1 branches compiled 3-4x longer and ran no faster
+    return map_by_box_count(one, prims, images, chunk=chunk, slots=slots and tile is None)
 
 
 def check_image(image, camera: dict, batch: tuple[int, ...]) -> None:
