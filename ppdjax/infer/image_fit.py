@@ -320,7 +320,7 @@ def _run_starts(start_Kx6, starts, passes, sharp, sweep_fn, side_by_side: bool):
 
   def round_(r, faces):
     one = lambda f, e: sweep_fn(f, (edges[0][e], edges[1][e]))
-    if width == 1:  # no vmap: it would batch the sweep's loops, 1.5x slower on a CPU
+    if width == 1:  # no vmap of one: it would turn the sweep's loops into batched ones
       new = one(faces[which[r, 0]], edge[r, 0])[None]
     else:
       new = jax.vmap(one)(faces[which[r]], edge[r])
