@@ -416,6 +416,7 @@ def _tiny_evaluator(config, tiny_dataset):
                                   table4_every_batch=True)), batch
 
 
+@pytest.mark.slow  # a check of what compiles: about a minute on 2 cores; `make test-all`
 def test_stages_compile_once_side_by_side(tiny_run, tiny_dataset):
   """`Evaluator.compile` compiles every stage before the first batch, each in its own
   thread, on stand-ins shaped and placed as the batches' inputs: the batches then add no

@@ -111,6 +111,7 @@ def _noisy(prims, rng, voxels=1.0, degrees=10.0):
                                prims.valid)
 
 
+@pytest.mark.slow  # a robustness cross-check: about 30 s on 2 cores; `make test-all`
 def test_fit_recovers_rotated_boxes_from_noisy_starts():
   rng = np.random.default_rng(77)
   true = [primitives.make(*towers.sample_geometry(rng, rotate=0.3)) for _ in range(6)]

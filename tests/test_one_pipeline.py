@@ -61,6 +61,7 @@ def tiny_trained(tiny_run):
   return checkpoints.load(tiny_run[0])
 
 
+@pytest.mark.slow  # a cross-check: two minutes on 2 cores; `make test-all`
 def test_evaluation_and_decompose_agree_on_the_networks_boxes_with_refinement(
     tiny_trained, tiny_dataset):
   """The paper's PPD+Sample+Refine settings (no fit), 4 test towers: the same candidates,

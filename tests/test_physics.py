@@ -240,6 +240,7 @@ def box_plane_traj(prims):
   return np.asarray(ppdjax.simulate(prims, backend="box_plane"))
 
 
+@pytest.mark.slow  # the box-plane step's XLA form compiles for 90 s on a CPU (decompose runs it on a GPU): `make test-all`
 def test_box_plane_step_matches_c_engine_at_least_as_well_as_mjx(c_traj, mjx_traj,
                                                                    box_plane_traj):
   assert box_plane_traj.shape == (NUM_TOWERS, 4, 256, 7)
@@ -257,6 +258,7 @@ def test_box_plane_step_matches_c_engine_at_least_as_well_as_mjx(c_traj, mjx_tra
   assert early_p90 <= stats["MJX"][0] + 0.01 and median <= stats["MJX"][1] + 0.01
 
 
+@pytest.mark.slow  # the box-plane step's XLA form compiles for 90 s on a CPU (decompose runs it on a GPU): `make test-all`
 def test_box_plane_step_matches_mjx_before_landing(mjx_traj, box_plane_traj):
   """The same contact model: MJX and the box-plane step agree while the contact set is the
   resting one (after boxes land on edges, MJX's convex-mesh contacts differ from C's)."""
@@ -264,6 +266,7 @@ def test_box_plane_step_matches_mjx_before_landing(mjx_traj, box_plane_traj):
   assert np.percentile(early, 90) < 0.1
 
 
+@pytest.mark.slow  # the box-plane step's XLA form compiles for 90 s on a CPU (decompose runs it on a GPU): `make test-all`
 def test_box_plane_step_ignores_padding(prims, box_plane_traj):
   junk = jax.tree.map(np.array, prims)
   invalid = ~np.asarray(junk.valid)
