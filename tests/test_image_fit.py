@@ -11,7 +11,7 @@ import pytest
 import ppdjax
 from ppdjax.dataset import camera as camera_lib
 from ppdjax.dataset.depth import nearest_hits, rays, to_world
-from ppdjax.infer import image_fit
+from ppdjax.infer import image_edges, image_fit, image_regions
 
 from conftest import face_errors, index
 
@@ -90,16 +90,16 @@ def test_the_edge_score_is_best_at_the_true_outline(light):
   image, cam = _painted(prims, SIZE, light)
   origin, dirs = rays(cam)
   dirs = dirs.reshape(-1, 3)
-  across, down = image_fit.edge_strength(image)
-  r0, r1, c0, c1 = image_fit.object_window(cam, light=light)
+  across, down = image_edges.edge_strength(image)
+  r0, r1, c0, c1 = image_regions.object_window(cam, light=light)
   assert 0 < r1 - r0 < SIZE and 0 < c1 - c0 < SIZE
   window_dirs = dirs.reshape(SIZE, SIZE, 3)[r0:r1, c0:c1].reshape(-1, 3)
-  w_across, w_down = image_fit.edge_strength(image[r0:r1, c0:c1])
+  w_across, w_down = image_edges.edge_strength(image[r0:r1, c0:c1])
 
   def score(p):
-    whole = float(image_fit.edge_score(
+    whole = float(image_edges.edge_score(
         image_fit.face_labels(p, origin, dirs, light).reshape(SIZE, SIZE), across, down))
-    window = float(image_fit.edge_score(image_fit.face_labels(p, origin, window_dirs, light)
+    window = float(image_edges.edge_score(image_fit.face_labels(p, origin, window_dirs, light)
                                         .reshape(r1 - r0, c1 - c0), w_across, w_down))
     assert window == whole  # integer scores
     return whole
@@ -124,15 +124,15 @@ def test_a_sweeps_tiled_score_differs_from_the_whole_by_a_constant(face):
   """`image_regions`: over a sweep's positions of one face (touching faces with it), the
   score summed over the changed rectangle in tiles minus the window's score is the same
   for every position, and the rectangle is a fraction of the window."""
-  from ppdjax.infer import depth_fit, image_regions
+  from ppdjax.infer import depth_fit
   prims = _one_tower()
   light = tuple(camera_lib.LIGHT_DIR)
   image, cam = _painted(prims, SIZE, light)
-  window = image_fit.object_window(cam, light=light)
+  window = image_regions.object_window(cam, light=light)
   r0, r1, c0, c1 = window
   h, w = r1 - r0, c1 - c0
   origin, dirs = rays(cam)
-  strengths = image_fit.edge_strength(image[r0:r1, c0:c1])
+  strengths = image_edges.edge_strength(image[r0:r1, c0:c1])
   labels = image_fit.labeller(prims, origin, dirs[r0:r1, c0:c1].reshape(-1, 3), light)
   top = int(np.argmax(np.where(prims.valid, prims.pos[:, 2], -1)))  # a block on another
   move = depth_fit._tied_offsets(6 * top + face, depth_fit.touching_faces(prims))
@@ -149,7 +149,7 @@ def test_a_sweeps_tiled_score_differs_from_the_whole_by_a_constant(face):
   @jax.jit
   def both(offset):
     boxes = depth_fit.boxes_from_faces(prims, start + offset * move)
-    whole = image_fit.edge_score(labels(boxes).reshape(h, w), *strengths)
+    whole = image_edges.edge_score(labels(boxes).reshape(h, w), *strengths)
     tiled = image_regions.tiled_edge_score(functools.partial(labels, boxes), rect,
                                            *strengths, (8, 16))
     return whole, tiled
@@ -196,7 +196,7 @@ def test_a_start_a_voxel_too_tall_reaches_the_true_heights():
 def test_blurred_edges_keep_their_total_and_stay_integers():
   strength = np.zeros((40, 40), np.int32)
   strength[20, 10:30] = 1000  # a horizontal edge
-  blurred = image_fit.blur_strength(jnp.asarray(strength), 2.0)
+  blurred = image_edges.blur_strength(jnp.asarray(strength), 2.0)
   assert blurred.dtype == jnp.int32
   assert abs(int(blurred.sum()) - int(strength.sum())) < 0.01 * strength.sum()
   assert int(blurred[20, 20]) < 1000 and int(blurred[22, 20]) > 0  # spread across the edge
@@ -213,8 +213,8 @@ def test_two_starts_keep_the_better_sharp_score():
                         half_size=prims.half_size + 0.005 * rng.uniform(-1, 1,
                                                                         prims.half_size.shape))
   origin, dirs = rays(cam)
-  across, down = image_fit.edge_strength(image)
-  score = lambda p: int(image_fit.edge_score(image_fit.face_labels(
+  across, down = image_edges.edge_strength(image)
+  score = lambda p: int(image_edges.edge_score(image_fit.face_labels(
       p, origin, dirs.reshape(-1, 3), camera_lib.LIGHT_DIR).reshape(SIZE, SIZE), across, down))
   fit = lambda starts: index(image_fit.refine_batch(
       jax.tree.map(lambda a: a[None], start), image[None], cam, starts=starts), 0)

@@ -27,11 +27,7 @@ same faces as scoring the whole window, 16x faster on 24 rendered towers. On a G
 whole window is scored at once, and each chunk's labels test only as many box slots as
 its objects have (`depth_fit.map_by_box_count(slots=True)`).
 
-Measured on 32 fresh paper-preset towers (224² images, experiments/image_fit_study/run.py,
-docs/inference.md, "With the image"): the faces' median error goes from about 7.7 mm
-(voxels alone) to 2.5 mm (outline) and 1.7 mm (outline and shadows). On 32 towers of the
-test split's two-block tail the floor anchor and the two starts take the p90 from 10.9 to
-4.8 mm.
+What each part buys, measured: docs/inference.md, "With the image".
 """
 
 from __future__ import annotations
@@ -45,6 +41,7 @@ import numpy as np
 from ppdjax.dataset.camera import check_camera
 from ppdjax.dataset.depth import camera_rays, to_world
 from ppdjax.infer import image_regions
+from ppdjax.infer.image_edges import blur_strength, edge_score, edge_strength
 from ppdjax.infer.depth_fit import (MIN_HALF, SWEEP_COARSE, SWEEP_FINE, TOUCHING, VOXEL,
                                     boxes_from_faces, map_by_box_count, sweep_faces,
                                     touching_faces)
@@ -60,22 +57,8 @@ SWEEP = (SWEEP_COARSE, SWEEP_FINE)  # a sweep's offsets per face: over its inter
 # objects refined together (224² pixels x 33 positions x K boxes per face); on an H100 8 and
 # 16 are as fast, 32 and 64 slower (experiments/benchmarks/bench_image_fit.py)
 CHUNK = 8
-EDGE_LEVELS = 1024  # integer steps per unit of colour difference
 SHADOW_EPS = 1e-4  # a shadow ray leaving a box this soon (its exit parameter, m) is not
 # blocked by it: a point on a lit face leaves its own box at 0
-
-
-def edge_strength(image_HW3) -> tuple[jax.Array, jax.Array]:
-  """Colour differences between each pixel and its left neighbour (H, W) and its upper
-  neighbour (H, W), 0 on the first column / row: the Euclidean distance of RGB in [0, 1],
-  in integer steps of 1 / EDGE_LEVELS (integer sums compare exactly: `sweep_faces` looks
-  for runs of equal scores)."""
-  img = jnp.asarray(image_HW3)
-  scale = 1.0 / 255.0 if jnp.issubdtype(img.dtype, jnp.integer) else 1.0
-  img = img.astype(jnp.float32) * scale
-  steps = lambda diff: jnp.round(jnp.linalg.norm(diff, axis=-1) * EDGE_LEVELS).astype(jnp.int32)
-  across, down = steps(img[:, 1:] - img[:, :-1]), steps(img[1:] - img[:-1])
-  return jnp.pad(across, ((0, 0), (1, 0))), jnp.pad(down, ((1, 0), (0, 0)))
 
 
 def face_labels(prims: Primitives, origin, dirs_Nx3, light=None) -> jax.Array:
@@ -165,46 +148,6 @@ def _nonzero(d):
   return jnp.where(jnp.abs(d) < 1e-9, 1e-9, d)
 
 
-def blur_strength(strength_HW, sigma: float) -> jax.Array:
-  """Edge strengths spread by a Gaussian of `sigma` pixels (integers still)."""
-  r = max(1, int(np.ceil(3 * sigma)))
-  g = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-  g = jnp.asarray(g / g.sum(), jnp.float32)
-  x = strength_HW.astype(jnp.float32)
-  x = jax.vmap(lambda row: jnp.convolve(row, g, mode="same"))(x)
-  x = jax.vmap(lambda col: jnp.convolve(col, g, mode="same"), 1, 1)(x)
-  return jnp.round(x).astype(jnp.int32)
-
-
-def edge_score(labels_HW, across_HW, down_HW) -> jax.Array:
-  """Minus the colour difference summed over neighbouring pixels whose labels differ
-  (lower is better: the outline lies on the image's edges)."""
-  cut_across = jnp.pad(labels_HW[:, 1:] != labels_HW[:, :-1], ((0, 0), (1, 0)))
-  cut_down = jnp.pad(labels_HW[1:] != labels_HW[:-1], ((1, 0), (0, 0)))
-  return -(jnp.sum(jnp.where(cut_across, across_HW, 0))
-           + jnp.sum(jnp.where(cut_down, down_HW, 0)))
-
-
-def object_window(camera: dict, margin: int = 2, light=None) -> tuple[int, int, int, int]:
-  """Rows [r0, r1) and columns [c0, c1) of the camera's image where an object can appear:
-  the projection of the space objects occupy (the unit cube on the ground, centred over
-  the origin: the dataset's convention), and with `light` (its direction) the cube's
-  shadow on the floor, `margin` pixels wider, clipped to the image."""
-  cam = check_camera(camera)
-  corners = np.stack(np.meshgrid([-0.5, 0.5], [-0.5, 0.5], [0.0, 1.0]), -1).reshape(-1, 3)
-  if light is not None:  # where the light's rays through the corners meet the floor
-    light = np.asarray(light, np.float64)
-    corners = np.concatenate([corners, corners - corners[:, 2:] / light[2] * light])
-  t = np.asarray(cam["camera_from_world"], np.float64)
-  p = (corners @ t[:3, :3].T + t[:3, 3]) @ np.asarray(cam["intrinsics"], np.float64).T
-  h, w = cam["height"], cam["width"]
-  if np.any(p[:, 2] <= 1e-6):  # a long shadow reaches behind the camera: score everything
-    return 0, h, 0, w
-  u, v = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]  # pixel coordinates (edges at integers)
-  return (max(0, int(np.floor(v.min())) - margin), min(h, int(np.ceil(v.max())) + margin),
-          max(0, int(np.floor(u.min())) - margin), min(w, int(np.ceil(u.max())) + margin))
-
-
 def face_spans(prims: Primitives, bound: float) -> jax.Array:
   """(K, 6) how far each face may move from the start (`refine_with_image`).
 
@@ -240,7 +183,7 @@ def refine_with_image(prims: Primitives, image_HW3, intrinsics, camera_from_worl
     intrinsics, camera_from_world: the image's camera (`storage.Dataset.camera`).
     bound: half a voxel (m): how far faces may move from the start (`face_spans`).
     passes: sweeps over every face on the image's sharp edges, per start.
-    window: (r0, r1, c0, c1), the only pixels scored (`object_window`: where an object
+    window: (r0, r1, c0, c1), the only pixels scored (`image_regions.object_window`: where an object
       or its shadow can appear; the score is the same, in a fraction of the time); None: all.
     light: the direction the scene's directional light travels (`camera.LIGHT_DIR`, the
       dataset's): the labels then hold the boxes' shadows too (`face_labels`); None: the
@@ -354,7 +297,7 @@ def refine_batch(prims: Primitives, images_BxHxWx3, camera: dict, *,
   return _refine_batch(prims, jnp.asarray(images_BxHxWx3),
                        jnp.asarray(cam["intrinsics"], jnp.float32),
                        jnp.asarray(cam["camera_from_world"], jnp.float32),
-                       passes=passes, bound=float(bound), window=object_window(cam, light=light),
+                       passes=passes, bound=float(bound), window=image_regions.object_window(cam, light=light),
                        light=light,
                        starts=tuple(tuple(map(float, b)) for b in starts), chunk=int(chunk),
                        sweep=tuple(map(int, sweep)), slots=bool(slots),

@@ -1,6 +1,7 @@
-"""Where in the image a face's sweep can change anything, and the edge score summed there
-only: the image fit scores ~50 positions of each face, and a face moving within a voxel
-changes the labels of a small part of the image (its slab, and the slab's shadow).
+"""Where in the image an object can appear (`object_window`), where a face's sweep can
+change anything, and the edge score summed there only: the image fit scores ~50
+positions of each face, and a face moving within a voxel changes the labels of a small
+part of the image (its slab, and the slab's shadow).
 
 The score of a sweep's positions is compared among themselves only (`sweep_faces`), so
 pixels whose labels no position changes add the same to each: leaving them out keeps
@@ -13,7 +14,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from ppdjax.dataset.camera import check_camera
 from ppdjax.dataset.depth import to_world
 from ppdjax.infer.depth_fit import boxes_from_faces
 from ppdjax.primitives import Primitives, quat_to_mat
@@ -25,6 +28,26 @@ MARGIN = 1  # pixels around the projected region: each changed pixel's pairs lie
 # before choosing it: experiments/results/benchmarks.md). On a GPU one tile the size of
 # the window: tiles were 1.2-2x slower there (a loop of small kernels).
 CPU_TILE = (24, 48)
+
+
+def object_window(camera: dict, margin: int = 2, light=None) -> tuple[int, int, int, int]:
+  """Rows [r0, r1) and columns [c0, c1) of the camera's image where an object can appear:
+  the projection of the space objects occupy (the unit cube on the ground, centred over
+  the origin: the dataset's convention), and with `light` (its direction) the cube's
+  shadow on the floor, `margin` pixels wider, clipped to the image."""
+  cam = check_camera(camera)
+  corners = np.stack(np.meshgrid([-0.5, 0.5], [-0.5, 0.5], [0.0, 1.0]), -1).reshape(-1, 3)
+  if light is not None:  # where the light's rays through the corners meet the floor
+    light = np.asarray(light, np.float64)
+    corners = np.concatenate([corners, corners - corners[:, 2:] / light[2] * light])
+  t = np.asarray(cam["camera_from_world"], np.float64)
+  p = (corners @ t[:3, :3].T + t[:3, 3]) @ np.asarray(cam["intrinsics"], np.float64).T
+  h, w = cam["height"], cam["width"]
+  if np.any(p[:, 2] <= 1e-6):  # a long shadow reaches behind the camera: score everything
+    return 0, h, 0, w
+  u, v = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]  # pixel coordinates (edges at integers)
+  return (max(0, int(np.floor(v.min())) - margin), min(h, int(np.ceil(v.max())) + margin),
+          max(0, int(np.floor(u.min())) - margin), min(w, int(np.ceil(u.max())) + margin))
 
 
 def face_corners(boxes: Primitives) -> jax.Array:
@@ -100,13 +123,13 @@ def window_projector(intrinsics, camera_from_world, window):
 
 
 def tiled_edge_score(labels, rect, across_HW, down_HW, tile) -> jax.Array:
-  """`image_fit.edge_score` summed over the pixels of `rect` (and the tiles' spill past
+  """`image_edges.edge_score` summed over the pixels of `rect` (and the tiles' spill past
   it, the same for every position of a sweep), without the pixel pairs elsewhere.
 
   Args:
     labels: ray indices (M,) into the window's rays (rows of width W) -> labels (M,).
     rect: (4,) int [r0, r1, c0, c1) within the window (`changed_rect`).
-    across_HW, down_HW: the window's edge strengths (`image_fit.edge_strength`).
+    across_HW, down_HW: the window's edge strengths (`image_edges.edge_strength`).
     tile: (rows, columns) of each tile; each renders one more row and column (above and
       left) for its pixels' pairs.
   """
