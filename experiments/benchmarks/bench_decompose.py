@@ -176,12 +176,10 @@ def main(argv):
     block = lambda out: jax.block_until_ready(out)
     result = block(decompose(one_obs, key))
     seconds = timed(lambda: block(decompose(one_obs, key)), FLAGS.repeats)
-    batched = jax.tree.map(lambda x: np.asarray(x)[None], result)
-    run, plan = c_peer(batched, jax.tree.map(lambda x: np.asarray(x)[None], one_obs), config,
-                       key, pushes)
+    batched, obs_one = (jax.tree.map(lambda x: np.asarray(x)[None], t) for t in (result, one_obs))
+    run, plan = c_peer(batched, obs_one, config, key, pushes)
     add(f"{which}: one object", seconds, 1, timed(run, FLAGS.repeats), plan)
-    run_full, _ = c_peer(batched, jax.tree.map(lambda x: np.asarray(x)[None], one_obs), config,
-                         key, pushes, full=True)
+    run_full, _ = c_peer(batched, obs_one, config, key, pushes, full=True)
     peer_full = timed(run_full, FLAGS.repeats)
     rows[f"{which}: one object"].update(c_peer_full_seconds=peer_full,
                                         ratio_to_c_full=seconds / peer_full)

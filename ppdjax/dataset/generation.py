@@ -219,4 +219,3 @@ def generate_fresh(config, out: str, towers: int, seed: int):
   config.data.render_workers = 0
   generate(config, out, progress=False)
   return storage.open_dataset(out, "test")
-

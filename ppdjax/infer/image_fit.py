@@ -257,9 +257,9 @@ def _run_starts(start_Kx6, starts, passes, sharp, sweep_fn, side_by_side: bool):
   # a round with fewer sweeps than the widest idles the other starts (swept, then kept)
   pad = lambda rnd: rnd + [(i, 0) for i in range(len(starts))
                            if i not in {u[0] for u in rnd}][:width - len(rnd)]
-  which = jnp.array([[u[0] for u in pad(r)] for r in rounds if r], jnp.int32)  # (R, W)
-  edge = jnp.array([[u[1] for u in pad(r)] for r in rounds if r], jnp.int32)
-  live = jnp.array([[j < len(r) for j in range(width)] for r in rounds if r], bool)
+  which = jnp.array([[u[0] for u in pad(r)] for r in rounds], jnp.int32)  # (R, W)
+  edge = jnp.array([[u[1] for u in pad(r)] for r in rounds], jnp.int32)
+  live = jnp.array([[j < len(r) for j in range(width)] for r in rounds], bool)
 
   def round_(r, faces):
     one = lambda f, e: sweep_fn(f, (edges[0][e], edges[1][e]))

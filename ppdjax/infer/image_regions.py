@@ -55,14 +55,12 @@ def face_corners(boxes: Primitives) -> jax.Array:
   world, the boxes (object frame) standing at rest."""
   world = to_world(boxes)
   rot = quat_to_mat(world.quat)
-  signs = jnp.array([[-1, -1], [-1, 1], [1, -1], [1, 1]], jnp.float32)  # (4, 2)
-  corners = []
+  signs = [(-1, -1), (-1, 1), (1, -1), (1, 1)]  # the corners across the face's two axes
+  local = np.zeros((6, 4, 3), np.float32)  # in units of the half sizes
   for face in range(6):
-    axis, side = face % 3, (1.0 if face >= 3 else -1.0)
-    others = [a for a in range(3) if a != axis]
-    local = jnp.zeros((4, 3)).at[:, axis].set(side).at[:, others].set(signs)  # (4, 3)
-    corners.append(local)
-  local = jnp.stack(corners)  # (6, 4, 3) in units of the half sizes
+    axis = face % 3
+    local[face, :, axis] = 1.0 if face >= 3 else -1.0
+    local[face][:, [a for a in range(3) if a != axis]] = signs
   points = local[None] * world.half_size[:, None, None, :]  # (K, 6, 4, 3)
   return jnp.einsum("kij,kfcj->kfci", rot, points) + world.pos[:, None, None, :]
 
