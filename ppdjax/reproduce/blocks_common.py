@@ -114,3 +114,16 @@ def copy_evaluation(folder: str, out: str) -> None:
   for name in EVALUATION_FILES:
     if os.path.exists(os.path.join(folder, name)):
       shutil.copyfile(os.path.join(folder, name), os.path.join(out, name))
+
+
+def save_logs(pipe, out_dir: str, variants: tuple[str, ...]) -> None:
+  """Copies a run's small logs beside its tables: each variant's metrics.jsonl, the
+  steps' wall times and the dataset card (those that exist)."""
+  os.makedirs(out_dir, exist_ok=True)
+  copies = {os.path.join(pipe.workdir(v), "metrics.jsonl"): f"{v}.metrics.jsonl"
+            for v in variants}
+  copies[os.path.join(pipe.root, "steps.jsonl")] = "steps.jsonl"
+  copies[os.path.join(pipe.data, "card.md")] = "data_card.md"
+  for src, name in copies.items():
+    if os.path.exists(src):
+      shutil.copyfile(src, os.path.join(out_dir, name))

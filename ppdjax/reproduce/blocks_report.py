@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 
 import numpy as np
 
@@ -288,19 +287,6 @@ def whole_split_md(ws: dict, ablations_by_objects: bool = False) -> list[str]:
   return lines
 
 
-def save_logs(pipe, out_dir: str) -> None:
-  """Copies the run's small logs beside the tables: each variant's metrics.jsonl, the
-  steps' wall times and the dataset card."""
-  os.makedirs(out_dir, exist_ok=True)
-  copies = {os.path.join(pipe.workdir(v), "metrics.jsonl"): f"{v}.metrics.jsonl"
-            for v in ("geometry", "full") + tuple(ABLATIONS)}
-  copies[os.path.join(pipe.root, "steps.jsonl")] = "steps.jsonl"
-  copies[os.path.join(pipe.data, "card.md")] = "data_card.md"
-  for src, name in copies.items():
-    if os.path.exists(src):
-      shutil.copyfile(src, os.path.join(out_dir, name))
-
-
 def export_example(pipe, results_dir: str, assets_dir: str, exported: bool = False) -> dict:
   """The export step (beside the ablations, once the full model is trained): the full model
   to ASSETS/blocks_model, an example test tower to ASSETS/blocks_example.npz and the
@@ -349,7 +335,7 @@ def write_all(pipe, results_dir: str, assets_dir: str, command: str,
   with open(os.path.join(assets_dir, "blocks_model", checkpoints.EXPORT)) as f:
     r["export"] = json.load(f)
   r["command"] = command
-  save_logs(pipe, path("blocks_runs"))
+  common.save_logs(pipe, path("blocks_runs"), ("geometry", "full") + tuple(ABLATIONS))
   with open(path("blocks.json"), "w") as f:
     json.dump(r, f, indent=1)
   write_provenance(path("blocks.json"), command=command, config=pipe.config, headlines={
