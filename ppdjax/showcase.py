@@ -46,28 +46,35 @@ def shipped_example(model_dir: str, example_path: str, out_dir: str, samples: in
   return r
 
 
-def physics_tour(config, out_dir: str) -> dict:
-  """Simulates one random tower under the paper's four pushes in MJX (and MuJoCo C);
-  writes OUT/trajectories.png, summary.md and summary.json; returns the summary."""
+def physics_rollouts(config) -> dict:
+  """One random tower (`config.seed`) simulated under the paper's four pushes in
+  `config.demo.backend` and its reference engine: what `physics_tour` shows. Thread-safe
+  (it draws nothing), so the demo runs it beside the shipped example: both are mostly
+  single-threaded compilation on a CPU."""
   cfg = config.demo
-  os.makedirs(out_dir, exist_ok=True)
-  rng = np.random.default_rng(config.seed)
-  prims, names = towers.sample_tower(rng, cfg.num_blocks)
+  prims, names = towers.sample_tower(np.random.default_rng(config.seed), cfg.num_blocks)
   prims.validate()
   pushes = default_pushes()
-  p = jax.tree.map(jnp.asarray, prims)
-  props = mass_properties(p)
-
-  print(f"  simulating {len(names)} blocks x {pushes.num} pushes x {cfg.steps} steps "
-        f"with {cfg.backend} (the first call compiles)...", flush=True)
   t0 = time.perf_counter()
   traj = np.asarray(simulate(prims, pushes, steps=cfg.steps, backend=cfg.backend))
   seconds = time.perf_counter() - t0
   ref = None
   if cfg.reference_backend:
-    print(f"  the same rollouts in {cfg.reference_backend} for comparison...", flush=True)
     ref = np.asarray(simulate(prims, pushes, steps=cfg.steps,
-                                      backend=cfg.reference_backend))
+                              backend=cfg.reference_backend))
+  return {"prims": prims, "names": names, "pushes": pushes, "traj": traj, "ref": ref,
+          "seconds": seconds}
+
+
+def physics_tour(config, out_dir: str, rollouts: dict | None = None) -> dict:
+  """Writes OUT/trajectories.png, summary.md and summary.json for `physics_rollouts`
+  (made here unless given); returns the summary."""
+  cfg = config.demo
+  os.makedirs(out_dir, exist_ok=True)
+  r = rollouts or physics_rollouts(config)
+  prims, names, pushes, traj, ref = r["prims"], r["names"], r["pushes"], r["traj"], r["ref"]
+  p = jax.tree.map(jnp.asarray, prims)
+  props = mass_properties(p)
 
   rest = np.asarray(rest_position(p))
   first_speed = np.linalg.norm(traj[:, 0, :3] - rest, axis=-1) / TIMESTEP
@@ -82,7 +89,7 @@ def physics_tour(config, out_dir: str) -> dict:
       "push_points_m": np.asarray(push_points(p, pushes)).round(4).tolist(),
       "speed_after_push_m_s": [round(float(v), 3) for v in first_speed],
       "final_displacement_m": np.linalg.norm(traj[:, -1, :3] - rest, axis=-1).round(3).tolist(),
-      "simulate_seconds_incl_compile": round(seconds, 2),
+      "simulate_seconds_incl_compile": round(r["seconds"], 2),
   }
   if ref is not None:
     gap = np.linalg.norm(traj[..., :3] - ref[..., :3], axis=-1) * 1e3

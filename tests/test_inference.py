@@ -84,12 +84,16 @@ def test_trajectory_metrics_on_hand_cases():
 
 @pytest.fixture(scope="module")
 def tower():
-  """A two-block tower that moves under the pushes, and its observed trajectories."""
+  """A two-block tower that moves under the pushes, and its trajectories observed in MuJoCo
+  C (cheap to compile; the selections below use the engine they name)."""
   prims = jax.tree.map(jnp.asarray, towers.sample_towers(3, 1, num_blocks=2))
-  return jax.tree.map(lambda x: x[0], prims), _simulate(prims)[0]
+  observed = ppdjax.simulate(jax.tree.map(np.asarray, prims), PUSHES, backend="mujoco")
+  return jax.tree.map(lambda x: x[0], prims), jnp.asarray(observed[0], jnp.float32)
 
 
 def test_sampling_finds_the_truth_when_the_prior_contains_it(tower):
+  """On the C engine, `decompose`'s on a CPU (MJX's selection: the cross-check below)."""
+  from ppdjax.sim.rollout_mujoco import MujocoSettings
   prims, observed = tower
   true = np.asarray(jnp.rint(prims.density / 100.0) - 1).astype(int)
   logits = jnp.full((5, 100), -1e9)
@@ -97,13 +101,15 @@ def test_sampling_finds_the_truth_when_the_prior_contains_it(tower):
     t = true[k]
     logits = logits.at[k, t - 3].set(0.0).at[k, t].set(0.5).at[k, t + 3].set(1.0)
   sel = jax.jit(lambda p, lg, o, key: sampling.select_densities(
-      p, lg, o, PUSHES, num_samples=16, key=key))(prims, logits, observed, jax.random.key(0))
+      p, lg, o, PUSHES, num_samples=16, key=key, settings=MujocoSettings()))(
+          prims, logits, observed, jax.random.key(0))
   np.testing.assert_allclose(sel.density[:2], prims.density[:2])
   assert float(sel.score) < 1e-5 and float(sel.scores[0]) > 1e-4
   distinct = np.asarray(sel.slots)[np.asarray(sel.distinct)]
   assert 7 <= len(distinct) == len({tuple(r) for r in distinct}) <= 9  # of the 9 in support
 
 
+@pytest.mark.slow  # a cross-check: compiles the selection on MJX (about 40 s on 2 cores)
 def test_the_cpu_engine_picks_the_candidate_the_jax_engine_picks():
   """MuJoCo C inside the jitted selection (`MujocoSettings`, `decompose`'s engine on a
   CPU) against MJX (the JAX engine) on three towers observed in MJX: the same winner among
@@ -115,7 +121,7 @@ def test_the_cpu_engine_picks_the_candidate_the_jax_engine_picks():
     prims, observed = jax.tree.map(lambda x: x[0], prims), _simulate(prims)[0]
     true = np.asarray(jnp.rint(prims.density / 100.0) - 1).astype(int)
     logits = jnp.full((5, 100), -1e9)
-    for k in range(2):  # as the test above (its program, compiled once)
+    for k in range(2):  # as the test above
       t = true[k]
       logits = logits.at[k, t - 3].set(0.0).at[k, t].set(0.5).at[k, t + 3].set(1.0)
     run = lambda settings: jax.jit(lambda p, lg, o, key: sampling.select_densities(

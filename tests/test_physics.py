@@ -86,8 +86,8 @@ def test_push_impulse(prims):
     pushes = ppdjax.Pushes(com - 2 * direction, np.tile(com, (4, 1)),
                             np.full(4, 1e5, np.float32))
     for backend in ("mjx", "mujoco"):
-      # 256 steps: the one-object program other tests compile too (pushes are inputs)
-      first = np.asarray(ppdjax.simulate(one, pushes, backend=backend))[:, 0]
+      # the whole batch: the shard's program, which mjx_traj compiles (pushes are inputs)
+      first = np.asarray(ppdjax.simulate(prims, pushes, backend=backend))[i, :, 0]
       rest = np.asarray(scene.rest_position(jax.tree.map(jnp.asarray, one)))
       mass = float(ppdjax.mass_properties(jax.tree.map(jnp.asarray, one)).mass)
       momentum = mass * (first[:, :3] - rest) / DT  # no torque: pure translation
