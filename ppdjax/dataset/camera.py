@@ -81,7 +81,14 @@ def check_camera(camera: dict, depth_shape: tuple[int, ...] | None = None) -> di
   rot = pose[:3, :3]
   if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5) or np.linalg.det(rot) < 0:
     raise ValueError("camera: camera_from_world's rotation is not a rotation")
-  h, w = int(camera["height"]), int(camera["width"])
+  size = (camera["height"], camera["width"])
+  whole = lambda x: (np.ndim(x) == 0 and not isinstance(x, (bool, np.bool_))
+                     and np.issubdtype(np.asarray(x).dtype, np.number)
+                     and np.isfinite(x) and float(x) == int(x) and int(x) > 0)
+  if not all(whole(x) for x in size):
+    raise ValueError(f"camera: height and width must be whole numbers of pixels > 0, got "
+                     f"{size[0]!r} x {size[1]!r}")
+  h, w = int(size[0]), int(size[1])
   if depth_shape is not None and tuple(depth_shape[-2:]) != (h, w):
     raise ValueError(f"camera is for {h}x{w} images but the depth image is "
                      f"{depth_shape[-2]}x{depth_shape[-1]}")

@@ -2,8 +2,11 @@
 
 `load_object` reads OBJ/STL/PLY/GLB (anything trimesh reads). Parts are the file's
 groups (a scene's geometries, e.g. OBJ objects or GLB nodes), or, for a single mesh, its
-connected components. Every part must be a closed surface (its volume, mass and inertia
-are defined); the object is brought into the normalised frame (`meshes.normalize`).
+connected components, with vertices merged by position first (texture seams split them:
+`meshes.welded`). Every part must be a closed surface (its volume, mass and inertia are
+defined), solid (no cavity inside another part) and apart from the others (no overlap:
+`meshes.check_solid`); the object is brought into the normalised frame
+(`meshes.normalize`).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import trimesh
 
 from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY, NUM_SLOTS, density_to_slot
 from ppdjax.dataset.materials import ALL_MATERIAL_NAMES, material_slots
-from ppdjax.dataset.meshes import components, normalize
+from ppdjax.dataset.meshes import check_solid, components, normalize, scene_parts, welded
 from ppdjax.dataset.tools import Tool
 
 DEFAULT_MATERIAL = "wood"  # when neither materials nor densities are given (warned)
@@ -31,16 +34,8 @@ def _read_parts(path: str) -> tuple[list[trimesh.Trimesh], list[str]]:
   except Exception as e:  # trimesh raises many kinds for a corrupt or unknown file
     raise ValueError(f"cannot read {path!r} as a mesh ({type(e).__name__}: {e})") from e
   if isinstance(loaded, trimesh.Scene):
-    parts, names = [], []
-    order = {name: i for i, name in enumerate(loaded.geometry)}  # the file's order
-    nodes = sorted(loaded.graph.nodes_geometry,
-                   key=lambda n: (order.get(loaded.graph[n][1], len(order)), str(n)))
-    for node in nodes:
-      transform, geometry = loaded.graph[node]
-      mesh = loaded.geometry[geometry]
-      if isinstance(mesh, trimesh.Trimesh) and len(mesh.faces):
-        parts.append(mesh.copy().apply_transform(transform))
-        names.append(str(node))
+    parts, names = scene_parts(loaded)
+    parts = [welded(p) for p in parts]
   elif isinstance(loaded, trimesh.Trimesh):
     parts = components(loaded) if len(loaded.faces) else []
     names = [f"part{i}" for i in range(len(parts))] if len(parts) > 1 else ["part0"]
@@ -95,21 +90,19 @@ def load_object(path: str, part_materials=None, part_densities=None
     a `tools.Tool` (category "user") whose parts are in the normalised object frame, and
     the transform. Raises FileNotFoundError or ValueError naming the problem: an
     unreadable file, no triangles, a part that is not closed (volume undefined), zero
-    volume, more parts than the NUM_SLOTS boxes, an unknown material or part name, a
+    volume, a cavity (a closed shell facing inward inside another part), overlapping
+    parts, more parts than the NUM_SLOTS boxes, an unknown material or part name, a
     density outside [100, 10,000] kg/m^3.
   """
   parts, names = _read_parts(path)
   if len(parts) > NUM_SLOTS:
     raise ValueError(f"{path!r} has {len(parts)} parts; at most {NUM_SLOTS} fit the "
                      f"{NUM_SLOTS} boxes (join parts in the file, or group them)")
-  for i, (part, name) in enumerate(zip(parts, names)):
+  for part, name in zip(parts, names):
     if not part.is_watertight:
       raise ValueError(f"part {name!r} of {path!r} is not a closed surface, so its volume "
                        "(mass, inertia) is undefined; close its holes first")
-    if part.volume < 0:  # inward normals
-      parts[i] = part = part.copy()
-      part.invert()
-    if part.volume <= 1e-12 * max(part.extents.max(), 1e-12) ** 3:
+    if abs(part.volume) <= 1e-12 * max(part.extents.max(), 1e-12) ** 3:
       raise ValueError(f"part {name!r} of {path!r} has zero volume")
   if part_materials is None and part_densities is None:
     warnings.warn(f"no materials or densities given for {path!r}: every part is taken as "
@@ -131,5 +124,6 @@ def load_object(path: str, part_materials=None, part_densities=None
                        f"{[n for n, b in zip(names, bad) if b]}")
     slots = [int(s) for s in density_to_slot(densities)]
   normalised, transform = normalize(parts)
+  normalised = check_solid(normalised, names, repr(path))  # inward shells turned outward
   return Tool("user", tuple(normalised), tuple(names), tuple(str(m) for m in materials),
               tuple(slots)), transform

@@ -10,6 +10,7 @@ image: the depth fit and refinement). The choices behind each value: docs/infere
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from ppdjax.configs import schema
 from ppdjax.configs.schema import ConfigError
@@ -17,6 +18,13 @@ from ppdjax.infer import faces
 from ppdjax.infer.refine import check_jacobian
 from ppdjax.infer.sampling import check_screen, check_selection_horizon
 from ppdjax.sim.rollout_mjx import check_simulator
+
+
+def _finite_at_least_zero(x) -> bool:
+  """A number (not a bool) that is finite and >= 0: NaN fails every comparison, so `x < 0`
+  alone would let it through."""
+  return (isinstance(x, (int, float)) and not isinstance(x, bool)
+          and math.isfinite(x) and x >= 0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,12 +139,12 @@ class DecomposeConfig:
       check_simulator(self.simulator)
     except ValueError as e:
       raise ConfigError(str(e)) from e
-    if s.prior_weight < 0:
-      raise ConfigError(f"select.prior_weight must be >= 0, got {s.prior_weight}")
+    if not _finite_at_least_zero(s.prior_weight):
+      raise ConfigError(f"select.prior_weight must be finite and >= 0, got {s.prior_weight!r}")
     if isinstance(r.steps, bool) or not isinstance(r.steps, int) or r.steps < 1:
       raise ConfigError(f"refine.steps must be a whole number >= 1, got {r.steps!r}")
-    if r.prior_weight < 0:
-      raise ConfigError(f"refine.prior_weight must be >= 0, got {r.prior_weight}")
+    if not _finite_at_least_zero(r.prior_weight):
+      raise ConfigError(f"refine.prior_weight must be finite and >= 0, got {r.prior_weight!r}")
     if self.estimator.path and not f.enabled:
       raise ConfigError("the estimator reads fitted boxes: it needs fit.enabled")
 

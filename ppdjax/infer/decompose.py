@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, VOXEL_RESOLUTION
+from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, TIMESTEP, VOXEL_RESOLUTION
 from ppdjax.dataset.camera import camera_dict, check_camera
 from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.image_fit import check_image
@@ -21,6 +21,11 @@ from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import Settings, engine_settings, jax_engine
 from ppdjax.training import checkpoints
 from ppdjax.training import estimator as estimator_module
+
+
+MIN_STEPS = 30  # an observation's shortest trajectories: 0.1 s, before boxes land
+MAX_TRAVEL = 100.0  # m: a pushed 1 m object observed farther than this is in another unit
+QUAT_TOLERANCE = 1e-3  # |norm - 1| of an observed quaternion
 
 
 @struct.dataclass
@@ -68,8 +73,23 @@ def check_observation(obs: dict, config) -> bool:
     if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
       want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"
       raise ValueError(f"observation[{name!r}]: expected shape {want}, got {got}")
-  if not isinstance(traj, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(traj))):
-    raise ValueError("observation['trajectories'] contains NaN or inf")
+  if np.shape(traj)[-2] < MIN_STEPS:
+    raise ValueError(f"observation['trajectories']: {np.shape(traj)[-2]} steps; at least "
+                     f"{MIN_STEPS} (0.1 s at dt {TIMESTEP:.5f} s) are needed to tell densities "
+                     f"apart (the model was trained on {config.data.steps})")
+  if not isinstance(traj, jax.core.Tracer):
+    t = np.asarray(traj)
+    if not np.all(np.isfinite(t)):
+      raise ValueError("observation['trajectories'] contains NaN or inf")
+    far = np.abs(t[..., :3]).max()
+    if far > MAX_TRAVEL:
+      raise ValueError(f"observation['trajectories']: a position {far:.4g} m from the origin; "
+                       f"objects are 1 m across and pushed ones stay within {MAX_TRAVEL:g} m "
+                       "(positions in metres, object frame; were these millimetres?)")
+    norm = np.linalg.norm(t[..., 3:], axis=-1)
+    if np.any(np.abs(norm - 1.0) > QUAT_TOLERANCE):
+      raise ValueError("observation['trajectories']: quaternions (columns 3:7, w x y z) must "
+                       f"have unit norm; their norms range {norm.min():.4g}..{norm.max():.4g}")
   image = obs["image"]
   image_dtype = image.dtype if hasattr(image, "dtype") else np.asarray(image).dtype
   if image_dtype != np.uint8:
@@ -163,6 +183,12 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
   if pushes is None:
     from ppdjax.dataset.generation import pushes_of  # pylint: disable=import-outside-toplevel
     pushes = pushes_of(run_config.data)
+  if not isinstance(pushes, Pushes):
+    raise TypeError(f"pushes: expected ppdjax.Pushes, got {type(pushes).__name__}")
+  pushes.validate()
+  if pushes.num != run_config.model.num_pushes:
+    raise ValueError(f"pushes: {pushes.num} given; the model reads "
+                     f"{run_config.model.num_pushes} trajectories (its training data's pushes)")
   estimator = None
   if config.estimator.path:
     if not is_paper_pushes(pushes):

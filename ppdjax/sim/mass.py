@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from ppdjax.primitives import Primitives, mat_to_quat, quat_mul, quat_to_mat
+from ppdjax.primitives import Primitives, mat_to_quat, quat_mul, quat_to_mat, validate
 
 
 @struct.dataclass
@@ -35,7 +35,13 @@ def mass_properties(prims: Primitives) -> MassProperties:
 
   Pure JAX: works under jit, vmap, grad and jacfwd; invalid boxes contribute nothing.
   Matches MuJoCo's compiler for a body of box geoms with a `density` attribute.
+
+  Concrete boxes are checked first (`Primitives.validate`: ValueError naming the field for
+  a negative half size, a quaternion that is not unit, a NaN); traced ones are the
+  caller's contract (the jitted pipeline makes them from validated inputs).
   """
+  if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(prims)):
+    validate(prims)
   if prims.density.ndim > 1:
     return jax.vmap(mass_properties)(prims)
   m_k = box_masses(prims)

@@ -9,6 +9,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import mujoco
 from mujoco import batch as mj_batch
 
 from ppdjax.conventions import STEPS
@@ -19,6 +20,9 @@ from ppdjax.sim.pushes import Pushes, push_wrenches
 # Fields written per simulation; mj_setConst then derives invweight0, meaninertia etc.
 _WRITTEN = ("geom_size", "geom_pos", "geom_quat", "geom_rbound", "geom_aabb", "body_mass",
             "body_ipos", "body_iquat", "body_inertia")
+
+
+_TIME = int(mujoco.mjtState.mjSTATE_TIME)  # recorded beside qpos: a stopped rollout's clock stops
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,11 +54,18 @@ def object_inputs(prims: Primitives, pushes: Pushes):
 _batched_inputs = jax.jit(jax.vmap(object_inputs, in_axes=(0, None)))
 
 
+class UnstableRollout(RuntimeError):
+  """MuJoCo stopped a rollout on a warning (its solver met a NaN, an infinite or a huge
+  acceleration): the trajectory after that step is not physics."""
+
+
 def run_inputs(fields: dict, wrenches_NxPx6: np.ndarray, rest_Nx3: np.ndarray, *,
-               steps: int, duration: int, settings: MujocoSettings = MujocoSettings()
-               ) -> np.ndarray:
+               steps: int, duration: int, settings: MujocoSettings = MujocoSettings(),
+               stopped: list | None = None) -> np.ndarray:
   """(N, P, steps, 7) float64 trajectories of N objects (`object_inputs`, stacked) under
-  their P pushes, each acting for its first `duration` steps."""
+  their P pushes, each acting for its first `duration` steps. `stopped`: a list that gets
+  the (N, P) int array of the step at which MuJoCo stopped each rollout on a warning (-1:
+  it ran to the end)."""
   n, p = wrenches_NxPx6.shape[:2]
   k = fields["geom_size"].shape[1]
   model = copy.copy(scene.template_model(k))
@@ -83,11 +94,18 @@ def run_inputs(fields: dict, wrenches_NxPx6: np.ndarray, rest_Nx3: np.ndarray, *
   first = min(duration, steps)
   # a simulation whose warnings rise (a diverging candidate) stops and repeats its last
   # pose, as the JAX engines hold an escaped rollout (`rollout_mjx.hold_escapes`)
-  parts = [sims.rollout(first, record=("qpos",))["qpos"]]
+  # (its clock stops with it: the recorded time tells which stopped, and where)
+  record = ("qpos",) if stopped is None else ("qpos", _TIME)
+  parts = [sims.rollout(first, record=record)]
   xfrc[:] = 0.0
   if steps > first:
-    parts.append(sims.rollout(steps - first, record=("qpos",))["qpos"])
-  return np.concatenate(parts, axis=1)[..., :7].reshape(n, p, steps, 7)
+    parts.append(sims.rollout(steps - first, record=record))
+  if stopped is not None:
+    time = np.concatenate([r[_TIME][..., 0] for r in parts], axis=1)  # (N P, steps)
+    ran = np.round(time / model.opt.timestep).astype(np.int64)
+    late = ran < np.arange(1, steps + 1)
+    stopped.append(np.where(late.any(1), np.argmax(late, 1), -1).reshape(n, p))
+  return np.concatenate([r["qpos"] for r in parts], axis=1)[..., :7].reshape(n, p, steps, 7)
 
 
 def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS, nthread: int = 0,
@@ -100,12 +118,29 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS, nthread: 
     steps: recorded steps.
     nthread: threads for `mujoco.batch` (0: all CPUs).
     iterations, ls_iterations: solver overrides (None: MuJoCo's defaults, 100 and 50).
+
+  Raises:
+    UnstableRollout: naming the object, the push and the step where MuJoCo stopped a
+      rollout on a warning (a diverging simulation; `simulate` documents the densities
+      the engines are stable for).
   """
   flat, batch = flatten(jax.tree.map(np.asarray, prims))
   fields, wrenches, rest = jax.tree.map(np.asarray, _batched_inputs(
       jax.tree.map(jnp.asarray, flat), pushes.float32()))
+  stopped = []
   traj = run_inputs(fields, wrenches, rest, steps=steps, duration=pushes.duration,
-                    settings=MujocoSettings(nthread, iterations, ls_iterations))
+                    settings=MujocoSettings(nthread, iterations, ls_iterations),
+                    stopped=stopped)
+  bad = np.argwhere(stopped[0] >= 0)
+  if len(bad):
+    i, push = bad[0]
+    where = np.unravel_index(i, batch) if batch else ()
+    raise UnstableRollout(
+        f"MuJoCo's C engine became unstable (a NaN, infinite or huge acceleration) and "
+        f"stopped {len(bad)} of {stopped[0].size} rollouts; the first: object "
+        f"{tuple(int(x) for x in where)} under push {int(push)} at step "
+        f"{int(stopped[0][i, push])} (its boxes' densities "
+        f"{flat.density[i][flat.valid[i]].round(1).tolist()} kg/m^3)")
   return traj.reshape(batch + (pushes.num, steps, 7))
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from ppdjax.conventions import STEPS
+from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY, STEPS
 from ppdjax.primitives import Primitives, validate
 from ppdjax.sim import rollout_mjx, rollout_mujoco
 from ppdjax.sim.box_plane import BoxPlaneSettings
@@ -37,7 +37,17 @@ def simulate(prims: Primitives, pushes: Pushes | None = None, *, steps: int = ST
 
   Returns:
     (B..., P, steps, 7) object-frame poses after each step; float32 for "mjx" and "box_plane",
-    float64 for "mujoco".
+    float64 for "mujoco". In the JAX engines a rollout that leaves the scene (farther than
+    `rollout_mjx.ESCAPE_DISTANCE` from the origin) keeps its last pose inside.
+
+  Raises:
+    ValueError: malformed boxes or pushes (`Primitives.validate`), or a valid box's density
+      outside [MIN_DENSITY, MAX_DENSITY] = [100, 10,000] kg/m^3 (concrete inputs): the
+      range the engines are stable in on the paper's pushes (the density classes). Lighter
+      boxes fly off and the solvers diverge: a tower of 30 kg/m^3 or less blows up in
+      MuJoCo C (docs/physics.md).
+    rollout_mujoco.UnstableRollout: MuJoCo C stopped a rollout on a warning, naming it.
+    FloatingPointError: a JAX engine's rollout that is not finite (concrete inputs).
   """
   if backend not in BACKENDS:
     raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -46,17 +56,36 @@ def simulate(prims: Primitives, pushes: Pushes | None = None, *, steps: int = ST
   pushes = default_pushes() if pushes is None else pushes
   if not _is_traced(prims):
     validate(prims)
+    density = np.asarray(prims.density)[np.asarray(prims.valid)]
+    outside = (density < MIN_DENSITY) | (density > MAX_DENSITY)
+    if outside.any():
+      raise ValueError(
+          f"Primitives.density: valid boxes' densities must lie in [{MIN_DENSITY:g}, "
+          f"{MAX_DENSITY:g}] kg/m^3, where the engines are stable under the paper's pushes; "
+          f"got {np.unique(density[outside]).tolist()[:5]}")
   if not _is_traced(pushes):
     pushes.validate()
   if backend == "mjx":
     if not isinstance(options.get("settings", rollout_mjx.MjxSettings()), rollout_mjx.MjxSettings):
       raise ValueError('backend="mjx" takes settings=MjxSettings(...)')
-    return rollout_mjx.simulate(prims, pushes, steps=steps, **options)
+    return _finite(rollout_mjx.simulate(prims, pushes, steps=steps, **options), prims)
   if backend == "box_plane":
     settings = options.pop("settings", BoxPlaneSettings())
     if options or not isinstance(settings, BoxPlaneSettings):
       raise ValueError('backend="box_plane" takes only settings=BoxPlaneSettings(...)')
-    return rollout_mjx.simulate(prims, pushes, steps=steps, settings=settings)
+    return _finite(rollout_mjx.simulate(prims, pushes, steps=steps, settings=settings), prims)
   if _is_traced(prims):
     raise ValueError('backend="mujoco" runs on concrete arrays; it cannot be traced by jit')
   return rollout_mujoco.simulate(prims, pushes, steps=steps, **options)
+
+
+def _finite(traj: jax.Array, prims: Primitives) -> jax.Array:
+  """`traj`, checked to be finite where it is concrete."""
+  if _is_traced(prims) or isinstance(traj, jax.core.Tracer):
+    return traj
+  ok = np.asarray(jax.numpy.isfinite(traj).all(axis=(-2, -1)))  # (B..., P)
+  if not ok.all():
+    where = tuple(int(x) for x in np.argwhere(~ok)[0])
+    raise FloatingPointError(f"the rollout of object {where[:-1]} under push {where[-1]} is "
+                             "not finite: the simulation diverged")
+  return traj
