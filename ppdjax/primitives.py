@@ -110,6 +110,15 @@ def validate(prims: Primitives) -> None:
     _fail("valid", "an object has no valid box")
 
 
+def check(prims, name: str = "prims") -> None:
+  """The public functions' check of their boxes: TypeError unless `prims` is a Primitives;
+  `validate` where its arrays are concrete (traced ones are the jitted caller's contract)."""
+  if not isinstance(prims, Primitives):
+    raise TypeError(f"{name}: expected ppdjax.Primitives, got {type(prims).__name__}")
+  if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(prims)):
+    validate(prims)
+
+
 def make(half_size, pos, quat=None, density=1000.0, num_slots: int = NUM_SLOTS) -> Primitives:
   """Builds padded Primitives from n <= num_slots boxes (numpy/list inputs, one object).
 
@@ -119,6 +128,9 @@ def make(half_size, pos, quat=None, density=1000.0, num_slots: int = NUM_SLOTS) 
     quat: (n, 4) or None for identity.
     density: scalar or (n,).
     num_slots: K, the padded count.
+
+  Raises ValueError naming the field for boxes `validate` refuses (a negative half size, a
+  quaternion that is not unit, a density <= 0, NaN).
   """
   half_size = np.asarray(half_size, np.float32).reshape(-1, 3)
   n = half_size.shape[0]
@@ -134,7 +146,7 @@ def make(half_size, pos, quat=None, density=1000.0, num_slots: int = NUM_SLOTS) 
       quat=np.concatenate([quat.reshape(n, 4), np.tile(np.float32([1, 0, 0, 0]), (pad, 1))]),
       density=np.concatenate([density, np.zeros(pad, np.float32)]),
       valid=np.arange(num_slots) < n,
-  )
+  ).validate()
 
 
 # --- quaternion helpers (w, x, y, z) -----------------------------------------------------

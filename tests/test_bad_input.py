@@ -192,3 +192,21 @@ def test_decompose_refuses_pushes_the_model_does_not_read(shipped):
                       np.full(2, 1e5, np.float32))
   with pytest.raises(ValueError, match="pushes: 2 given; the model reads 4"):
     ppdjax.make_decompose_fn(model, pushes=two)
+
+
+@pytest.mark.parametrize("call, error, message", [
+    (lambda: ppdjax.sample_towers(0, 0), ValueError, "count must be an int >= 1"),
+    (lambda: ppdjax.sample_towers(0, 2.5), ValueError, "count must be an int >= 1"),
+    (lambda: ppdjax.sample_towers("a", 2), ValueError, "seed must be an int >= 0"),
+    (lambda: ppdjax.voxelize([1, 2, 3]), TypeError, "expected ppdjax.Primitives, got list"),
+    (lambda: ppdjax.voxelize(_one_box(pos=np.full((5, 3), np.nan))), ValueError,
+     "pos: contains NaN"),
+    (lambda: ppdjax.simulate(_one_box(), pushes=[1, 2], backend="mujoco"), TypeError,
+     "pushes: expected ppdjax.Pushes"),
+    (lambda: primitives.make(-0.1 * np.ones((2, 3)), np.zeros((2, 3))), ValueError,
+     "half_size: negative"),
+], ids=["no towers", "fractional count", "text seed", "voxelize a list", "NaN position",
+        "pushes as a list", "negative box"])
+def test_boxes_and_towers_are_checked_where_they_enter(call, error, message):
+  with pytest.raises(error, match=message):
+    call()

@@ -117,6 +117,15 @@ def sample_configurations(rng: np.random.Generator, num_configs: int = CONFIGS_P
 
 
 def sample_towers(seed: int, count: int, **kwargs) -> Primitives:
-  """`count` towers (one configuration each) on a leading axis, reproducible from `seed`."""
+  """`count` towers (one configuration each) on a leading axis, reproducible from `seed`.
+
+  Args:
+    seed: an int >= 0.
+    count: an int >= 1.
+    **kwargs: `sample_tower`'s (num_blocks 1..5 or None for 2..5, rotate, size_noise, ...).
+  """
+  for name, value, least in (("seed", seed, 0), ("count", count, 1)):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+      raise ValueError(f"sample_towers: {name} must be an int >= {least}, got {value!r}")
   rng = np.random.default_rng(seed)
   return stack([sample_tower(rng, **kwargs)[0] for _ in range(count)])

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ppdjax.conventions import VOXEL_RESOLUTION as RESOLUTION
-from ppdjax.primitives import Primitives, flatten, quat_to_mat
+from ppdjax.primitives import Primitives, check, flatten, quat_to_mat
 
 TOUCH = 1e-7  # separations below this (metres) count as touching, not overlapping
 
@@ -60,7 +60,9 @@ def voxelize(prims: Primitives, resolution: int = RESOLUTION, chunk: int = 256) 
 
   Objects go through in chunks of `chunk` (the separating-axis tests take about 10 MB
   per object at 32^3: 8,000 at once needed 73 GB), so any number of objects fits.
+  Raises TypeError or ValueError naming the field for boxes `primitives.check` refuses.
   """
+  check(prims)
   p = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32) if jnp.asarray(x).dtype != bool
                    else jnp.asarray(x), prims)
   flat, batch = flatten(p)

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from ppdjax.primitives import Primitives, mat_to_quat, quat_mul, quat_to_mat, validate
+from ppdjax.primitives import Primitives, mat_to_quat, quat_mul, quat_to_mat, check
 
 
 @struct.dataclass
@@ -40,8 +40,7 @@ def mass_properties(prims: Primitives) -> MassProperties:
   a negative half size, a quaternion that is not unit, a NaN); traced ones are the
   caller's contract (the jitted pipeline makes them from validated inputs).
   """
-  if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(prims)):
-    validate(prims)
+  check(prims)
   if prims.density.ndim > 1:
     return jax.vmap(mass_properties)(prims)
   m_k = box_masses(prims)

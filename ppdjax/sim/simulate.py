@@ -6,7 +6,7 @@ import jax
 import numpy as np
 
 from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY, STEPS
-from ppdjax.primitives import Primitives, validate
+from ppdjax.primitives import Primitives, check
 from ppdjax.sim import rollout_mjx, rollout_mujoco
 from ppdjax.sim.box_plane import BoxPlaneSettings
 from ppdjax.sim.pushes import Pushes, default_pushes
@@ -54,8 +54,10 @@ def simulate(prims: Primitives, pushes: Pushes | None = None, *, steps: int = ST
   if not isinstance(steps, (int, np.integer)) or steps < 1:
     raise ValueError(f"steps must be a positive int, got {steps!r}")
   pushes = default_pushes() if pushes is None else pushes
+  if not isinstance(pushes, Pushes):
+    raise TypeError(f"pushes: expected ppdjax.Pushes or None, got {type(pushes).__name__}")
+  check(prims)
   if not _is_traced(prims):
-    validate(prims)
     density = np.asarray(prims.density)[np.asarray(prims.valid)]
     outside = (density < MIN_DENSITY) | (density > MAX_DENSITY)
     if outside.any():
