@@ -210,3 +210,20 @@ def test_decompose_refuses_pushes_the_model_does_not_read(shipped):
 def test_boxes_and_towers_are_checked_where_they_enter(call, error, message):
   with pytest.raises(error, match=message):
     call()
+
+
+@pytest.mark.parametrize("option, message", [
+    ({"fps": -5.0}, "fps must be finite and positive"),
+    ({"push_time": 10.0}, r"push_time must be in \[0, 0.03333\)"),
+    ({"dt": 0.0}, "dt must be finite and > 0"),
+    ({"steps": 2.5}, "steps must be None or an int"),
+    ({"gate_px": float("nan")}, "gate_px must be None or finite"),
+    ({"smoothing": -1.0}, "smoothing must be finite and >= 0"),
+])
+def test_track_poses_names_a_bad_option(option, message):
+  from ppdjax.video import track_poses
+  frames = np.zeros((3, 8, 8, 3), np.uint8)  # 3 frames at 60 fps: 1/30 s
+  args = (frames, np.diag([10.0, 10.0, 1.0]), np.eye(4), np.eye(4)[:, :3] * 0.1,
+          np.float64([0, 0, 0.5, 1, 0, 0, 0]))
+  with pytest.raises(ValueError, match=message):
+    track_poses(*args, **{"fps": 60.0, **option})

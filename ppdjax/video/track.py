@@ -52,9 +52,27 @@ def _check(frames, intrinsics, camera_from_world, stickers, initial_pose, fps):
   if p.shape != (7,) or not np.all(np.isfinite(p)) or abs(np.linalg.norm(p[3:]) - 1) > 1e-3:
     raise ValueError(f"initial_pose must be a finite (7,) pose with a unit quaternion "
                      f"(w, x, y, z), got {p}")
-  if not fps > 0:
-    raise ValueError(f"fps must be positive, got {fps}")
+  if not (np.isfinite(fps) and fps > 0):
+    raise ValueError(f"fps must be finite and positive, got {fps}")
   return k, c, s, p
+
+
+def _check_options(n_frames, fps, push_time, dt, steps, gate_px, max_gap_s, smoothing):
+  """ValueError naming the first option out of its range (`track_poses`'s Args)."""
+  finite = lambda x: isinstance(x, (int, float, np.number)) and np.isfinite(x)
+  if not (finite(push_time) and 0 <= push_time < (n_frames - 1) / fps):
+    raise ValueError(f"push_time must be in [0, {(n_frames - 1) / fps:.4g}) s, inside the "
+                     f"video ({n_frames} frames at {fps:g} fps), got {push_time!r}")
+  if not (finite(dt) and dt > 0):
+    raise ValueError(f"dt must be finite and > 0 s, got {dt!r}")
+  if steps is not None and (isinstance(steps, bool) or not isinstance(steps, (int, np.integer))
+                            or steps < 1):
+    raise ValueError(f"steps must be None or an int >= 1, got {steps!r}")
+  if gate_px is not None and not (finite(gate_px) and gate_px > 0):
+    raise ValueError(f"gate_px must be None or finite and > 0 pixels, got {gate_px!r}")
+  for name, value in (("max_gap_s", max_gap_s), ("smoothing", smoothing)):
+    if not (finite(value) and value >= 0):
+      raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
 
 
 def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: np.ndarray,
@@ -71,7 +89,9 @@ def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: n
     intrinsics: (3, 3) camera matrix; camera_from_world: (4, 4), OpenCV camera axes.
     stickers: (N, 3) sticker centres in the object frame, N >= 4.
     initial_pose: (7,) the object's pose at rest (world frame), in frame 0.
-    push_time: when the push starts, seconds on the video's clock.
+    fps: the video's frame rate, finite and > 0.
+    push_time: when the push starts, seconds on the video's clock, within the video.
+    dt: the simulator's step (s), > 0.
     steps: how many simulator steps to return (default: as many as the video covers).
     gate_px: farthest a detection may lie from its sticker's predicted position
       (default 5 % of the frame's larger side).
@@ -82,6 +102,7 @@ def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: n
   k, cam_world, pts, p0 = _check(frames, intrinsics, camera_from_world, stickers,
                                  initial_pose, fps)
   n_frames, height, width = frames.shape[:3]
+  _check_options(n_frames, fps, push_time, dt, steps, gate_px, max_gap_s, smoothing)
   gate = gate_px if gate_px is not None else 0.05 * max(height, width)
   world_cam = np.linalg.inv(cam_world)
   cam_obj = [None] * n_frames
