@@ -227,3 +227,11 @@ def test_track_poses_names_a_bad_option(option, message):
           np.float64([0, 0, 0.5, 1, 0, 0, 0]))
   with pytest.raises(ValueError, match=message):
     track_poses(*args, **{"fps": 60.0, **option})
+
+
+def test_a_nan_setting_is_refused_where_the_config_is_read():
+  from ppdjax.configs import schema
+  config = schema.default_config()
+  config.train.density_weight = float("nan")  # `< 0` alone would let it through
+  with pytest.raises(schema.ConfigError, match="train.density_weight must be finite"):
+    schema.read(config)

@@ -11,6 +11,7 @@ laptop CPU with them.
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 
 import ml_collections
@@ -256,6 +257,8 @@ def _check_value(where: str, value, default, annotation):
   if kind is float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
       raise ConfigError(f"config.{where} must be a number, got {value!r}")
+    if not math.isfinite(value):  # NaN passes every range check that compares
+      raise ConfigError(f"config.{where} must be finite, got {value!r}")
     return float(value)
   if kind is str:
     if not isinstance(value, str):
