@@ -64,11 +64,38 @@ def default_model(tracked: bool = False) -> str:
   return "assets/blocks_model"
 
 
+def check_files(mesh: str, model: str, trajectory: str = "") -> None:
+  """Refuses missing or unreadable inputs before anything slow: FileNotFoundError naming a
+  missing mesh file or model folder; the model's config.json and the trajectory .npz are
+  read now (CheckpointError, files.VideoFileError naming the file), not after the mesh's
+  motion has been simulated."""
+  from ppdjax.training.checkpoints import read_config  # pylint: disable=import-outside-toplevel
+  from ppdjax.video.files import read_trajectory  # pylint: disable=import-outside-toplevel
+  if not os.path.isfile(mesh):
+    raise FileNotFoundError(f"{mesh}: no such mesh file (--mesh)")
+  read_config(model)
+  if trajectory:
+    read_trajectory(trajectory)
+
+
 def run(mesh: str, materials, densities, model: str, out: str, overrides: dict | None = None,
         engine: str = "", seed: int = 0, trajectory: str = "") -> dict:
   """Decomposes a mesh file; writes the picture and JSON into `out`; returns the JSON.
-  With `trajectory` (a `ppdjax.track` .npz), that tracked motion is the observation's;
-  `overrides`: keys of the model's `eval` section (`schema.EvalConfig`) to change."""
+
+  Args:
+    mesh: an OBJ, STL, PLY or GLB file (`ppdjax.load_object`).
+    materials, densities: per part (a dict by part name) or one for all; see the flags.
+    model: a trained model folder (`ppdjax.load`).
+    out: the folder to write decomposition.png and decomposition.json into.
+    overrides: keys of the model's `eval` section (`schema.EvalConfig`) to change.
+    engine: "", "mjx" or "box_plane" ("": the model's training engine).
+    seed: sampling and texture seed.
+    trajectory: a `ppdjax.track` .npz whose tracked motion is the observation's ("":
+      simulate the mesh's).
+
+  Files are checked first (`check_files`).
+  """
+  check_files(mesh, model, trajectory)
   import jax
   import numpy as np
 

@@ -5,6 +5,11 @@ Reads the video (any format OpenCV's FFmpeg reader takes; frame rate from the fi
 --fps), tracks the stickers (`ppdjax.video.track_poses`) and writes TRAJ.npz with
 "trajectory" (T, 7) float32 at the simulator's dt after the push and "dt". The files'
 formats are in `ppdjax/video/files.py` and docs/video.md.
+
+Flags: --fps > 0 frames per second (0: the file's), --push_time >= 0 s on the video's
+clock, --steps >= 0 (0: all the video covers), --smoothing >= 0 frames, --out a path
+ending in .npz. A bad flag is a usage error naming it; a missing or unreadable file a
+`files.VideoFileError` naming the file.
 """
 
 from __future__ import annotations
@@ -29,8 +34,21 @@ _STEPS = flags.DEFINE_integer("steps", 0, "Simulator steps to write (0: all the 
 _SMOOTHING = flags.DEFINE_float("smoothing", 0.0, "Gaussian smoothing over frames (0: none).")
 
 
+def check_flags(fps: float, push_time: float, steps: int, smoothing: float, out: str) -> None:
+  """app.UsageError naming the first flag out of its range, before any file is read."""
+  if not (fps >= 0 and np.isfinite(fps)):  # 0 is the default: the file's rate
+    raise app.UsageError(f"--fps must be positive (frames per second; 0 reads the video "
+                         f"file's rate), got {fps:g}")
+  for name, value in (("push_time", push_time), ("steps", steps), ("smoothing", smoothing)):
+    if not (value >= 0 and np.isfinite(value)):
+      raise app.UsageError(f"--{name} must be >= 0, got {value:g}")
+  if not out.endswith(".npz"):  # np.savez would append ".npz" to any other name
+    raise app.UsageError(f"--out must name an .npz file, got {out!r}")
+
+
 def main(argv):
   del argv
+  check_flags(_FPS.value, _PUSH_TIME.value, _STEPS.value, _SMOOTHING.value, _OUT.value)
   frames, file_fps = files.read_video(_VIDEO.value)
   fps = _FPS.value or file_fps
   if not fps > 0:

@@ -18,12 +18,17 @@ count; the first time a process reads from a shard, it checks the shard's SHA-25
 against the manifest and that its voxels are 0/1 (`check=False` skips this; about 33 s
 once for the 31 GB paper set), so flipped bytes are named instead of trained on.
 `verify=True` checks every shard's sums when the dataset is opened.
+
+Errors: a missing file raises `MissingFileError` (a DatasetError and a FileNotFoundError),
+any other problem with the files `DatasetError` (a ValueError), each naming the file;
+Files are read through `readers` (errors that name the file).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import numbers
 import os
 import threading
 from typing import Iterator
@@ -33,6 +38,7 @@ import numpy as np
 from ppdjax.conventions import OBS_KEYS
 from ppdjax import primitives
 from ppdjax.dataset import camera
+from ppdjax.dataset.readers import read_json
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import RESTITUTION, Pushes, default_pushes
 
@@ -54,6 +60,10 @@ def pushes_from_record(p: dict) -> Pushes:
 
 class DatasetError(ValueError):
   """A dataset directory is missing, incomplete or corrupt (the message names the file)."""
+
+
+class MissingFileError(DatasetError, FileNotFoundError):
+  """A file or directory that is not there: both the surface's error and FileNotFoundError."""
 
 
 def sha256(path: str) -> str:
@@ -97,13 +107,33 @@ def shard_complete(directory: str) -> dict[str, str] | None:
   done = os.path.join(directory, "DONE")
   if not os.path.exists(done):
     return None
-  with open(done) as f:
-    sums = json.load(f)
+  try:  # a DONE cut short by a crash: the shard is made again
+    sums = read_json(done, error=DatasetError, missing=MissingFileError)
+  except DatasetError:
+    return None
   for name, digest in sums.items():
     path = os.path.join(directory, name)
     if not os.path.exists(path) or sha256(path) != digest:
       return None
   return sums
+
+
+def _check_manifest(manifest: dict, where: str) -> None:
+  """DatasetError naming the manifest and a key it lacks (not a bare KeyError later)."""
+  if manifest.get("format_version") != FORMAT_VERSION:
+    raise DatasetError(f"{where}: format version {manifest.get('format_version')} != "
+                       f"{FORMAT_VERSION}")
+  shards = manifest.get("shards")
+  if not isinstance(shards, list) or not shards:
+    raise DatasetError(f"{where}: " + ("missing key 'shards'" if shards is None else
+                                       "'shards' must be a non-empty list"))
+  for s, shard in enumerate(shards):
+    lacks = [k for k in ("name", "samples", "files")
+             if not isinstance(shard, dict) or k not in shard]
+    files = {} if lacks or not isinstance(shard["files"], dict) else shard["files"]
+    lacks += [f"files/{n}.npy" for n in FIELDS if not lacks and f"{n}.npy" not in files]
+    if lacks:
+      raise DatasetError(f"{where}: shards[{s}] is missing key {', '.join(lacks)}")
 
 
 class Dataset:
@@ -114,8 +144,12 @@ class Dataset:
   "primitives" Primitives (K = 5, valid mask), "materials" (5,) int (-1 padding),
   "tower_id" int.
 
+  Indexing follows Python's sequences: `ds[i]` takes an int (or NumPy integer), negative
+  counting from the end; another type raises TypeError, an index out of range IndexError,
+  an unknown sample key KeyError; problems with the files raise DatasetError.
+
   Args:
-    path: the dataset directory.
+    path: the dataset directory (written by `python -m ppdjax.generate`).
     split: "train", "val", "test" or None (all samples).
     verify: check every shard's checksums now.
     check: check a shard's checksums and voxel values when this object first reads it.
@@ -123,23 +157,21 @@ class Dataset:
 
   def __init__(self, path: str, split: str | None = None, verify: bool = False,
                check: bool = True):
-    manifest_path = os.path.join(path, "manifest.json")
-    if not os.path.isdir(path):
-      raise DatasetError(f"no dataset directory at {path}")
-    if not os.path.exists(manifest_path):
-      raise DatasetError(f"{manifest_path} is missing: generation did not finish "
-                         "(run `python -m ppdjax.generate` again to resume it)")
-    try:
-      with open(manifest_path) as f:
-        self.manifest = json.load(f)
-    except json.JSONDecodeError as e:
-      raise DatasetError(f"{manifest_path} is corrupt: {e}") from e
-    if self.manifest.get("format_version") != FORMAT_VERSION:
-      raise DatasetError(f"{manifest_path}: format version "
-                         f"{self.manifest.get('format_version')} != {FORMAT_VERSION}")
+    if not isinstance(path, (str, os.PathLike)):
+      raise DatasetError(f"path must be a dataset directory, got {type(path).__name__}")
     if split is not None and split not in SPLITS:
       raise ValueError(f"split must be one of {tuple(SPLITS)} or None, got {split!r}")
-    self.path = path
+    path = os.fspath(path)
+    manifest_path = os.path.join(path, "manifest.json")
+    if not os.path.isdir(path):
+      raise (DatasetError(f"{path} is a file, not a dataset directory")
+             if os.path.exists(path) else MissingFileError(f"no dataset directory at {path}"))
+    if not os.path.exists(manifest_path):
+      raise MissingFileError(f"{manifest_path} is missing: generation did not finish "
+                             "(run `python -m ppdjax.generate` again to resume it)")
+    self.manifest = read_json(manifest_path, error=DatasetError, missing=MissingFileError)
+    _check_manifest(self.manifest, manifest_path)
+    self.path, self.split, self._manifest_path = path, split, manifest_path
     self._checked = set() if check else set(range(len(self.manifest["shards"])))
     self._lock = threading.Lock()
     self._shards, index = [], []
@@ -149,13 +181,14 @@ class Dataset:
       for name in FIELDS:
         file = os.path.join(directory, f"{name}.npy")
         if not os.path.exists(file):
-          raise DatasetError(f"missing shard file {file}")
+          raise MissingFileError(f"missing shard file {file}")
         try:
           arrays[name] = np.load(file, mmap_mode="r")
         except (ValueError, OSError) as e:
           raise DatasetError(f"corrupt shard file {file}: {e}") from e
-        if len(arrays[name]) != shard["samples"]:
-          raise DatasetError(f"corrupt shard file {file}: {len(arrays[name])} rows, "
+        rows = arrays[name].shape[0] if arrays[name].ndim else 0
+        if rows != shard["samples"]:
+          raise DatasetError(f"corrupt shard file {file}: {rows} rows, "
                              f"manifest says {shard['samples']}")
       self._shards.append(arrays)
       if verify:
@@ -164,9 +197,14 @@ class Dataset:
       if split is not None:
         rows = rows[np.asarray(arrays["split"]) == SPLITS[split]]
       index.append(np.stack([np.full(len(rows), s), rows], 1))
-    self._index = np.concatenate(index) if index else np.zeros((0, 2), np.int64)
+    self._index = np.concatenate(index)
     if split is not None and len(self._index) == 0:
       raise DatasetError(f"{path} has no samples in split {split!r}")
+
+  @property
+  def name(self) -> str:
+    """"split 'val' of PATH" or PATH: what messages call this dataset."""
+    return self.path if self.split is None else f"split {self.split!r} of {self.path}"
 
   @property
   def camera(self) -> dict:
@@ -175,11 +213,15 @@ class Dataset:
     (`camera.check_camera`). Datasets written before
     the manifest stored it were all rendered by the one fixed camera: it is rebuilt from
     `dataset.camera` at their image size."""
-    cam = self.manifest.get("camera")
-    if cam is None:
-      size = int(self.manifest["config"]["data"]["image_size"])
-      cam = camera.camera_dict(size, size)
-    return camera.check_camera(cam)
+    try:
+      cam = self.manifest.get("camera")
+      if cam is None:
+        size = int(self.manifest["config"]["data"]["image_size"])
+        cam = camera.camera_dict(size, size)
+      return camera.check_camera(cam)
+    except (KeyError, TypeError, ValueError) as e:
+      raise DatasetError(f"{self._manifest_path}: no usable camera record "
+                         f"({type(e).__name__}: {e})") from e
 
   @property
   def kind(self) -> str:
@@ -197,7 +239,11 @@ class Dataset:
     """The pushes the trajectories were recorded under (`sim.pushes.Pushes`). Datasets
     written before the manifest stored them all used the paper's four."""
     p = self.manifest.get("pushes")
-    return default_pushes() if p is None else pushes_from_record(p)
+    try:
+      return default_pushes() if p is None else pushes_from_record(p)
+    except (KeyError, TypeError, ValueError) as e:
+      raise DatasetError(f"{self._manifest_path}: no usable pushes record "
+                         f"({type(e).__name__}: {e})") from e
 
   def __len__(self) -> int:
     return len(self._index)
@@ -223,8 +269,10 @@ class Dataset:
       self._checked.add(s)
 
   def __getitem__(self, i: int) -> dict:
-    if not -len(self) <= i < len(self):
-      raise IndexError(f"sample {i} out of range for {len(self)} samples")
+    # bool is an int to Python, and a float used to be cut to an int here: both refused
+    if isinstance(i, (bool, np.bool_)) or not isinstance(i, numbers.Integral):
+      raise TypeError(f"a dataset index must be an int, got {i!r} ({type(i).__name__}); "
+                      "take(indices) reads several samples")
     batch = self.take([i])
     first = lambda v: (Primitives(*[getattr(v, f)[0] for f in primitives.FIELDS])
                        if isinstance(v, Primitives) else v[0])
@@ -234,29 +282,41 @@ class Dataset:
     """A batch of samples as stacked arrays (Primitives fields stacked too).
 
     Args:
-      indices: sample indices.
-      keys: the sample keys to read (default all); others are never touched on disk.
+      indices: a 1-D sequence of int sample indices in [-len, len) (negative from the
+        end). An empty one gives empty (0, ...) arrays of the fields' trailing shapes.
+      keys: the sample keys to read (default all; a str names one); others are never
+        touched on disk.
+
+    Raises:
+      TypeError for indices that are not integers, IndexError naming one out of range,
+      KeyError naming an unknown key, DatasetError naming a corrupt shard file.
     """
-    indices = np.asarray(indices, np.int64)
-    if indices.size and not (-len(self) <= indices.min() and indices.max() < len(self)):
-      raise IndexError(f"sample indices out of range for {len(self)} samples")
-    keys = tuple(keys or SAMPLE_KEYS)
+    arr = np.asarray(indices)
+    if arr.ndim != 1 or (arr.size and arr.dtype.kind not in "iu"):
+      raise TypeError(f"indices must be a 1-D sequence of ints, got a {arr.dtype} array of "
+                      f"shape {arr.shape}")
+    indices = arr.astype(np.int64)
+    outside = indices[(indices < -len(self)) | (indices >= len(self))]
+    if outside.size:
+      raise IndexError(f"sample index {outside[0]} out of range for the {len(self)} samples "
+                       f"of {self.name}")
+    keys = (keys,) if isinstance(keys, str) else tuple(keys or SAMPLE_KEYS)
     unknown = sorted(set(keys) - set(SAMPLE_KEYS))
     if unknown:
       raise KeyError(f"unknown sample keys {unknown}; expected some of {SAMPLE_KEYS}")
     names = [f for k in keys for f in (primitives.FIELDS if k == "primitives" else (k,))]
     where = self._index[indices]
-    out = {n: None for n in names}
+    # shaped from the first shard (a directory never mixes configs), so that no indices
+    # give (0, ...) arrays of the right trailing shape and dtype
+    out = {n: np.empty((len(indices),) + self._shards[0][n].shape[1:],
+                       self._shards[0][n].dtype) for n in names}
     for s in np.unique(where[:, 0]):
       self._check_shard(int(s))
       pick = np.nonzero(where[:, 0] == s)[0]
       rows = where[pick, 1]
       order = np.argsort(rows)  # ascending rows: sequential reads of the memory map
       for n in names:
-        part = np.asarray(self._shards[s][n][rows[order]])
-        if out[n] is None:
-          out[n] = np.empty((len(indices),) + part.shape[1:], part.dtype)
-        out[n][pick[order]] = part
+        out[n][pick[order]] = self._shards[s][n][rows[order]]
     batch = {k: out[k] for k in keys if k != "primitives"}
     if "primitives" in keys:
       batch["primitives"] = Primitives(*[out[f] for f in primitives.FIELDS])
@@ -265,12 +325,20 @@ class Dataset:
 
 def open_dataset(path: str, split: str | None = None, verify: bool = False,
                  check: bool = True) -> Dataset:
-  """Opens a generated dataset; `split` in {"train", "val", "test"} or None for all.
+  """Opens a directory written by `python -m ppdjax.generate` (`Dataset` has the details);
+  `split` in {"train", "val", "test"} or None for all; `verify` checks every shard's
+  checksums now, `check` (default) each shard's when it is first read.
 
-  `verify` checks every shard's checksums now; `check` (default) checks each shard when
-  it is first read. Raises DatasetError naming the missing or corrupt file.
+  Raises MissingFileError (a DatasetError and a FileNotFoundError) or DatasetError naming
+  the missing or corrupt file or manifest key; ValueError for another split.
   """
   return Dataset(path, split, verify, check)
+
+
+def _whole(name: str, value, low: int) -> None:
+  if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral) or (
+      value < low):
+    raise ValueError(f"{name} must be a whole number >= {low}, got {value!r}")
 
 
 def batches(dataset: Dataset, batch_size: int, *, seed: int, epoch: int = 0,
@@ -280,24 +348,39 @@ def batches(dataset: Dataset, batch_size: int, *, seed: int, epoch: int = 0,
 
   Args:
     dataset: a Dataset.
-    batch_size: samples per batch.
-    seed, epoch: the permutation is `default_rng([seed, epoch]).permutation(len)`.
-    start: first batch to yield (resume mid-epoch).
-    drop_remainder: skip a last, smaller batch.
+    batch_size: samples per batch (an int >= 1); with drop_remainder, at most len(dataset).
+    seed, epoch: ints >= 0; the permutation is `default_rng([seed, epoch]).permutation(len)`.
+    start: first batch to yield (resume mid-epoch), at most the epoch's number of batches.
+    drop_remainder: skip a last, smaller batch; False yields it (so a batch larger than
+      the dataset gives one batch of all its samples).
     part: (i, n): read only the i-th of n equal slices of each batch (process i of n in a
       multi-host run); batch_size must divide by n.
     keys: sample keys to read (default all).
 
   Yields:
     dicts of stacked arrays (Primitives fields stacked too).
+
+  Raises:
+    ValueError naming the argument, before any read; with drop_remainder, a batch_size
+    larger than the dataset (which would yield nothing) names both sizes.
   """
-  if batch_size < 1:
-    raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+  for name, value, low in (("batch_size", batch_size, 1), ("seed", seed, 0),
+                           ("epoch", epoch, 0), ("start", start, 0)):
+    _whole(name, value, low)
   index, count = part
   if batch_size % count or not 0 <= index < count:
     raise ValueError(f"part={part} must split batch_size={batch_size} into equal slices")
-  order = np.random.default_rng([seed, epoch]).permutation(len(dataset))
-  stop = len(order) - (len(order) % batch_size if drop_remainder else 0)
+  size = len(dataset)
+  if drop_remainder and batch_size > size:
+    raise ValueError(f"batch_size={batch_size} is larger than the {size} samples of "
+                     f"{getattr(dataset, 'name', 'the dataset')}: not one full batch "
+                     "(drop_remainder=False yields one smaller batch)")
+  full = size // batch_size if drop_remainder else -(-size // batch_size)
+  if start > full:
+    raise ValueError(f"start={start} is past the {full} batches of an epoch of "
+                     f"{size} samples at batch_size={batch_size}")
+  order = np.random.default_rng([seed, epoch]).permutation(size)
+  stop = size - (size % batch_size if drop_remainder else 0)
   for b in range(start * batch_size, stop, batch_size):
     rows = order[b:b + batch_size]
     rows = np.array_split(rows, count)[index] if count > 1 else rows

@@ -186,14 +186,14 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
   if not isinstance(pushes, Pushes):
     raise TypeError(f"pushes: expected ppdjax.Pushes, got {type(pushes).__name__}")
   pushes.validate()
+  if config.estimator.path and not is_paper_pushes(pushes):
+    raise ValueError("the estimator was trained on the paper's four pushes; these pushes "
+                     "(given, or the model's training data's) are others")
   if pushes.num != run_config.model.num_pushes:
     raise ValueError(f"pushes: {pushes.num} given; the model reads "
                      f"{run_config.model.num_pushes} trajectories (its training data's pushes)")
   estimator = None
   if config.estimator.path:
-    if not is_paper_pushes(pushes):
-      raise ValueError("the estimator was trained on the paper's four pushes; these pushes "
-                       "(given, or the model's training data's) are others")
     estimator = estimator_module.load(config.estimator.path)[0]
   if engine is None:
     engine = run_config.data.get("backend", "mjx")

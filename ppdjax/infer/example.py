@@ -10,7 +10,9 @@ import numpy as np
 
 from ppdjax import box_overlap, metrics, primitives
 from ppdjax.conventions import OBS_KEYS, density_to_slot
-from ppdjax.dataset.storage import DatasetError
+from ppdjax.dataset.camera import check_camera
+from ppdjax.dataset.readers import read_npz
+from ppdjax.dataset.storage import DatasetError, MissingFileError
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import make_decompose_fn, model_camera, model_settings
 from ppdjax.report.plots import plot_decomposition
@@ -36,31 +38,60 @@ def save_example(sample: dict, path: str, camera: dict | None = None) -> None:
 
 
 def load_example(path: str) -> tuple[dict, Primitives]:
-  """(observation, true Primitives) from an .npz written by `save_example`; the
-  observation holds "depth" where the example has one (`load_camera` gives its camera)."""
+  """(observation, true Primitives) from an .npz written by `save_example`: "voxels"
+  (32, 32, 32) of 0/1, "image" (H, W, 3) uint8, "trajectories" (P, T, 7) finite, and
+  "depth" (H, W) in metres where the example has one (`load_camera` gives its camera);
+  the truth's boxes as `Primitives.validate` wants them.
+
+  Raises:
+    DatasetError naming the file and what is wrong with it (MissingFileError, also a
+    FileNotFoundError, for no such file).
+  """
+  z = read_npz(path, "example tower", error=DatasetError, missing=MissingFileError)
+  bad = lambda why: DatasetError(f"{path} is not a readable example tower: {why}")
+  lacks = [k for k in OBS_KEYS + tuple(f"true_{f}" for f in primitives.FIELDS)
+           if k not in z]
+  if lacks:
+    raise bad(f"missing arrays {', '.join(lacks)} (written by save_example)")
+  obs = {k: z[k] for k in OBS_KEYS + (("depth",) if "depth" in z else ())}
+  shapes = {"voxels": obs["voxels"].shape == (32, 32, 32),
+            "image": obs["image"].ndim == 3 and obs["image"].shape[-1] == 3,
+            "trajectories": obs["trajectories"].ndim == 3 and obs["trajectories"].shape[-1] == 7,
+            "depth": "depth" not in obs or obs["depth"].shape == obs["image"].shape[:2]}
+  wrong = [k for k, ok in shapes.items() if not ok]
+  if wrong:
+    k = wrong[0]
+    raise bad(f"{k} has shape {obs[k].shape}; expected voxels (32, 32, 32), image "
+              "(H, W, 3), trajectories (P, T, 7), depth (H, W)")
+  if obs["image"].dtype != np.uint8 or not np.isin(obs["voxels"], (0, 1)).all():
+    raise bad("expected a uint8 image and voxels of 0 or 1")
+  if not all(np.all(np.isfinite(obs[k])) for k in ("trajectories", "depth") if k in obs):
+    raise bad("trajectories or depth contain NaN or inf")
+  true = Primitives(*[z[f"true_{f}"] for f in primitives.FIELDS])
   try:
-    with np.load(path) as z:
-      obs = {k: z[k] for k in OBS_KEYS + (("depth",) if "depth" in z.files else ())}
-      true = Primitives(*[z[f"true_{f}"] for f in primitives.FIELDS])
-  except (OSError, KeyError, ValueError) as e:
-    raise DatasetError(f"{path} is not a readable example tower: {e}") from e
+    true.validate()
+  except ValueError as e:
+    raise bad(f"its true boxes: {e}") from e
   return obs, true
 
 
 def load_camera(path: str) -> dict | None:
   """The camera of an example's depth image (None for an example saved without one), with
-  its "light_dir" where it was saved (else `camera.check_camera` gives the datasets')."""
+  its "light_dir" where it was saved (else `camera.check_camera` gives the datasets').
+  Raises DatasetError naming the file for a broken camera (`camera.check_camera`)."""
+  z = read_npz(path, "example tower", error=DatasetError, missing=MissingFileError)
+  if "camera_size" not in z:
+    return None
   try:
-    with np.load(path) as z:
-      if "camera_size" not in z.files:
-        return None
-      (h, w), k, pose = z["camera_size"], z["camera_intrinsics"], z["camera_from_world"]
-      light = z["camera_light_dir"] if "camera_light_dir" in z.files else False
-  except (OSError, KeyError, ValueError) as e:
-    raise DatasetError(f"{path} is not a readable example tower: {e}") from e
-  cam = {"height": int(h), "width": int(w), "intrinsics": k, "camera_from_world": pose}
-  if light is not False:
-    cam["light_dir"] = None if light.size == 0 else light
+    (h, w), k, pose = z["camera_size"], z["camera_intrinsics"], z["camera_from_world"]
+    cam = {"height": int(h), "width": int(w), "intrinsics": k, "camera_from_world": pose}
+    if "camera_light_dir" in z:
+      light = z["camera_light_dir"]
+      cam["light_dir"] = None if light.size == 0 else light
+    check_camera(cam, z["depth"].shape if "depth" in z else None)
+  except (KeyError, TypeError, ValueError) as e:
+    raise DatasetError(f"{path} is not a readable example tower: its camera: "
+                       f"{type(e).__name__}: {e}") from e
   return cam
 
 
@@ -74,10 +105,14 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int | Non
       image fit's and the depth fit's).
     out: the PNG to write: the input image, the recovered boxes coloured by density and
       the truth.
-    samples: density candidates (None: the config's).
+    samples: density candidates, an int >= 1 (None: the config's).
     config: the decomposition settings (None: the model's own, `make_decompose_fn`'s
       default).
     seed: sampling seed.
+
+  Raises:
+    ValueError for `samples`; DatasetError (CheckpointError) naming a missing or broken
+    example (model) file.
 
   Returns:
     {"densities": recovered kg/m³ of the valid boxes (bottom to top), "true_densities",
@@ -86,8 +121,11 @@ def decompose_example(model_dir: str, example: str, out: str, samples: int | Non
      call (its compilation included), "path", "engine" (the one that simulated the
      candidates: on a CPU MuJoCo C, else the JAX engine of the model's training data)}.
   """
+  if samples is not None and (isinstance(samples, bool) or not isinstance(samples, int)
+                              or samples < 1):
+    raise ValueError(f"samples must be a whole number >= 1 or None, got {samples!r}")
+  obs, true = load_example(example)  # the cheap file first: a bad one is named at once
   trained = checkpoints.load(model_dir)
-  obs, true = load_example(example)
   config = model_settings(trained) if config is None else config
   if samples is not None:
     config = config.replace(**{"select.samples": samples})

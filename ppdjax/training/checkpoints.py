@@ -6,7 +6,8 @@ training data: what `make_decompose_fn(workdir)` runs), `checkpoints/` (the last
 model and optimizer, for exact resume) and `best/` (the model with the lowest validation
 loss). `export` writes a model to ship instead: `config.json`, `decompose.json`,
 `export.json` and its weights as `weights-NN.npz` files of bounded size; `load` reads both
-layouts.
+layouts. A missing file raises `MissingFileError` (a CheckpointError and a
+FileNotFoundError), any other problem `CheckpointError` (a ValueError), naming the file.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import orbax.checkpoint as ocp
 from flax import nnx
 
 from ppdjax.configs import schema
+from ppdjax.dataset.readers import read_json, read_npz
 from ppdjax.nn.model import PPD
 
 LATEST, BEST = "checkpoints", "best"
@@ -32,6 +34,10 @@ DECOMPOSE_FILE = "decompose.json"
 
 class CheckpointError(ValueError):
   """A workdir without a usable checkpoint or config."""
+
+
+class MissingFileError(CheckpointError, FileNotFoundError):
+  """A workdir, checkpoint or weights file that is not there."""
 
 
 def managers(workdir: str, keep: int) -> tuple[ocp.CheckpointManager, ocp.CheckpointManager]:
@@ -136,25 +142,26 @@ def read_decompose(workdir: str) -> dict | None:
   path = os.path.join(workdir, DECOMPOSE_FILE)
   if not os.path.exists(path):
     return None
+  record = read_json(path, error=CheckpointError, missing=MissingFileError)
   try:
-    with open(path) as f:
-      record = json.load(f)
     return {"config": DecomposeConfig.from_dict(record["config"]), "camera": record["camera"]}
-  except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-    raise CheckpointError(f"{path} is corrupt: {e}") from e
+  except (KeyError, TypeError, ValueError) as e:
+    raise CheckpointError(f"{path} is corrupt: {type(e).__name__}: {e}") from e
 
 
 def read_config(workdir: str) -> ml_collections.ConfigDict:
   """A run's config.json through the schema: keys it predates take the behaviour they
   had (`schema.complete`); an unknown or ill-typed key is named."""
+  if not isinstance(workdir, (str, os.PathLike)):
+    raise CheckpointError(f"expected a model folder (a path), got {type(workdir).__name__}")
   path = os.path.join(workdir, "config.json")
+  if not os.path.isdir(workdir):
+    raise (CheckpointError(f"{workdir} is a file, not a model folder or training workdir")
+           if os.path.exists(workdir) else
+           MissingFileError(f"{workdir}: no such model folder or training workdir"))
   if not os.path.exists(path):
-    raise CheckpointError(f"{workdir} is not a training workdir: {path} is missing")
-  try:
-    with open(path) as f:
-      saved = _lists_to_tuples(json.load(f))
-  except json.JSONDecodeError as e:
-    raise CheckpointError(f"{path} is corrupt: {e}") from e
+    raise MissingFileError(f"{workdir} is not a training workdir: {path} is missing")
+  saved = _lists_to_tuples(read_json(path, error=CheckpointError, missing=MissingFileError))
   try:
     return schema.complete_saved(saved)
   except schema.ConfigError as e:
@@ -171,40 +178,85 @@ def load(workdir: str, which: str = "best"):
   """The trained model of a workdir, in eval mode, and its config.
 
   Args:
-    workdir: a directory written by `python -m ppdjax.train`, or a model written by
-      `export` (such as the one shipped in assets/).
-    which: "best" (lowest validation loss) or "latest".
+    workdir: a directory written by `python -m ppdjax.train` (config.json beside best/ and
+      checkpoints/), or a model written by `export` (config.json, export.json and
+      weights-NN.npz files, such as those shipped in assets/).
+    which: "best" (lowest validation loss) or "latest"; an export has one model.
 
   Returns:
     (model, config): a `ppdjax.nn.model.PPD` and the run's ConfigDict.
 
   Raises:
-    CheckpointError naming what is missing.
+    MissingFileError (a CheckpointError and a FileNotFoundError) naming what is missing;
+    CheckpointError naming a corrupt file, or the first array whose stored shape is not
+    the one config.json's model has (a config.json from another model).
   """
   if which not in (BEST, "latest"):
-    raise ValueError(f"which must be 'best' or 'latest', got {which!r}")
+    raise CheckpointError(f"which must be 'best' or 'latest', got {which!r}")
   config = read_config(workdir)
   if os.path.exists(os.path.join(workdir, EXPORT)):
     return _load_export(workdir, config), config
   folder = os.path.join(os.path.abspath(workdir), BEST if which == BEST else LATEST)
   if not os.path.isdir(folder):
-    raise CheckpointError(f"{workdir} has no checkpoint: {folder} is missing")
-  manager = ocp.CheckpointManager(folder, item_names=("model",) if which == BEST else
-                                  ("model", "optimizer"),
+    raise MissingFileError(f"{workdir} has no checkpoint: {folder} is missing")
+  names = ("model",) if which == BEST else ("model", "optimizer")
+  manager = ocp.CheckpointManager(folder, item_names=names,
+                                  item_handlers={n: ocp.StandardCheckpointHandler()
+                                                 for n in names},
                                   options=ocp.CheckpointManagerOptions(create=False))
   try:
     step = manager.latest_step()
     if step is None:
       raise CheckpointError(f"{workdir} has no checkpoint: {folder} is empty")
     graphdef, abstract = _abstract_model(config)
+    stored = _stored_shapes(manager, step)
+    if stored is not None:  # checked first: orbax restores the stored shapes silently
+      _check_shapes(abstract, stored, workdir, f"{folder}/{step}")
     state = restore(manager, step, model=abstract)["model"]
   finally:
     manager.close()
   return nnx.merge(graphdef, state), config  # call sites pass train=False unless training
 
 
+def _stored_shapes(manager, step: int) -> dict | None:
+  """{'a/b/0': shape} of a checkpoint's model from its metadata; None where the metadata
+  cannot be read (restoring then names the unreadable file)."""
+  try:
+    leaves = jax.tree_util.tree_leaves_with_path(manager.item_metadata(step)["model"])
+  except Exception:  # pylint: disable=broad-except
+    return None
+  key = lambda k: str(getattr(k, "key", getattr(k, "idx", k)))
+  return {"/".join(key(k) for k in path): tuple(leaf.shape) for path, leaf in leaves
+          if hasattr(leaf, "shape")} or None
+
+
+def _check_shapes(abstract, stored: dict, workdir: str, weights: str) -> None:
+  """CheckpointError unless the weights in `weights` have exactly the arrays and shapes
+  of the model config.json describes: a config.json copied from another model would
+  otherwise load arrays of the wrong shape and fail far from here (inside an einsum)."""
+  want = {k: tuple(v.shape) for k, v in _flat(nnx.to_pure_dict(abstract)).items()}
+  config = os.path.join(workdir, "config.json")
+  differ = [k for k in sorted(want) if k in stored and tuple(stored[k]) != want[k]]
+  if differ:
+    k = differ[0]
+    raise CheckpointError(
+        f"{config} does not match the weights: array {k} is {tuple(stored[k])} in {weights} "
+        f"but {want[k]} in the model config.json describes ({len(differ)} of {len(want)} "
+        "arrays differ); use the config.json saved with these weights")
+  lacks, extra = sorted(set(want) - set(stored)), sorted(set(stored) - set(want))
+  why = ([f"its model has {len(lacks)} arrays the weights lack ({', '.join(lacks[:3])})"]
+         if lacks else []) + ([f"the weights hold {len(extra)} arrays its model lacks "
+                               f"({', '.join(extra[:3])})"] if extra else [])
+  if why:
+    raise CheckpointError(f"{config} does not match the weights in {weights}: "
+                          f"{'; '.join(why)}; use the config.json saved with these weights")
+
+
 def _abstract_model(config):
-  return nnx.split(nnx.eval_shape(lambda: PPD(config.model, rngs=nnx.Rngs(0))))
+  try:
+    return nnx.split(nnx.eval_shape(lambda: PPD(config.model, rngs=nnx.Rngs(0))))
+  except (ValueError, TypeError) as e:  # a config whose model cannot be built
+    raise CheckpointError(f"config.model describes no model that can be built: {e}") from e
 
 
 def _flat(tree, prefix=""):
@@ -265,27 +317,34 @@ def export(workdir: str, out: str, *, dtype: str = "float16", max_file_mb: float
 
 
 def _load_export(folder: str, config):
-  with open(os.path.join(folder, EXPORT)) as f:
-    record = json.load(f)
+  """The model of an export folder: export.json, the files' sums and the shapes checked."""
+  path = os.path.join(folder, EXPORT)
+  record = read_json(path, error=CheckpointError, missing=MissingFileError)
+  entries = record.get("files")
+  if not (isinstance(entries, list) and entries and all(
+      isinstance(e, dict) and isinstance(e.get("name"), str) and "sha256" in e
+      for e in entries)):
+    raise CheckpointError(f"{path} is corrupt: 'files' must list the weights files, each "
+                          "with its name and sha256")
   arrays = {}
-  for entry in record["files"]:
-    path = os.path.join(folder, entry["name"])
-    if not os.path.exists(path):
-      raise CheckpointError(f"{folder}: weights file {entry['name']} is missing")
-    with open(path, "rb") as f:
+  for entry in entries:
+    file = os.path.join(folder, entry["name"])
+    if not os.path.exists(file):
+      raise MissingFileError(f"{folder}: weights file {entry['name']} is missing")
+    with open(file, "rb") as f:
       if hashlib.sha256(f.read()).hexdigest() != entry["sha256"]:
-        raise CheckpointError(f"{path} is corrupt (sha256 differs from {EXPORT})")
-    with np.load(path) as npz:
-      arrays.update({k: npz[k] for k in npz.files})
+        raise CheckpointError(f"{file} is corrupt (sha256 differs from {EXPORT})")
+    arrays.update(read_npz(file, "weights", error=CheckpointError, missing=MissingFileError))
   graphdef, abstract = _abstract_model(config)
-  pure = nnx.to_pure_dict(abstract)
-  missing = sorted(set(_flat(pure)) - set(arrays))
-  if missing:
-    raise CheckpointError(f"{folder} lacks weights for {missing[:3]} ({len(missing)} in all)")
+  _check_shapes(abstract, {k: v.shape for k, v in arrays.items()}, folder, folder)
+  bad = [k for k, v in arrays.items()
+         if np.issubdtype(v.dtype, np.floating) and not np.all(np.isfinite(v))]
+  if bad:  # a diverged run exported: its model would answer NaN
+    raise CheckpointError(f"{folder}: weights {bad[:3]} hold NaN or inf")
 
   def fill(tree, prefix=""):
     return {k: fill(v, f"{prefix}{k}/") if isinstance(v, dict)
             else jax.numpy.asarray(arrays[f"{prefix}{k}"], v.dtype) for k, v in tree.items()}
 
-  nnx.replace_by_pure_dict(abstract, fill(pure))
+  nnx.replace_by_pure_dict(abstract, fill(nnx.to_pure_dict(abstract)))
   return nnx.merge(graphdef, abstract)

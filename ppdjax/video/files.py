@@ -1,5 +1,6 @@
 """Reading what `python -m ppdjax.track` takes: a video file (OpenCV's FFmpeg reader), a
-camera JSON and a stickers JSON; each problem raises a ValueError naming the file.
+camera JSON and a stickers JSON; each problem raises a VideoFileError (a ValueError)
+naming the file, a missing file MissingFileError (also a FileNotFoundError).
 
   camera.json:   {"intrinsics": 3x3, "camera_from_world": 4x4}  (OpenCV camera axes)
   stickers.json: {"stickers": Nx3 (object frame, metres), "initial_pose": [px, py, pz,
@@ -13,19 +14,31 @@ and what it writes, which `python -m ppdjax.decompose --trajectory` reads:
 
 from __future__ import annotations
 
-import json
 import os
 
 import cv2
 import numpy as np
 
 from ppdjax.conventions import TIMESTEP
+from ppdjax.dataset.readers import read_json, read_npz
+
+QUAT_TOL = 1e-3  # |q| - 1 allowed in a file (track_poses' initial_pose check)
+
+
+class VideoFileError(ValueError):
+  """A video, camera, stickers or trajectory file that cannot be used (names the file)."""
+
+
+class MissingFileError(VideoFileError, FileNotFoundError):
+  """A file that is not there."""
 
 
 def read_video(path: str) -> tuple[np.ndarray, float]:
-  """(T, H, W, 3) uint8 RGB frames and the file's frame rate."""
+  """(T, H, W, 3) uint8 RGB frames (T >= 2) and the file's frame rate (frames/s; 0 or
+  less where the container does not say). Any format OpenCV's FFmpeg reader takes."""
   if not os.path.isfile(path):
-    raise ValueError(f"{path}: no such video file")
+    raise (VideoFileError(f"{path}: a directory, not a video file") if os.path.isdir(path)
+           else MissingFileError(f"{path}: no such video file"))
   capture = cv2.VideoCapture(path)
   frames = []
   try:
@@ -38,60 +51,81 @@ def read_video(path: str) -> tuple[np.ndarray, float]:
   finally:
     capture.release()
   if len(frames) < 2:
-    raise ValueError(f"{path}: not a readable video (got {len(frames)} frames)")
+    raise VideoFileError(f"{path}: not a readable video (got {len(frames)} frames)")
   return np.stack(frames), fps
 
 
-def _read_json(path: str, keys: tuple[str, ...]) -> dict:
-  try:
-    with open(path) as f:
-      data = json.load(f)
-  except FileNotFoundError:
-    raise ValueError(f"{path}: no such file") from None
-  except json.JSONDecodeError as e:
-    raise ValueError(f"{path}: not valid JSON ({e})") from None
-  missing = [k for k in keys if not isinstance(data, dict) or k not in data]
+def _read_json(path: str, shapes: dict[str, tuple]) -> dict:
+  """The arrays named by `shapes` ({key: shape, -1 any length}) from a JSON object."""
+  data = read_json(path, error=VideoFileError, missing=MissingFileError)
+  missing = [k for k in shapes if k not in data]
   if missing:
-    raise ValueError(f"{path}: missing {', '.join(missing)}")
-  try:
-    return {k: np.asarray(data[k], np.float64) for k in keys}
-  except (TypeError, ValueError):
-    raise ValueError(f"{path}: {', '.join(keys)} must be arrays of numbers") from None
+    raise VideoFileError(f"{path}: missing {', '.join(missing)}")
+  out = {}
+  for k, shape in shapes.items():
+    try:
+      out[k] = np.asarray(data[k], np.float64)
+    except (TypeError, ValueError):
+      raise VideoFileError(f"{path}: {k} must be an array of numbers") from None
+    if out[k].ndim != len(shape) or any(n not in (-1, m) for n, m in zip(shape, out[k].shape)):
+      want = "(" + ", ".join("N" if n == -1 else str(n) for n in shape) + ")"
+      raise VideoFileError(f"{path}: {k} must be {want}, got shape {out[k].shape}")
+    if not np.all(np.isfinite(out[k])):
+      raise VideoFileError(f"{path}: {k} contains NaN or inf")
+  return out
 
 
 def read_camera(path: str) -> tuple[np.ndarray, np.ndarray]:
-  """(3, 3) intrinsics and (4, 4) camera_from_world (shapes are checked by track_poses)."""
-  d = _read_json(path, ("intrinsics", "camera_from_world"))
+  """(3, 3) intrinsics (pixels) and (4, 4) camera_from_world (metres, OpenCV axes) from a
+  JSON object; shapes and finiteness are checked here, the values by track_poses."""
+  d = _read_json(path, {"intrinsics": (3, 3), "camera_from_world": (4, 4)})
   return d["intrinsics"], d["camera_from_world"]
 
 
 def read_stickers(path: str) -> tuple[np.ndarray, np.ndarray]:
-  """(N, 3) sticker centres and the (7,) pose at rest."""
-  d = _read_json(path, ("stickers", "initial_pose"))
+  """(N, 3) sticker centres (object frame, metres) and the (7,) pose at rest (world frame,
+  quaternion w, x, y, z of unit norm) from a JSON object."""
+  d = _read_json(path, {"stickers": (-1, 3), "initial_pose": (7,)})
+  _check_quaternions(path, "initial_pose", d["initial_pose"][None])
   return d["stickers"], d["initial_pose"]
 
 
+def _check_quaternions(path: str, name: str, poses_Nx7: np.ndarray) -> None:
+  """Unit quaternions (w, x, y, z) in columns 3:7, else VideoFileError naming the first
+  bad row: a zero quaternion is no rotation at all and fails later inside scipy."""
+  norm = np.linalg.norm(poses_Nx7[:, 3:7], axis=-1)
+  bad = np.flatnonzero(np.abs(norm - 1) > QUAT_TOL)
+  if bad.size:
+    where = f"{name} row {bad[0]}" if len(poses_Nx7) > 1 else name
+    raise VideoFileError(f"{path}: {where} has a quaternion of norm {norm[bad[0]]:.4g} "
+                         f"({bad.size} such); poses hold unit quaternions (w, x, y, z)")
+
+
 def read_trajectory(path: str) -> tuple[np.ndarray, np.ndarray]:
-  """(T, 7) tracked world poses and the (7,) pose at rest from a `ppdjax.track` .npz."""
-  if not os.path.isfile(path):
-    raise ValueError(f"{path}: no such trajectory file")
-  try:
-    with np.load(path) as f:
-      data = {k: np.asarray(f[k], np.float64) for k in ("trajectory", "dt", "initial_pose")
-              if k in f}
-  except (OSError, ValueError) as e:
-    raise ValueError(f"{path}: not a readable .npz ({e})") from None
-  missing = [k for k in ("trajectory", "dt", "initial_pose") if k not in data]
+  """(T, 7) tracked world poses (px, py, pz in metres, then a unit quaternion w, x, y, z)
+  at the simulator's dt, and the (7,) pose at rest, from a `ppdjax.track` .npz (arrays
+  "trajectory", "dt" in seconds, "initial_pose")."""
+  raw = read_npz(path, "trajectory", error=VideoFileError, missing=MissingFileError)
+  missing = [k for k in ("trajectory", "dt", "initial_pose") if k not in raw]
   if missing:
-    raise ValueError(f"{path}: missing {', '.join(missing)} (written by python -m ppdjax.track)")
+    raise VideoFileError(f"{path}: missing {', '.join(missing)} (written by python -m "
+                         "ppdjax.track)")
+  try:
+    data = {k: np.asarray(raw[k], np.float64) for k in ("trajectory", "dt", "initial_pose")}
+  except (TypeError, ValueError) as e:
+    raise VideoFileError(f"{path}: trajectory, dt and initial_pose must be numbers") from e
   traj, pose0 = data["trajectory"], data["initial_pose"]
-  if traj.ndim != 2 or traj.shape[1] != 7 or pose0.shape != (7,):
-    raise ValueError(f"{path}: expected trajectory (T, 7) and initial_pose (7,), got "
-                     f"{traj.shape} and {pose0.shape}")
+  if traj.ndim != 2 or traj.shape[1] != 7 or len(traj) < 1 or pose0.shape != (7,):
+    raise VideoFileError(f"{path}: expected trajectory (T, 7) with T >= 1 and initial_pose "
+                         f"(7,), got {traj.shape} and {pose0.shape}")
   if not (np.all(np.isfinite(traj)) and np.all(np.isfinite(pose0))):
-    raise ValueError(f"{path}: trajectory or initial_pose contains NaN or inf")
-  if abs(float(data["dt"]) - TIMESTEP) > 1e-9:
-    raise ValueError(f"{path}: dt is {float(data['dt'])} s; the simulator's is {TIMESTEP} s")
+    raise VideoFileError(f"{path}: trajectory or initial_pose contains NaN or inf")
+  dt = data["dt"].ravel()
+  if dt.size != 1 or abs(dt[0] - TIMESTEP) > 1e-9:
+    shown = f"{dt[0]:g} s" if dt.size == 1 else f"an array of shape {data['dt'].shape}"
+    raise VideoFileError(f"{path}: dt is {shown}; the simulator's is {TIMESTEP} s")
+  _check_quaternions(path, "trajectory", traj)
+  _check_quaternions(path, "initial_pose", pose0[None])
   return traj, pose0
 
 
@@ -103,10 +137,11 @@ def tracked_observation(path: str, config, rest_height: float) -> np.ndarray:
   traj, initial_pose = read_trajectory(path)
   steps, pushes = int(config.data.steps), int(config.model.num_pushes)
   if pushes != 1:
-    raise ValueError(f"the model reads {pushes} pushes per object; {path} holds one tracked "
-                     "trajectory: use a model trained on one strike (assets/video_model)")
+    raise VideoFileError(f"the model reads {pushes} pushes per object; {path} holds one "
+                         "tracked trajectory: use a model trained on one strike "
+                         "(assets/video_model)")
   if len(traj) < steps:
-    raise ValueError(f"{path}: {len(traj)} steps tracked, the model reads {steps}: film "
-                     "longer or track with --steps")
+    raise VideoFileError(f"{path}: {len(traj)} steps tracked, the model reads {steps}: film "
+                         "longer or track with --steps")
   return pose.relative_to_rest(traj[:steps], initial_pose, np.array([0.0, 0.0, rest_height])
                                )[None]
