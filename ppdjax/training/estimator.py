@@ -26,6 +26,7 @@ from flax import nnx
 from tqdm.auto import tqdm
 
 from ppdjax.dataset.physics_stream import simulate_pool
+from ppdjax.dataset.readers import read_json, read_npz
 from ppdjax.nn.estimator import DensityEstimator, slot_targets
 from ppdjax.training.checkpoints import CheckpointError
 
@@ -232,8 +233,9 @@ def load(folder: str) -> tuple[DensityEstimator, ml_collections.ConfigDict]:
   if not os.path.exists(cfg_path):
     raise CheckpointError(f"{folder} holds no trained density estimator ({CONFIG} and "
                           f"{WEIGHTS}); train one with python -m ppdjax.train_estimator")
-  with open(cfg_path) as f:
-    record = json.load(f)
+  record = read_json(cfg_path, error=CheckpointError, missing=CheckpointError)
+  if not isinstance(record.get("config"), dict):
+    raise CheckpointError(f"{cfg_path} is corrupt: it lacks the estimator's 'config'")
   if "sha256" not in record or not os.path.exists(path):
     raise CheckpointError(f"{folder}: {WEIGHTS} is missing (the run did not finish; run "
                           "python -m ppdjax.train_estimator again to resume)")
@@ -245,12 +247,18 @@ def load(folder: str) -> tuple[DensityEstimator, ml_collections.ConfigDict]:
   model = DensityEstimator(e, rngs=nnx.Rngs(params=0))
   state = nnx.state(model, nnx.Param)
   pure = nnx.to_pure_dict(state)
-  with np.load(path) as z:
-    arrays = {k: z[k] for k in z.files}
+  arrays = read_npz(path, "density estimator weights", error=CheckpointError,
+                    missing=CheckpointError)
   flat = _flatten(pure)
   missing = ["/".join(map(str, k)) for k in flat if "/".join(map(str, k)) not in arrays]
   if missing:
     raise CheckpointError(f"{path} lacks weights for {missing[:3]}")
+  differ = [k for k in flat if arrays["/".join(map(str, k))].shape != tuple(flat[k].shape)]
+  if differ:
+    k = "/".join(map(str, differ[0]))
+    raise CheckpointError(f"{path} does not match {cfg_path}: {k} is "
+                          f"{arrays[k].shape} in the weights, {tuple(flat[differ[0]].shape)} "
+                          "in the model the config describes")
 
   def fill(tree, prefix=()):
     return {k: fill(v, prefix + (k,)) if isinstance(v, dict)
