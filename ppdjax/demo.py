@@ -16,14 +16,8 @@ import concurrent.futures
 import os
 import time
 
-# The demo is bound by compilation on a CPU: without LLVM's expensive passes its programs
-# compile about a quarter faster and run as fast (MJX's rollouts: 29 s instead of 39). Set
-# before JAX makes its backend, for this process only.
-os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
-                           " --xla_llvm_disable_expensive_passes=true").strip()
-
-from absl import app, flags, logging  # noqa: E402
-from ml_collections import config_flags  # noqa: E402
+from absl import app, flags, logging
+from ml_collections import config_flags
 
 _CONFIG = config_flags.DEFINE_config_file("config", "ppdjax/configs/tiny.py", "Preset file.")
 _OUT = flags.DEFINE_string("out", "out/demo", "Output directory.")
@@ -34,6 +28,11 @@ _EXAMPLE = flags.DEFINE_string("example", "assets/blocks_example.npz", "The towe
 def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
+  import jax
+  if not jax.config.jax_compilation_cache_dir:  # as `ppdjax.evaluate`: a rerun compiles
+    # little, and the smoke run's last decompose finds the evaluation's program
+    jax.config.update("jax_compilation_cache_dir",
+                      os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   from ppdjax import showcase
   from ppdjax.infer import example
   config, out = _CONFIG.value, _OUT.value
