@@ -137,6 +137,10 @@ def test_simulate_refuses_unstable_densities_and_names_a_diverged_rollout():
   for backend in ("mjx", "box_plane", "mujoco"):  # refused before anything compiles
     with pytest.raises(ValueError, match=r"densities must lie in \[100, 10000\]"):
       ppdjax.simulate(light, backend=backend)
+  # the ends as float32 refinement reaches them (exp(log(10,000)) = 10,000.001) are in range
+  ends = towers.replace(density=np.where(towers.valid, np.float32(np.exp(np.float32(
+      np.log(10000.0)))), towers.density))
+  assert np.asarray(ppdjax.simulate(ends, backend="mujoco")).shape[:2] == (2, 4)
   # the C engine itself, below the range: MuJoCo stops the rollout, and it is named
   with pytest.raises(rollout_mujoco.UnstableRollout, match=r"object \(\d,\) under push \d at "
                      r"step \d+"):

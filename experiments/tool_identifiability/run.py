@@ -72,7 +72,10 @@ def study_tool(tool) -> dict | None:
     return None
   off = lambda traj: None if traj is None else distance_mm(traj, seen)
   prims, _ = boxes_of_parts(parts, dens)
-  boxes = np.asarray(ppdjax.simulate(prims, tool_scene.tool_pushes(), backend="mujoco"))
+  try:
+    boxes = np.asarray(ppdjax.simulate(prims, tool_scene.tool_pushes(), backend="mujoco"))
+  except RuntimeError:  # rollout_mujoco.UnstableRollout: MuJoCo diverged on the boxes
+    return None
   mass = np.asarray([p.volume for p in parts]) * dens
   out = {"category": tool.category, "mismatch_mm": distance_mm(boxes, seen),
          "moved_mm": distance_mm(seen, np.broadcast_to(seen[:, :1], seen.shape)), "parts": []}

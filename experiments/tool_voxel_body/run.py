@@ -85,7 +85,10 @@ def study_tool(tool) -> dict | None:
   except RuntimeError:
     return None
   prims, _ = boxes_of_parts(parts, dens)
-  boxes = np.asarray(ppdjax.simulate(prims, tool_scene.tool_pushes(), backend="mujoco"))
+  try:
+    boxes = np.asarray(ppdjax.simulate(prims, tool_scene.tool_pushes(), backend="mujoco"))
+  except RuntimeError:  # rollout_mujoco.UnstableRollout: MuJoCo diverged on the boxes
+    return None
   return {"category": tool.category, "voxel_boxes": len(body),
           "moved_mm": distance_mm(seen, np.broadcast_to(seen[:, :1], seen.shape)),
           "box_mass_ratio": float(ppdjax.mass_properties(prims).mass) / tool_mass,

@@ -165,7 +165,8 @@ def _face_axes_where_tied(parts, spreads, axes) -> np.ndarray:
     if not inside.any():
       continue
     direction, weight = _directions(normals[inside], area[inside])
-    first = direction[np.argmax(weight)]
+    first = basis @ (basis.T @ direction[np.argmax(weight)])  # exactly in the group's span
+    first = first / np.linalg.norm(first)
     chosen = [first]
     if len(group) == 3:
       across = np.abs(direction @ first) < PARALLEL

@@ -270,6 +270,9 @@ class Dataset:
 
   def __getitem__(self, i: int) -> dict:
     # bool is an int to Python, and a float used to be cut to an int here: both refused
+    if not isinstance(i, numbers.Integral) and np.ndim(i) == 0 and np.issubdtype(
+        np.asarray(i).dtype, np.integer):
+      i = int(i)  # a 0-d integer array (NumPy's or JAX's)
     if isinstance(i, (bool, np.bool_)) or not isinstance(i, numbers.Integral):
       raise TypeError(f"a dataset index must be an int, got {i!r} ({type(i).__name__}); "
                       "take(indices) reads several samples")
