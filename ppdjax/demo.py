@@ -30,7 +30,7 @@ def main(argv):
   logging.set_verbosity(logging.WARNING)
   import jax
   if not jax.config.jax_compilation_cache_dir:  # as `ppdjax.evaluate`: a rerun compiles
-    # little, and the smoke run's last decompose finds the evaluation's program
+    # little, and the smoke run's last decompose can find the evaluation's program
     jax.config.update("jax_compilation_cache_dir",
                       os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   from ppdjax import showcase
