@@ -16,7 +16,7 @@ import pytest
 import ppdjax  # noqa: F401  pylint: disable=unused-import  (the package first: it sets up JAX as every test has it)
 from ppdjax.configs import tiny
 from ppdjax.conventions import TIMESTEP
-from ppdjax.dataset import storage
+from ppdjax.dataset import batching, storage
 from ppdjax.infer import example
 from ppdjax.primitives import Primitives
 from ppdjax.training import checkpoints
@@ -255,17 +255,17 @@ def test_batches_larger_than_the_split_are_refused_unless_asked_for(tmp_path):
   train = storage.open_dataset(str(tmp_path), "train")
   with pytest.raises(ValueError, match=r"batch_size=5 is larger than the 4 samples of "
                                        r"split 'train' of .*drop_remainder=False"):
-    next(storage.batches(train, 5, seed=0))
-  (only,) = storage.batches(train, 5, seed=0, drop_remainder=False)
+    next(batching.batches(train, 5, seed=0))
+  (only,) = batching.batches(train, 5, seed=0, drop_remainder=False)
   assert sorted(only["tower_id"]) == [0, 1, 2, 3]
-  assert len(list(storage.batches(train, 4, seed=0))) == 1
+  assert len(list(batching.batches(train, 4, seed=0))) == 1
   for kwargs, message in [(dict(batch_size=2.0), "batch_size must be a whole number >= 1"),
                           (dict(seed=-1), "seed must be a whole number >= 0"),
                           (dict(start=-1), "start must be"), (dict(start=3), "start=3 is past"),
                           (dict(epoch=0.5), "epoch must be")]:
     args = {"batch_size": 2, "seed": 0, **kwargs}
     with pytest.raises(ValueError, match=message):
-      next(storage.batches(train, args.pop("batch_size"), **args))
+      next(batching.batches(train, args.pop("batch_size"), **args))
 
 
 # ---- models: config.json, export.json, weights ---------------------------------------------

@@ -8,7 +8,7 @@ import pytest
 
 import ppdjax  # noqa: F401
 from ppdjax.configs import tiny
-from ppdjax.dataset import generation, storage
+from ppdjax.dataset import batching, generation, storage
 
 
 def small_config(**overrides):
@@ -153,26 +153,26 @@ def test_flipped_voxel_bytes_are_caught_when_a_shard_is_first_read(dataset_dir, 
 
 def test_loader_is_deterministic_and_streams(dataset_dir):
   ds = storage.open_dataset(dataset_dir)
-  a = list(storage.batches(ds, 8, seed=3))
-  b = list(storage.batches(ds, 8, seed=3))
-  c = list(storage.batches(ds, 8, seed=3, epoch=1))
+  a = list(batching.batches(ds, 8, seed=3))
+  b = list(batching.batches(ds, 8, seed=3))
+  c = list(batching.batches(ds, 8, seed=3, epoch=1))
   assert len(a) == 8 and a[0]["image"].shape == (8, 64, 64, 3)
   assert a[0]["primitives"].density.shape == (8, 5)
   assert all(np.array_equal(x["tower_id"], y["tower_id"]) for x, y in zip(a, b))
   assert not all(np.array_equal(x["tower_id"], y["tower_id"]) for x, y in zip(a, c))
-  resumed = list(storage.batches(ds, 8, seed=3, start=2))
+  resumed = list(batching.batches(ds, 8, seed=3, start=2))
   assert np.array_equal(resumed[0]["tower_id"], a[2]["tower_id"])
   seen = np.concatenate([x["tower_id"] for x in a])
   assert len(seen) == len(ds)
   with pytest.raises(ValueError, match="batch_size"):
-    next(storage.batches(ds, 0, seed=0))
+    next(batching.batches(ds, 0, seed=0))
   # a batch equals its samples read one by one; a slice per process, and chosen keys only
   rows = np.random.default_rng([3, 0]).permutation(len(ds))[:8]
   for i, r in enumerate(rows):
     s = ds[int(r)]
     assert np.array_equal(a[0]["image"][i], s["image"])
     assert np.array_equal(a[0]["primitives"].quat[i], s["primitives"].quat)
-  half = next(storage.batches(ds, 8, seed=3, part=(1, 2), keys=("trajectories",)))
+  half = next(batching.batches(ds, 8, seed=3, part=(1, 2), keys=("trajectories",)))
   assert set(half) == {"trajectories"}
   assert np.array_equal(half["trajectories"], a[0]["trajectories"][4:])
 

@@ -14,7 +14,7 @@ from flax import nnx
 from ppdjax import load, metrics
 from ppdjax.configs import tiny
 from ppdjax.conventions import OBS_KEYS
-from ppdjax.dataset import storage
+from ppdjax.dataset import batching, storage
 from ppdjax.training import checkpoints, loader, loop
 from ppdjax.training import state as train_state
 
@@ -139,7 +139,7 @@ def test_overfits_sixteen_samples(tiny_dataset):
   config.model.dropout = 0.0
   config.train.learning_rate = 3e-3
   ds = storage.open_dataset(tiny_dataset, "train")
-  batch = jax.tree.map(jnp.asarray, loader.model_inputs(next(storage.batches(ds, 16, seed=0))))
+  batch = jax.tree.map(jnp.asarray, loader.model_inputs(next(batching.batches(ds, 16, seed=0))))
   graphdef, state = nnx.split(train_state.build(config))
   t, weights = config.train, train_state.loss_weights(config.train)
   step = jax.jit(lambda s, b, i: train_state.train_step(graphdef, s, b, i, 0.5, t))
@@ -192,14 +192,14 @@ def test_per_device_batch_norm_averages_each_devices_step(tiny_dataset):
   code = f"""
 import jax, jax.numpy as jnp, numpy as np, tempfile
 from flax import nnx
-from ppdjax.dataset import storage
+from ppdjax.dataset import batching, storage
 from ppdjax.training import loader, state as ts
 from tests.test_train import short_config
 config = short_config()
 config.model.dropout = 0.0
 config.train.update(batch_size=8, batch_norm="per_device")
 ds = storage.open_dataset({tiny_dataset!r}, "train")
-batch = jax.tree.map(jnp.asarray, loader.model_inputs(next(storage.batches(ds, 8, seed=0))))
+batch = jax.tree.map(jnp.asarray, loader.model_inputs(next(batching.batches(ds, 8, seed=0))))
 graphdef, state = nnx.split(ts.build(config))
 halves = []
 for half in (slice(0, 4), slice(4, 8)):

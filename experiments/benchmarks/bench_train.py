@@ -50,7 +50,7 @@ def _rate(fn, steps, batch_size):
 def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
-  from ppdjax.dataset import storage
+  from ppdjax.dataset import batching, storage
   from ppdjax.training.loader import BATCH_KEYS, Loader
   from ppdjax.training.state import Trainer
 
@@ -82,7 +82,7 @@ def main(argv):
       model = _rate(model_only, FLAGS.steps, bs)
       full = _rate(pipeline, FLAGS.steps, bs)
       loader.close()
-      it = storage.batches(ds, bs, seed=1, keys=BATCH_KEYS)
+      it = batching.batches(ds, bs, seed=1, keys=BATCH_KEYS)
       read = _rate(lambda: next(it)["image"], min(FLAGS.steps, len(ds) // bs - 4), bs)
       trainer.close()
     row = {"batch_size": bs, "model_step_samples_s": round(model, 1),

@@ -20,7 +20,7 @@ import trimesh
 
 from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY, NUM_SLOTS, density_to_slot
 from ppdjax.dataset.materials import ALL_MATERIAL_NAMES, material_slots
-from ppdjax.dataset.meshes import check_solid, components, normalize, scene_parts, welded
+from ppdjax.dataset.meshes import check_solid, components, normalize, scene_parts
 from ppdjax.dataset.tools import Tool
 
 DEFAULT_MATERIAL = "wood"  # when neither materials nor densities are given (warned)
@@ -35,7 +35,6 @@ def _read_parts(path: str) -> tuple[list[trimesh.Trimesh], list[str]]:
     raise ValueError(f"cannot read {path!r} as a mesh ({type(e).__name__}: {e})") from e
   if isinstance(loaded, trimesh.Scene):
     parts, names = scene_parts(loaded)
-    parts = [welded(p) for p in parts]
   elif isinstance(loaded, trimesh.Trimesh):
     parts = components(loaded) if len(loaded.faces) else []
     names = [f"part{i}" for i in range(len(parts))] if len(parts) > 1 else ["part0"]

@@ -61,7 +61,7 @@ as the scene places them), or the given parts."""
   if isinstance(mesh, trimesh.Trimesh):
     return components(mesh) or [mesh]
   if isinstance(mesh, trimesh.Scene):
-    return [welded(p) for p in scene_parts(mesh)[0]]
+    return scene_parts(mesh)[0]
   parts = list(mesh) if isinstance(mesh, (list, tuple)) else []
   if not parts or not all(isinstance(p, trimesh.Trimesh) for p in parts):
     raise ValueError("expected a trimesh.Trimesh, a trimesh.Scene or a non-empty list of "
@@ -71,7 +71,7 @@ as the scene places them), or the given parts."""
 
 def scene_parts(scene: trimesh.Scene) -> tuple[list[trimesh.Trimesh], list[str]]:
   """(parts, node names): each triangle mesh of a scene where the scene places it, in the
-  file's order of geometries."""
+  file's order of geometries, its vertices merged by position (`welded`)."""
   parts, names = [], []
   order = {name: i for i, name in enumerate(scene.geometry)}
   nodes = sorted(scene.graph.nodes_geometry,
@@ -80,7 +80,7 @@ def scene_parts(scene: trimesh.Scene) -> tuple[list[trimesh.Trimesh], list[str]]
     transform, geometry = scene.graph[node]
     mesh = scene.geometry[geometry]
     if isinstance(mesh, trimesh.Trimesh) and len(mesh.faces):
-      parts.append(mesh.copy().apply_transform(transform))
+      parts.append(welded(mesh).apply_transform(transform))
       names.append(str(node))
   return parts, names
 

@@ -8,7 +8,7 @@ import threading
 import jax
 
 from ppdjax.conventions import OBS_KEYS
-from ppdjax.dataset import storage
+from ppdjax.dataset import batching
 from ppdjax.training import sharding
 
 BATCH_KEYS = OBS_KEYS + ("primitives",)  # what training reads from disk
@@ -42,7 +42,7 @@ class Loader:
     try:
       while not self._stop.is_set():
         epoch, index = divmod(step, self.per_epoch)
-        for batch in storage.batches(self.dataset, self.batch_size, seed=self.seed, epoch=epoch,
+        for batch in batching.batches(self.dataset, self.batch_size, seed=self.seed, epoch=epoch,
                                   start=index, part=self.part, keys=BATCH_KEYS):
           if self._stop.is_set():
             return

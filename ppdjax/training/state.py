@@ -12,7 +12,7 @@ from flax import nnx
 
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
-from ppdjax.dataset import storage, stream
+from ppdjax.dataset import batching, storage, stream
 from ppdjax.nn import losses
 from ppdjax.nn.model import PPD
 from ppdjax.nn.resnet import load_torchvision_weights
@@ -320,7 +320,7 @@ class Trainer:
       if bs == 0:
         raise ValueError(f"the validation split has {len(dataset)} samples, fewer than the "
                          f"{devices} devices")
-      batches = (model_inputs(b) for b in storage.batches(
+      batches = (model_inputs(b) for b in batching.batches(
           dataset, bs, seed=0, part=(jax.process_index(), jax.process_count()),
           keys=BATCH_KEYS))
     sums, aux_sum, n = None, None, 0
