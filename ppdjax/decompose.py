@@ -26,8 +26,13 @@ _MATERIALS = flags.DEFINE_string("materials", "", "Materials per part: name=mate
                                  "material for every part.")
 _DENSITIES = flags.DEFINE_string("densities", "", "Densities per part in kg/m^3 "
                                  "(name=value,... or one value); override --materials'.")
-_MODEL = flags.DEFINE_string("model", "", "Trained model folder (default: assets/tools_model; "
-                             "the block-tower model if that is missing).")
+_PROTOCOL = flags.DEFINE_enum(
+    "protocol", "realistic", ["realistic", "paper"], "Which shipped tools model (without "
+    "--model): 'realistic' (assets/tools_model: the mesh's parts are the body) or 'paper' "
+    "(assets/tools_paper_model: the paper's protocol, the mesh's boxes are the body, as "
+    "Table 3). The observation follows the model's own dataset either way.")
+_MODEL = flags.DEFINE_string("model", "", "Trained model folder (default: the --protocol's "
+                             "shipped tools model; the block-tower model if that is missing).")
 _OUT = flags.DEFINE_string("out", "out/decompose", "Output directory.")
 _ENGINE = flags.DEFINE_enum("engine", "", ["", "mjx", "box_plane"], "Engine that simulates "
                             "the boxes (default: the model's training engine).")
@@ -55,12 +60,19 @@ def _parse(text: str, number: bool):
   return out
 
 
-def default_model(tracked: bool = False) -> str:
+SHIPPED = {"realistic": "assets/tools_model", "paper": "assets/tools_paper_model"}
+
+
+def default_model(tracked: bool = False, protocol: str = "realistic") -> str:
+  """The shipped model for a tracked trajectory, or for tools of `protocol`."""
   if tracked:
     return "assets/video_model"
-  if os.path.isdir("assets/tools_model"):
-    return "assets/tools_model"
-  logging.warning("no tools model is shipped yet: decomposing with the block-tower model")
+  if protocol not in SHIPPED:
+    raise ValueError(f"protocol must be one of {tuple(SHIPPED)}, got {protocol!r}")
+  if os.path.isdir(SHIPPED[protocol]):
+    return SHIPPED[protocol]
+  logging.warning("%s is not shipped: decomposing with the block-tower model",
+                  SHIPPED[protocol])
   return "assets/blocks_model"
 
 
@@ -101,7 +113,7 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
 
   from ppdjax import load, load_object, make_decompose_fn
   from ppdjax.report import plots
-  from ppdjax.dataset import tool_generation, tool_scene
+  from ppdjax.dataset import tool_generation, tool_paper, tool_scene
   from ppdjax.dataset.mesh_boxes import boxes_of_parts
   from ppdjax.infer.config import DecomposeConfig
   from ppdjax.infer.decompose import model_camera
@@ -113,11 +125,24 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
         + ", ".join(f"{n} ({m}, {d:.0f} kg/m^3)" for n, m, d in
                     zip(tool.names, tool.materials, tool.densities)))
   pushes = tool_scene.tool_pushes(tool_generation.push_force(config.data))  # the model's data's
-  obs = tool_scene.observe(list(tool.parts), tool.materials, tool.densities,
-                           [seed] * len(tool.parts), image_size=int(config.data.image_size),
-                           steps=int(config.data.steps), pushes=pushes,
-                           trajectories=not trajectory)
-  truth, _ = boxes_of_parts(list(tool.parts), tool.densities)
+  protocol = tool_generation.protocol(config.data)
+  print(f"model {model}: " + (
+      "tools under the paper's protocol (the mesh's boxes are the body, each of the material "
+      "of the part it covers most)" if protocol == "paper" else
+      "realistic tools (the mesh's parts are the body)"))
+  if protocol == "paper":
+    # the boxes on the model's engine where JAX has an accelerator, else MuJoCo C
+    backend = config.data.backend if jax.default_backend() != "cpu" else "mujoco"
+    obs, truth = tool_paper.observe(
+        list(tool.parts), tool.materials, tool.densities, seed,
+        image_size=int(config.data.image_size), steps=int(config.data.steps), pushes=pushes,
+        backend=backend)
+  else:
+    obs = tool_scene.observe(list(tool.parts), tool.materials, tool.densities,
+                             [seed] * len(tool.parts), image_size=int(config.data.image_size),
+                             steps=int(config.data.steps), pushes=pushes,
+                             trajectories=not trajectory)
+    truth, _ = boxes_of_parts(list(tool.parts), tool.densities)
   if trajectory:
     from ppdjax.video.files import tracked_observation
     obs["trajectories"] = tracked_observation(trajectory, config, tool_scene.rest_height(
@@ -144,7 +169,7 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
     return [{"half_size": p.half_size[k].tolist(), "pos": p.pos[k].tolist(),
              "quat": p.quat[k].tolist(), "density": float(p.density[k])}
             for k in np.flatnonzero(np.asarray(p.valid))]
-  record = {"mesh": os.path.abspath(mesh), "model": model,
+  record = {"mesh": os.path.abspath(mesh), "model": model, "protocol": protocol,
             "transform_from_file": np.asarray(transform).tolist(),
             "parts": [{"name": n, "material": m, "density": float(d)} for n, m, d in
                       zip(tool.names, tool.materials, tool.densities)],
@@ -163,7 +188,7 @@ def main(argv):
   import jax
   jax.config.update("jax_compilation_cache_dir", os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   run(_MESH.value, _parse(_MATERIALS.value, number=False), _parse(_DENSITIES.value, number=True),
-      _MODEL.value or default_model(bool(_TRAJECTORY.value)), _OUT.value,
+      _MODEL.value or default_model(bool(_TRAJECTORY.value), _PROTOCOL.value), _OUT.value,
       cli.model_overrides(("eval",))["eval"], _ENGINE.value, _SEED.value, _TRAJECTORY.value)
 
 

@@ -52,6 +52,9 @@ class DataConfig:
   tools_per_shard: int = 0
   configs_per_tool: int = 1
   tool_push_force: float = 1e3
+  # "realistic" (the tool's parts are its body, materials by part) or "paper" (the tool's
+  # boxes are its body, each of a material drawn from Table 1's five: configs/tools_paper.py)
+  tool_protocol: str = "realistic"
   block_counts: tuple = ()  # video towers: block counts drawn uniformly (configs/video.py)
 
 

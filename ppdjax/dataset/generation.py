@@ -8,6 +8,7 @@ ends byte-identical to an uninterrupted one (on the same machine and software).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import shutil
@@ -20,7 +21,7 @@ from tqdm.auto import tqdm
 
 from ppdjax import primitives
 from ppdjax.dataset import (camera, card, depth, materials, render, storage, tool_generation,
-                            tool_scene, towers, voxels)
+                            tool_paper, tool_scene, towers, voxels)
 from ppdjax.sim.pushes import default_pushes, pendulum_strike
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.sim.simulate import BACKENDS, simulate
@@ -50,6 +51,8 @@ def check_config(cfg) -> None:
   if kind_of(cfg) == "tools":
     rules = [("num_tools", cfg.num_tools >= 1), ("tools_per_shard", cfg.tools_per_shard >= 1),
              ("configs_per_tool", tool_generation.configs_per_tool(cfg) >= 1),
+             ("tool_protocol", tool_generation.protocol(cfg) in tool_generation.PROTOCOLS),
+             ("backend", cfg.backend in BACKENDS),
              # above 1e4 N MuJoCo's solver diverges on some tools (tool_scene.TOOL_PUSH_FORCE)
              ("tool_push_force", 0 < tool_generation.push_force(cfg) <= 1e4)]
   else:
@@ -135,6 +138,14 @@ def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray
           "split": storage.split_of(tower_id, tuple(cfg.split_fractions))}
 
 
+def _tools_engine(cfg) -> str:
+  """What made a tools dataset's trajectories, in words (its manifest's "engine")."""
+  force = f"pushes of {tool_generation.push_force(cfg):g} N"
+  if tool_generation.protocol(cfg) == "paper":
+    return f"the paper's protocol: the tool's boxes simulated as towers ({cfg.backend}), {force}"
+  return f"MuJoCo C on the parts' convex pieces, {force}"
+
+
 def generate(config, out: str, progress: bool = True) -> dict:
   """Generates (or resumes) the dataset of `config` in `out`; returns the manifest."""
   cfg = config.data
@@ -169,7 +180,10 @@ def generate(config, out: str, progress: bool = True) -> dict:
   todo = [s for s in range(num_shards) if sums[s] is None]
   bar = tqdm(total=objects, unit=unit, disable=not progress, desc="generate")
   bar.update(objects - sum(min(per_shard, objects - s * per_shard) for s in todo))
-  make_shard = tool_generation.generate_shard if unit == "tool" else generate_shard
+  make_shard = generate_shard
+  if unit == "tool":
+    make_shard = (tool_generation.generate_shard if tool_generation.protocol(cfg) == "realistic"
+                  else functools.partial(tool_paper.generate_shard, pushes=pushes_of(cfg)))
   t0 = time.perf_counter()
   if todo:
     with _workers(cfg) as workers:
@@ -191,9 +205,7 @@ def generate(config, out: str, progress: bool = True) -> dict:
                  "precision": "float64 (stored float32)" if cfg.backend == "mujoco" else "float32",
                  # the JAX engine's settings (inference reads "mujoco" data through MJX)
                  "settings": dataclasses.asdict(settings_for(cfg.backend)),
-                 **({"tools": "MuJoCo C on the parts' convex pieces, pushes of "
-                              f"{tool_generation.push_force(cfg):g} N"}
-                    if unit == "tool" else {})},
+                 **({"tools": _tools_engine(cfg)} if unit == "tool" else {})},
       "pushes": pushes_record(pushes_of(cfg)),
       "camera": camera.camera_dict(cfg.image_size, cfg.image_size),
       "depth": source,

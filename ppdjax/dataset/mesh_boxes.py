@@ -192,19 +192,28 @@ def boxes_of_parts(parts, densities, max_boxes: int = NUM_SLOTS, *,
   boxes = fit_point_boxes(points, part, volume, max_boxes, box_cost)
   _, per_part = voxelize_parts(parts)
   owner = [int(np.argmax(_part_volumes_in_box(b, per_part))) for b in boxes]
+  prims, order = as_primitives(boxes, [densities[o] for o in owner], num_slots)
+  return prims, np.asarray(owner + [-1] * (num_slots - len(boxes)))[order]
+
+
+def as_primitives(boxes, densities, num_slots: int = NUM_SLOTS
+                  ) -> tuple[primitives.Primitives, np.ndarray]:
+  """(Primitives (num_slots,) numpy, bottom to top and canonical; the order: slot i holds
+  box order[i], padded slots past len(boxes)) of boxes (centre, rotation, half sizes) with
+  a density each."""
   k, pad = len(boxes), num_slots - len(boxes)
   rotation = np.stack([b[1] for b in boxes] + [np.eye(3)] * pad)
   prims = primitives.Primitives(
       half_size=np.stack([b[2] for b in boxes] + [np.full(3, 0.05)] * pad).astype(np.float32),
       pos=np.stack([b[0] for b in boxes] + [np.zeros(3)] * pad).astype(np.float32),
       quat=np.asarray(_mats_to_quats(rotation.astype(np.float32))),
-      density=np.asarray([densities[o] for o in owner] + [1000.0] * pad, np.float32),
+      density=np.asarray(list(densities) + [1000.0] * pad, np.float32),
       valid=np.arange(num_slots) < k)
   order = np.asarray(primitives.bottom_to_top_order(prims))
   prims = primitives.canonical_boxes(prims)
   prims = primitives.Primitives(*[np.asarray(getattr(prims, f))[order]
                                   for f in primitives.FIELDS])
-  return prims, np.asarray(owner + [-1] * pad)[order]
+  return prims, order
 
 
 def primitives_from_mesh(mesh, max_boxes: int = NUM_SLOTS, densities=None, *,

@@ -85,8 +85,9 @@ class ToolWorkers:
   def __init__(self, workers: int):
     self._pool = render.cpu_process_pool(workers) if workers > 0 else None
 
-  def map(self, jobs: list) -> list:
-    return self._pool.map(_one, jobs) if self._pool else [_one(j) for j in jobs]
+  def map(self, jobs: list, work=_one) -> list:
+    """[work(job) for job in jobs], in the workers (`work`: a module-level function)."""
+    return self._pool.map(work, jobs) if self._pool else [work(j) for j in jobs]
 
   def close(self):
     if self._pool is not None:
@@ -103,6 +104,15 @@ class ToolWorkers:
 def configs_per_tool(cfg) -> int:
   """Density configurations per tool geometry (1 for data sections made before the key)."""
   return int(cfg.get("configs_per_tool", 1))
+
+
+PROTOCOLS = ("realistic", "paper")
+
+
+def protocol(cfg) -> str:
+  """"realistic" (this module: the tool's own parts are the body) or "paper"
+  (`tool_paper`: the tool's boxes are the body, materials uniform over Table 1's five)."""
+  return str(cfg.get("tool_protocol", "realistic"))
 
 
 def push_force(cfg) -> float:

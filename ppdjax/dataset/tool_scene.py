@@ -185,6 +185,18 @@ def render_tool(parts, materials, texture_seeds, *, height: int = 224, width: in
   """(H, W, 3) uint8 image of the tool at rest, each part with its material's texture,
   under the towers' camera and light; with `depth`, (image, (H, W) float32 metres from
   MuJoCo's depth pass)."""
+  images, depth_map = render_configs(parts, [materials], [texture_seeds], height=height,
+                                     width=width, depth=depth)
+  return (images[0], depth_map) if depth else images[0]
+
+
+def render_configs(parts, materials, texture_seeds, *, height: int = 224, width: int = 224,
+                   depth: bool = False, rest_z: float | None = None):
+  """(images (C, H, W, 3) uint8, depth (H, W) float32 metres or None) of the parts at rest
+  under C texturings: configuration c gives part i the texture of materials[c][i] from
+  texture_seeds[c][i]. One model and one GL context serve every configuration (the mesh is
+  parsed once). `rest_z`: world z of the object-frame origin (default: the parts' own
+  lowest vertex on the ground, `rest_height`)."""
   import mujoco  # pylint: disable=import-outside-toplevel
   from ppdjax.dataset import render  # pylint: disable=import-outside-toplevel
   meshes = "\n".join(
@@ -195,20 +207,26 @@ def render_tool(parts, materials, texture_seeds, *, height: int = 224, width: in
   model = mujoco.MjModel.from_xml_string(
       render.stage_xml(render.material_assets(len(parts)), geoms, meshes))
   model.body_pos[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")] = (
-      0.0, 0.0, rest_height(parts))
-  for i, (material, seed) in enumerate(zip(materials, texture_seeds)):
-    render.write_texture(model, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXTURE, f"tex{i}"),
-                         material, int(seed))
+      0.0, 0.0, rest_height(parts) if rest_z is None else rest_z)
+  tex = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXTURE, f"tex{i}")
+         for i in range(len(parts))]
   data = mujoco.MjData(model)
   mujoco.mj_forward(model, data)
+  images = []
   with render.open_renderer(model, height, width) as renderer:
-    renderer.update_scene(data, camera="view")
-    rgb = renderer.render().copy()
-    if not depth:
-      return rgb
-    renderer.enable_depth_rendering()
-    renderer.update_scene(data, camera="view")
-    return rgb, renderer.render().astype(np.float32)
+    for config_materials, config_seeds in zip(materials, texture_seeds):
+      renderer._gl_context.make_current()  # pylint: disable=protected-access
+      for i, (material, seed) in enumerate(zip(config_materials, config_seeds)):
+        render.write_texture(model, tex[i], material, int(seed))
+        mujoco.mjr_uploadTexture(model, renderer._mjr_context, tex[i])  # pylint: disable=protected-access
+      renderer.update_scene(data, camera="view")
+      images.append(renderer.render().copy())
+    depth_map = None
+    if depth:
+      renderer.enable_depth_rendering()
+      renderer.update_scene(data, camera="view")
+      depth_map = renderer.render().astype(np.float32)
+  return np.stack(images), depth_map
 
 
 def observe(parts, materials, densities, texture_seeds, *, image_size: int = 224,

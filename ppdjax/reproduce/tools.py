@@ -48,7 +48,8 @@ from ppdjax.training import loop  # noqa: E402
 from ppdjax.training.state import total_steps  # noqa: E402
 
 config_flags.DEFINE_config_file("config", "ppdjax/configs/tools.py", "Tools preset.")
-flags.DEFINE_string("root", "out/tools", "Datasets, runs and evaluations go here.")
+flags.DEFINE_string("root", "", "Datasets, runs and evaluations go here (default: "
+                    "out/<the preset's name>, e.g. out/tools, out/tools_paper).")
 flags.DEFINE_string("results", "experiments/results", "Where tools.json/md and PNGs go.")
 flags.DEFINE_string("assets", "assets", "Where the exported tools model goes.")
 flags.DEFINE_integer("step_seconds", 540, "A training or evaluation call stops after this long.")
@@ -174,7 +175,8 @@ class Pipeline:
 
 def main(argv):
   del argv
-  pipe = Pipeline(FLAGS.config, FLAGS.root, FLAGS.variants, FLAGS.pretrained)
+  root = FLAGS.root or os.path.join("out", FLAGS.config.name)
+  pipe = Pipeline(FLAGS.config, root, FLAGS.variants, FLAGS.pretrained)
   sys.exit(pipeline_steps.run_steps(pipe, FLAGS.step, FLAGS.jobs, sys.argv,
                                     list_only=FLAGS.list))
 

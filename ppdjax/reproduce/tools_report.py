@@ -10,7 +10,7 @@ import jax
 import numpy as np
 from PIL import Image
 
-from ppdjax.report.provenance import row_headlines, write_provenance
+from ppdjax.report.provenance import _git_state, row_headlines, write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
 
 from ppdjax import make_decompose_fn
@@ -86,14 +86,19 @@ def _with_interval(shape: dict, key: str) -> str:
   return f"{shape[key]:.1f}" + (f" [{lo:.1f}, {hi:.1f}]" if lo is not None else "")
 
 
-def markdown(r: dict, command: str) -> str:
+def markdown(r: dict, command: str, stem: str = "tools") -> str:
   observes = {"Frequent": (False, False), "Nearest": (False, True), "Oracle": (True, False),
               "PPD (no trajectory)": (True, False), "PPD (no image)": (False, True)}
   rows = r["rows"]
   frequent = rows["Frequent"]["mae"]
-  lines = ["# Tools (paper Table 3)", "",
-           f"`{command}`", "",
-           f"{r['objects']} test objects of the procedural tools dataset (none trained on"
+  paper_protocol = r.get("protocol") == "paper"
+  lines = ["# Tools (paper Table 3)" + (", the paper's protocol" if paper_protocol else ""),
+           "", f"`{command}`", ""]
+  if paper_protocol:
+    lines += ["The paper's protocol (`ppdjax/configs/tools_paper.py`, docs/data.md): the tool "
+              "meshes give the voxels and the image; the mesh's boxes are the body, each of "
+              "a material drawn uniformly from Table 1's five, the image textured by box.", ""]
+  lines += [f"{r['objects']} test objects of the procedural tools dataset (none trained on"
            + (f"; {r['objects'] // r['configs_per_tool']} tools x {r['configs_per_tool']} "
               "density configurations" if r.get("configs_per_tool", 1) > 1 else "") + "), "
            + (f"pushes of {r['push_force']:g} N, " if r.get("push_force") else "")
@@ -117,17 +122,21 @@ def markdown(r: dict, command: str) -> str:
   lines += ["", "Frequent simulates every box at the training split's most frequent slot"
             + (f" (here slot {slot}, {float(slot_to_density(slot)):.0f} kg/m³)"
                if slot is not None else "")
-            + ". For tools that is one of wood's ten slots, which are about equally "
-            "frequent: which of them wins, and with it Frequent's MAE (a light tool slides "
-            "far), changes from one dataset to the next. Compare the MAE column, not these "
-            "ratios, with the paper's (docs/data.md, \"Tools\")."]
+            + (". With every material equally likely, stone's ten slots, which metal's lower "
+               "range shares, are the most frequent (about 2.4 % of boxes each)"
+               if paper_protocol else
+               ". For tools that is one of wood's ten slots, which are about equally "
+               "frequent: which of them wins, and with it Frequent's MAE (a light tool slides "
+               "far), changes from one dataset to the next. Compare the MAE column, not these "
+               "ratios, with the paper's (docs/data.md, \"Tools\")")
+            + "."]
   lines += ["", "Paper (top-1 / top-5 / top-10 / RMSE / MAE): "
             + "; ".join(f"{k} {'/'.join(str(v) for v in vals)}" for k, vals in PAPER.items()),
             "", f"Shape F1 (IoU > 0.5): {_with_interval(r['shape'], 'f1')}; box count exact "
             f"on {_with_interval(r['shape'], 'count_exact')} % of tools; paper {PAPER_F1}."
             + (f" With the fit (+Fit's boxes): {_with_interval(r['shape_fit'], 'f1')}."
                if r.get("shape_fit") else ""), "",
-            "![decomposed test tools](tools_decomposition.png)", ""]
+            f"![decomposed test tools]({stem}_decomposition.png)", ""]
   if r.get("rerun"):
     lines += ["## +Sample and τ on the test tools (a diagnostic, not a choice)", "",
               "Each +Sample row's selection at every τ (the candidates are simulated once), "
@@ -148,30 +157,47 @@ def markdown(r: dict, command: str) -> str:
     lines += oracle_pick_md({"table2": rows, "oracle_pick": picks}) + [""]
   lines += ["Fine-tuning on the tools (validation every 50 steps; the joint stage starts where "
             "the density loss appears):", "",
-            "![learning curves](tools_learning_curves.png)", "",
+            f"![learning curves]({stem}_learning_curves.png)", "",
             "## Steps (wall time)", ""] + pipeline_steps.steps_md(r) + [""]
   return "\n".join(lines)
 
 
+def names(config) -> tuple[str, str]:
+  """(results' stem under experiments/results, the shipped model's folder under assets) of
+  a tools preset: the paper's protocol and the realistic tools ship apart."""
+  if tool_generation.protocol(config.data) == "paper":
+    return "tools_paper", "tools_paper_model"
+  return "tools", "tools_model"
+
+
 def write_all(pipe, results_dir: str, assets_dir: str, command: str) -> dict:
   os.makedirs(results_dir, exist_ok=True)
+  stem, model_name = names(pipe.config)
   r = collect(pipe)
-  model_dir = os.path.join(assets_dir, "tools_model")
+  model_dir = os.path.join(assets_dir, model_name)
   checkpoints.export(pipe.workdir("full"), model_dir)
-  figure(pipe, os.path.join(results_dir, "tools_decomposition.png"), model_dir)
+  figure(pipe, os.path.join(results_dir, f"{stem}_decomposition.png"), model_dir)
   plots.plot_variant_curves({v: os.path.join(pipe.workdir(v), "metrics.jsonl")
                              for v in pipe.variants},
-                            os.path.join(results_dir, "tools_learning_curves.png"))
+                            os.path.join(results_dir, f"{stem}_learning_curves.png"))
   r["command"] = command
-  with open(os.path.join(results_dir, "tools.json"), "w") as f:
-    json.dump(r, f, indent=1)
-  write_provenance(os.path.join(results_dir, "tools.json"), command=command,
-                   config=pipe.config, headlines={
-                       **row_headlines(r["rows"], "rows", ("PPD (full)", "PPD (full)+Sample"),
-                                       ("top1", "rmse")),
-                       "shape F1 (learned boxes)": "shape/f1"})
-  with open(os.path.join(results_dir, "tools.md"), "w") as f:
-    f.write(markdown(r, command))
-  print(f"wrote {results_dir}/tools.md, tools.json, tools_decomposition.png; model in "
+  r["protocol"] = tool_generation.protocol(pipe.config.data)
+  text = markdown(r, command, stem)
+  # Table 3 under the name the checks read ("table3"), the learned boxes' F1 and the commit
+  # beside it (tools.json, written before, keeps "rows")
+  saved = dict(r)
+  if stem != "tools":
+    saved = {"table3": saved.pop("rows"), "f1": r["shape"]["f1"],
+             "commit": _git_state(results_dir)[0], **saved}
+  path = os.path.join(results_dir, f"{stem}.json")
+  with open(path, "w") as f:
+    json.dump(saved, f, indent=1)
+  key = "table3" if stem != "tools" else "rows"
+  write_provenance(path, command=command, config=pipe.config, headlines={
+      **row_headlines(saved[key], key, ("PPD (full)", "PPD (full)+Sample"), ("top1", "rmse")),
+      "shape F1 (learned boxes)": "shape/f1"})
+  with open(os.path.join(results_dir, f"{stem}.md"), "w") as f:
+    f.write(text)
+  print(f"wrote {results_dir}/{stem}.md, {stem}.json, {stem}_decomposition.png; model in "
         f"{model_dir}", flush=True)
   return r
