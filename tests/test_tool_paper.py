@@ -41,9 +41,13 @@ def test_each_box_draws_its_material_uniformly_from_the_five(one_tool):
 
 
 def test_the_recipe_stops_at_two_boxes_for_most_tools():
-  counts = [int(tool_paper.tool_samples(7, i, 16, 1)[0]["valid"].sum()) for i in range(8)]
+  from ppdjax.dataset import tools
+  from ppdjax.dataset.meshes import normalize
+  counts = [int(tool_paper.tool_boxes(normalize(list(tools.sample_tool(7, 0, c).parts))[0]
+                                      ).valid.sum())
+            for c in ("hammer", "axe", "screwdriver", "knife", "saw", "wrench")]
   assert max(counts) <= tool_paper.MAX_BOXES
-  assert sum(c <= 2 for c in counts) >= 5, counts
+  assert sum(c <= 2 for c in counts) >= 4, counts
 
 
 def _two_boxes():

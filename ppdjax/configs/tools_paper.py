@@ -27,12 +27,11 @@ def get_config(size: str = "paper"):
   if size == "paper":
     config.data.num_tools = 2_000
   # The pushes: the paper's four directions at 3,000 N, not the towers' 1e5 N. The tools'
-  # boxes weigh a median 15 kg (p10 3.7, p90 57; a tower about 100): at 1e5 N the median
-  # tool leaves at 19 m/s and 32 % of rollouts leave the 10 m scene (MuJoCo C stops 39 %
-  # as unstable); at 1e4 N 2 % leave (C: 3 % unstable); at 3,000 N none leave, neither
-  # engine fails, and the tools start at 0.16 / 0.63 / 2.6 m/s (p10 / p50 / p90), the
-  # towers' range under theirs (32 tools x 2 configurations x 4 pushes, both engines:
-  # experiments/tools_paper/README.md).
+  # boxes weigh a median 19 kg (p10 7.9, p90 46; a tower about 100): at 1e5 N the median
+  # tool leaves at 16 m/s, a third of the rollouts leave the 10 m scene and MuJoCo C stops
+  # 29 % as unstable; at 1e4 N C still stops 2 of 256; at 3,000 N none leaves, neither
+  # engine fails, and the tools start at 0.16 / 0.46 / 1.8 m/s (p10 / p50 / p90), the
+  # towers' range under theirs (experiments/tools_paper/README.md).
   config.data.tool_push_force = 3e3
   # +Sample as the paper's rule and the towers' first choice: the closest trajectory over
   # all steps (τ = 0); the tools preset's τ = 0.05 made up for boxes that were not the body
