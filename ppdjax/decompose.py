@@ -185,6 +185,9 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
 def main(argv):
   del argv
   logging.set_verbosity(logging.WARNING)
+  if _MODEL.value and _PROTOCOL.present:
+    logging.warning("--protocol picks a shipped model only: --model=%s is used, and its "
+                    "own data section says how the mesh is observed", _MODEL.value)
   import jax
   jax.config.update("jax_compilation_cache_dir", os.path.expanduser("~/.cache/ppdjax/jax_cache"))
   run(_MESH.value, _parse(_MATERIALS.value, number=False), _parse(_DENSITIES.value, number=True),

@@ -23,7 +23,7 @@ def get_config(size: str = "paper"):
   # the towers' engine: the body is boxes, as a tower's
   config.data.backend = paper.get_config().data.backend if size == "paper" else "mjx"
   # 2,000 tools (the paper had 204): a test split of 200 tools x 8 configurations, and the
-  # dataset is made on 14 cores while the model pretrains (about 2 s of box fitting a tool)
+  # dataset is made on 14 cores while the model pretrains (about 1 s of box fitting a tool)
   if size == "paper":
     config.data.num_tools = 2_000
   # The pushes: the paper's four directions at 3,000 N, not the towers' 1e5 N. The tools'

@@ -91,7 +91,9 @@ def tool_samples(seed: int, index: int, image_size: int, configs: int
     ids.append(np.concatenate([config_ids, np.full(NUM_SLOTS - count, -1, np.int32)]))
     densities.append(np.concatenate([config_density, np.full(NUM_SLOTS - count, 1000.0)]))
     seeds.append(rng.integers(0, materials.TEXTURE_VARIANTS, NUM_SLOTS))
-  # the mesh stands where the boxes' body starts (the boxes reach at least as low as it)
+  # the mesh is drawn where the boxes' body starts: the boxes, fitted to surface samples,
+  # usually reach a little lower than the mesh (0-19 mm on four tools), so it may float
+  # that much above the floor in the image
   rest_z = float(np.asarray(rest_position(prims))[2])
   images, depth = tool_scene.render_configs(
       pieces, [[materials.ALL_MATERIAL_NAMES[i[k]] for k in slots] for i in ids],

@@ -199,11 +199,14 @@ def render_configs(parts, materials, texture_seeds, *, height: int = 224, width:
   lowest vertex on the ground, `rest_height`)."""
   import mujoco  # pylint: disable=import-outside-toplevel
   from ppdjax.dataset import render  # pylint: disable=import-outside-toplevel
+  # drawn only: no collision and a shell's inertia, so that an open or flat piece of a
+  # surface (a box's share of a tool's faces) compiles (MuJoCo refuses the convex hull of
+  # coplanar vertices)
   meshes = "\n".join(
-      f'    <mesh name="part{i}" vertex="{_floats(p.vertices)}" face="{_floats(p.faces)}"/>'
-      for i, p in enumerate(parts))
-  geoms = "\n".join(f'      <geom name="part{i}" type="mesh" mesh="part{i}" material="mat{i}"/>'
-                    for i in range(len(parts)))
+      f'    <mesh name="part{i}" inertia="shell" vertex="{_floats(p.vertices)}" '
+      f'face="{_floats(p.faces)}"/>' for i, p in enumerate(parts))
+  geoms = "\n".join(f'      <geom name="part{i}" type="mesh" mesh="part{i}" material="mat{i}" '
+                    'contype="0" conaffinity="0"/>' for i in range(len(parts)))
   model = mujoco.MjModel.from_xml_string(
       render.stage_xml(render.material_assets(len(parts)), geoms, meshes))
   model.body_pos[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")] = (

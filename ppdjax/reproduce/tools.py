@@ -14,7 +14,8 @@ no-trajectory ablations on the tools from the pretrained weights (`config.finetu
 evaluate each on the whole tools test split (the full model with the baselines, +Sample
 and, with eval.fit, the +Fit rows); then `report`: experiments/results/tools.{json,md}
 beside the paper's Table 3, a figure of decomposed test tools, and the full model exported
-to assets/tools_model. Generation resumes by shard, training from its last checkpoint
+to assets/tools_model (under the paper's protocol, configs/tools_paper.py:
+tools_paper.{json,md} and assets/tools_paper_model; `tools_report.names`). Generation resumes by shard, training from its last checkpoint
 (a call stops itself after --step_seconds), evaluations by saved batch.
 ROOT/steps.jsonl records each call's wall time and device (ppdjax/reproduce/steps.py);
 with --jobs=N, up to N steps whose inputs are ready run at once, e.g. the tools are made
@@ -50,7 +51,8 @@ from ppdjax.training.state import total_steps  # noqa: E402
 config_flags.DEFINE_config_file("config", "ppdjax/configs/tools.py", "Tools preset.")
 flags.DEFINE_string("root", "", "Datasets, runs and evaluations go here (default: "
                     "out/<the preset's name>, e.g. out/tools, out/tools_paper).")
-flags.DEFINE_string("results", "experiments/results", "Where tools.json/md and PNGs go.")
+flags.DEFINE_string("results", "experiments/results", "Where the report's JSON, Markdown "
+                    "and PNGs go (tools.* or, for the paper's protocol, tools_paper.*).")
 flags.DEFINE_string("assets", "assets", "Where the exported tools model goes.")
 flags.DEFINE_integer("step_seconds", 540, "A training or evaluation call stops after this long.")
 flags.DEFINE_string("step", "all", "'all' (every step left), 'next', or a step name.")
