@@ -49,6 +49,14 @@ def tool_boxes(parts, num_slots: int = NUM_SLOTS) -> primitives.Primitives:
   return prims
 
 
+def _valid_boxes(prims: primitives.Primitives) -> tuple[np.ndarray, list]:
+  """(the valid slots, their boxes as (centre, rotation, half sizes)) of numpy Primitives."""
+  valid = np.flatnonzero(np.asarray(prims.valid))
+  rotations = np.asarray(primitives.quat_to_mat(np.asarray(prims.quat)[valid]))
+  return valid, [(np.asarray(prims.pos)[k], r, np.asarray(prims.half_size)[k])
+                 for k, r in zip(valid, rotations)]
+
+
 def box_meshes(parts, prims: primitives.Primitives) -> tuple[list[trimesh.Trimesh], list[int]]:
   """(pieces of the tool's surface, the box slot of each): every face, cut to edges of at
   most FACE_EDGE, goes to the box its centre lies deepest in (or nearest to); boxes that
@@ -56,13 +64,8 @@ def box_meshes(parts, prims: primitives.Primitives) -> tuple[list[trimesh.Trimes
   union = trimesh.util.concatenate(parts)
   vertices, faces = trimesh.remesh.subdivide_to_size(union.vertices, union.faces, FACE_EDGE)
   centres = vertices[faces].mean(1)
-  valid = np.flatnonzero(np.asarray(prims.valid))
-  rotations = np.asarray(primitives.quat_to_mat(np.asarray(prims.quat)[valid]))
-  distance = np.stack([
-      _signed_distance(centres, (np.asarray(prims.pos)[k], rotations[i],
-                                 np.asarray(prims.half_size)[k]))
-      for i, k in enumerate(valid)])
-  owner = valid[np.argmin(distance, 0)]
+  valid, boxes = _valid_boxes(prims)
+  owner = valid[np.argmin(np.stack([_signed_distance(centres, b) for b in boxes]), 0)]
   pieces, slots = [], []
   for k in valid:
     mine = faces[owner == k]
@@ -122,12 +125,9 @@ def observe(parts, materials_of_parts, densities, texture_seed: int, *, image_si
     (Primitives (NUM_SLOTS,), numpy) with their densities.
   """
   prims = tool_boxes(parts)
-  valid = np.flatnonzero(prims.valid)
   union, per_part = voxelize_parts(parts)
-  rotations = np.asarray(primitives.quat_to_mat(prims.quat[valid]))
-  owner = [int(np.argmax(_part_volumes_in_box((prims.pos[k], r, prims.half_size[k]),
-                                              per_part)))
-           for k, r in zip(valid, rotations)]
+  valid, boxes = _valid_boxes(prims)
+  owner = [int(np.argmax(_part_volumes_in_box(b, per_part))) for b in boxes]
   density = prims.density.copy()
   density[valid] = np.asarray(densities, np.float64)[owner]
   prims = prims.replace(density=density)
