@@ -31,6 +31,10 @@ MAX_DENSITY = NUM_DENSITY_SLOTS * SLOT_DENSITY  # slot 99
 
 # What a model observes of an object, in this order.
 OBS_KEYS = ("voxels", "image", "trajectories")
+# An optional observation: the newtons each of the P pushes had for this object, where they
+# differ from object to object (the realistic tools' pushes scale with the tool's size);
+# absent, the pushes' own magnitudes. Simulations of candidates use it; the network does not.
+PUSH_MAGNITUDES = "push_magnitudes"
 
 
 def slot_to_density(slot) -> np.ndarray:

@@ -128,6 +128,39 @@ def test_missing_or_corrupt_files_are_named(dataset_dir, tmp_path):
     storage.open_dataset(str(tmp_path / "nowhere"))
 
 
+def test_optional_fields_travel_with_the_samples_and_are_checked(dataset_dir, tmp_path):
+  """A dataset whose shards all hold the optional fields (each object's push magnitudes,
+  each box's thickness) gives them with its samples; a corrupt one is named, an unknown
+  field refused."""
+  import shutil
+  copy = str(tmp_path / "o")
+  shutil.copytree(dataset_dir, copy)
+  with open(os.path.join(copy, "manifest.json")) as f:
+    manifest = json.load(f)
+  for shard in manifest["shards"]:
+    folder = os.path.join(copy, shard["name"])
+    arrays = {n: np.load(os.path.join(folder, f"{n}.npy")) for n in storage.FIELDS}
+    rows, slots = arrays["density"].shape
+    arrays["push_magnitudes"] = np.outer(1 + np.arange(rows), np.full(4, 2e3)).astype(np.float32)
+    arrays["thickness"] = np.full((rows, slots), 0.01, np.float32)
+    shutil.rmtree(folder)
+    shard["files"] = storage.write_shard(folder, arrays)
+  with open(os.path.join(copy, "manifest.json"), "w") as f:
+    json.dump(manifest, f)
+  ds = storage.open_dataset(copy)
+  assert ds.sample_keys[-2:] == ("push_magnitudes", "thickness")
+  np.testing.assert_allclose(ds[1]["push_magnitudes"], 4e3)
+  assert ds.take([0, 1], keys=("thickness",))["thickness"].shape == (2, slots)
+  assert "push_magnitudes" not in storage.open_dataset(dataset_dir).sample_keys
+  with pytest.raises(ValueError, match="unknown fields.*speed"):
+    storage.write_shard(str(tmp_path / "x"), {**arrays, "speed": arrays["thickness"]})
+  with open(os.path.join(copy, manifest["shards"][0]["name"], "thickness.npy"), "r+b") as f:
+    f.seek(150)
+    f.write(b"\x07\x07\x07")
+  with pytest.raises(storage.DatasetError, match="thickness.npy: checksum"):
+    storage.open_dataset(copy, verify=True)
+
+
 def test_flipped_voxel_bytes_are_caught_when_a_shard_is_first_read(dataset_dir, tmp_path):
   """Training opens datasets without verify=True: the first read of a shard checks it."""
   import shutil

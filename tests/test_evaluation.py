@@ -71,6 +71,16 @@ def test_evaluate_cli_writes_both_files(tiny_run, tiny_dataset, tmp_path):
     assert set(r) == {"1", "8", str(SAMPLES)} and all(0 < v < 2000 for v in r.values())
   assert results["table4"]["PPD"]["1"] == pytest.approx(rows["PPD"]["mae"])
   assert results["objects"] == 8 and results["samples"] == SAMPLES
+  # by material of the true box, and per object: both add up to the rows' scores
+  for name in ("PPD", "PPD+Sample"):
+    per = {m: v for m, v in results["by_material"][name].items() if m != "range_confusions"}
+    boxes = sum(v["boxes"] for v in per.values())
+    top1 = sum(v["boxes"] * v["top1"] for v in per.values()) / boxes
+    assert top1 == pytest.approx(rows[name]["top1"])
+    assert 0 <= results["by_material"][name]["range_confusions"] <= 100
+    hits = results["per_object"][name]
+    assert len(hits["count"]) == 8 and sum(hits["count"]) == boxes
+    assert 100 * sum(hits["top1"]) / boxes == pytest.approx(rows[name]["top1"])
   # the intervals resample whole towers (their configurations share a shape)
   test = storage.open_dataset(tiny_dataset, "test")
   towers = np.unique(test.take(np.arange(len(test)), keys=("tower_id",))["tower_id"])
@@ -606,3 +616,16 @@ def test_intervals_note_says_what_was_resampled():
   note = markdown.intervals_note({"intervals_over": "geometries", "geometries": 300,
                                   "data_kind": "tools"})
   assert note.startswith("95 % bootstrap intervals over the 300 tools (each drawn with all")
+
+
+def test_scores_by_material_count_metal_read_in_its_other_range():
+  """Per material of the true box: top-1 and RMSE of the guesses; a metal box read in
+  metal's other slot range (aluminium-like vs steel-like) is a range confusion."""
+  slot = np.array([[4, 79, 24], [29, 74, -1]])  # 0-based: wood 4; metal 79, 24, 74; stone 29
+  material = np.array([[0, 4, 4], [2, 4, -1]])  # wood, metal, metal / stone, metal
+  guess = np.array([[4, 27, 78], [29, 74, 0]])
+  out = tables.by_material(slot, slot >= 0, material, {"PPD": guess})["PPD"]
+  assert out["wood"] == {"boxes": 1, "top1": 100.0, "rmse": 0.0}
+  assert out["metal"]["boxes"] == 3 and out["metal"]["top1"] == pytest.approx(100 / 3)
+  assert out["metal"]["rmse"] == pytest.approx(np.sqrt((52 ** 2 + 54 ** 2) / 3))
+  assert out["range_confusions"] == pytest.approx(100 * 2 / 5)  # 79 -> 27 and 24 -> 78

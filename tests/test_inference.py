@@ -354,10 +354,11 @@ def test_per_object_map_weights_match_one_weight_at_a_time():
   start = prims.replace(density=prims.density * 1.3)
   logits = jnp.zeros(prims.density.shape + (100,))
   d0, m0 = jnp.full((2,), jnp.inf), jnp.zeros((2,))
+  mags = jnp.broadcast_to(PUSHES.magnitudes, (2, PUSHES.num))
   kw = dict(steps=3, pushes=PUSHES, settings=DEFAULT_SETTINGS)
-  both = refine.refine_batch(start, logits, observed, d0, m0,
+  both = refine.refine_batch(start, logits, observed, d0, m0, mags,
                              prior_weight=jnp.asarray([1e-5, 1e3]), **kw)
-  one = refine.refine_batch(start, logits, observed, d0, m0, prior_weight=1e-5, **kw)
+  one = refine.refine_batch(start, logits, observed, d0, m0, mags, prior_weight=1e-5, **kw)
   np.testing.assert_allclose(both["density"][0], one["density"][0], rtol=1e-5)
   mean, _ = refine.density_prior(logits[1])
   gap = lambda d: np.abs(np.log(np.asarray(d)[:2]) - np.asarray(mean)[:2])  # the two blocks
@@ -430,6 +431,10 @@ def test_bad_observations_are_named(decompose, tiny_dataset):
     decompose({**obs, "image": obs["image"] / 255.0}, key)
   with pytest.raises(ValueError, match="voxels.*0/1"):
     decompose({**obs, "voxels": obs["voxels"] * 255}, key)
+  with pytest.raises(ValueError, match=r"push_magnitudes.*expected shape \(4,\)"):
+    decompose({**obs, "push_magnitudes": np.ones(3, np.float32)}, key)
+  with pytest.raises(ValueError, match="push_magnitudes.*finite"):
+    decompose({**obs, "push_magnitudes": np.full(4, np.nan, np.float32)}, key)
 
 
 def test_the_depth_fit_in_decompose_names_its_errors(tiny_run, tiny_dataset):

@@ -149,3 +149,15 @@ def test_the_decompose_command_on_a_mesh_file(tiny_run, tmp_path):
   assert settings["select"]["samples"] == 2 and settings["fit"]["enabled"] is False
   with pytest.raises(ValueError, match="name=value"):
     decompose._parse("head=metal,wood", number=False)
+
+
+def test_pushes_by_volume_scale_with_the_tool_and_refuse_bad_values():
+  """"by_volume": a tool twice the reference volume is pushed twice as hard (so tools of one
+  mean density start alike); "fixed" ignores the volume."""
+  ref = tool_scene.REFERENCE_VOLUME
+  assert tool_scene.push_force_for(2e3, 2 * ref, "by_volume") == pytest.approx(4e3)
+  assert tool_scene.push_force_for(2e3, 2 * ref, "fixed") == 2e3
+  with pytest.raises(ValueError, match="push mode"):
+    tool_scene.push_force_for(2e3, ref, "by_mass")
+  with pytest.raises(ValueError, match="volume must be > 0"):
+    tool_scene.push_force_for(2e3, float("nan"), "by_volume")

@@ -34,7 +34,7 @@ import threading
 
 import numpy as np
 
-from ppdjax.conventions import OBS_KEYS
+from ppdjax.conventions import OBS_KEYS, PUSH_MAGNITUDES
 from ppdjax import primitives
 from ppdjax.dataset import camera
 from ppdjax.dataset.readers import read_json
@@ -45,6 +45,11 @@ FORMAT_VERSION = 1
 # One .npy file per field: the observations, depth, the Primitives fields, and labels.
 FIELDS = OBS_KEYS + ("depth",) + primitives.FIELDS + ("materials", "tower_id", "split")
 SAMPLE_KEYS = OBS_KEYS + ("depth", "primitives", "materials", "tower_id")  # what a sample holds
+# Fields some datasets add (each shard of a dataset has all or none of them): each
+# object's push magnitudes (P,) newtons where they differ per object
+# (`conventions.PUSH_MAGNITUDES`), and each box's thinnest side (K,) m of the tool part it
+# covers most (the realistic tools, `tool_generation`); a sample then holds them too.
+OPTIONAL_FIELDS = (PUSH_MAGNITUDES, "thickness")
 SPLITS = {"train": 0, "val": 1, "test": 2}
 
 
@@ -85,11 +90,14 @@ def write_shard(directory: str, arrays: dict[str, np.ndarray]) -> dict[str, str]
   missing = set(FIELDS) - set(arrays)
   if missing:
     raise ValueError(f"shard arrays lack fields {sorted(missing)}")
+  unknown = set(arrays) - set(FIELDS) - set(OPTIONAL_FIELDS)
+  if unknown:
+    raise ValueError(f"shard arrays hold unknown fields {sorted(unknown)}")
   tmp = directory + ".tmp"
   os.makedirs(tmp, exist_ok=True)
   sums = {}
   try:
-    for name in FIELDS:
+    for name in FIELDS + tuple(f for f in OPTIONAL_FIELDS if f in arrays):
       path = os.path.join(tmp, f"{name}.npy")
       np.save(path, np.ascontiguousarray(arrays[name]))
       sums[f"{name}.npy"] = sha256(path)
@@ -174,10 +182,12 @@ class Dataset:
     self._checked = set() if check else set(range(len(self.manifest["shards"])))
     self._lock = threading.Lock()
     self._shards, index = [], []
+    first = self.manifest["shards"][0]["files"] if self.manifest["shards"] else {}
+    self.fields = FIELDS + tuple(f for f in OPTIONAL_FIELDS if f"{f}.npy" in first)
     for s, shard in enumerate(self.manifest["shards"]):
       directory = os.path.join(path, shard["name"])
       arrays = {}
-      for name in FIELDS:
+      for name in self.fields:
         file = os.path.join(directory, f"{name}.npy")
         if not os.path.exists(file):
           raise MissingFileError(f"missing shard file {file}")
@@ -247,6 +257,11 @@ class Dataset:
   def __len__(self) -> int:
     return len(self._index)
 
+  @property
+  def sample_keys(self) -> tuple[str, ...]:
+    """What a sample holds: SAMPLE_KEYS and the OPTIONAL_FIELDS this dataset has."""
+    return SAMPLE_KEYS + self.fields[len(FIELDS):]
+
   def _check_shard(self, s: int, force: bool = False) -> None:
     """Raises DatasetError naming the file unless shard s matches its checksums and its
     voxels are 0/1; each shard is checked once per Dataset."""
@@ -255,7 +270,7 @@ class Dataset:
         return
       shard = self.manifest["shards"][s]
       directory = os.path.join(self.path, shard["name"])
-      for name in FIELDS:
+      for name in self.fields:
         file = os.path.join(directory, f"{name}.npy")
         if sha256(file) != shard["files"][f"{name}.npy"]:
           raise DatasetError(f"corrupt shard file {file}: checksum mismatch (regenerate the "
@@ -302,10 +317,10 @@ class Dataset:
     if outside.size:
       raise IndexError(f"sample index {outside[0]} out of range for the {len(self)} samples "
                        f"of {self.name}")
-    keys = (keys,) if isinstance(keys, str) else tuple(keys or SAMPLE_KEYS)
-    unknown = sorted(set(keys) - set(SAMPLE_KEYS))
+    keys = (keys,) if isinstance(keys, str) else tuple(keys or self.sample_keys)
+    unknown = sorted(set(keys) - set(self.sample_keys))
     if unknown:
-      raise KeyError(f"unknown sample keys {unknown}; expected some of {SAMPLE_KEYS}")
+      raise KeyError(f"unknown sample keys {unknown}; expected some of {self.sample_keys}")
     names = [f for k in keys for f in (primitives.FIELDS if k == "primitives" else (k,))]
     where = self._index[indices]
     # shaped from the first shard (a directory never mixes configs), so that no indices

@@ -36,6 +36,10 @@ from ppdjax.sim.pushes import Pushes, default_pushes
 # (experiments/results/tool_push_study/).
 # A dataset may choose another magnitude (`config.data.tool_push_force`).
 TOOL_PUSH_FORCE = 1e3
+PUSH_MODES = ("fixed", "by_volume")  # config.data.tool_push
+# m^3: a normalised tool's volume (1 m long) about which "by_volume" pushes with the set
+# force (the procedural tools' median is 0.0032, p1 0.0012, p99 0.021)
+REFERENCE_VOLUME = 0.003
 SLABS = 4  # convex pieces of a part that is not convex
 CONVEX_TOL = 0.02  # a part whose hull exceeds its volume by this fraction is cut
 
@@ -43,6 +47,19 @@ CONVEX_TOL = 0.02  # a part whose hull exceeds its volume by this fraction is cu
 def tool_pushes(force: float = TOOL_PUSH_FORCE) -> Pushes:
   """The paper's four push directions at the tools' magnitude (newtons; TOOL_PUSH_FORCE)."""
   return default_pushes(force)
+
+
+def push_force_for(force: float, volume: float, mode: str) -> float:
+  """The newtons a tool of `volume` m^3 (normalised, as its voxels show it) is pushed with:
+  `force` ("fixed"), or `force` x volume / REFERENCE_VOLUME ("by_volume": a tool's mass is
+  its volume times its mean density, so every tool of one mean density starts alike, and
+  the motion reads the density; a fixed force moved the heaviest tools 1 cm/s while the
+  lightest left at metres per second)."""
+  if mode not in PUSH_MODES:
+    raise ValueError(f"tool push mode must be one of {PUSH_MODES}, got {mode!r}")
+  if not volume > 0:
+    raise ValueError(f"a tool's volume must be > 0 m^3, got {volume!r}")
+  return float(force) * (float(volume) / REFERENCE_VOLUME if mode == "by_volume" else 1.0)
 
 
 def mass_properties(parts, densities) -> tuple[float, np.ndarray, np.ndarray]:

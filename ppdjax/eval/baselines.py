@@ -43,6 +43,14 @@ def true_slots(prims: Primitives) -> np.ndarray:
   return np.where(np.take_along_axis(np.asarray(prims.valid), order, -1), slot, -1)
 
 
+def true_materials(prims: Primitives, materials) -> np.ndarray:
+  """(B, K) material ids (`materials.ALL_MATERIAL_NAMES`) bottom to top, as `true_slots`
+  orders the slots (-1 for padding)."""
+  order = np.asarray(bottom_to_top_order(prims))
+  ids = np.take_along_axis(np.asarray(materials), order, -1)
+  return np.where(np.take_along_axis(np.asarray(prims.valid), order, -1), ids, -1)
+
+
 def trajectory_features(traj_BxPxTx7: np.ndarray) -> np.ndarray:
   """(B, D) float32 poses every FEATURE_STRIDE steps, [p, L·rotvec(q)] in metres.
 

@@ -31,8 +31,8 @@ def _table4_candidates(t, pool, kk, samples: int):
           pool.replace(density=slot_to_density_jax(shape_slots))]
 
 
-def simulate_candidates(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys, pool=None,
-              *, samples, with_baselines, chunk, pushes, settings, face_spreads=None,
+def simulate_candidates(pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys,
+                        mags, pool=None, *, samples, with_baselines, chunk, pushes, settings, face_spreads=None,
               ppd_key_is_own=False):
   """Per object: (distance (C, H) over each of SELECTION_HORIZONS, MAE (C,)) of every
   candidate (`candidate_layout`; Table 4's too when `pool`, its random tower shapes, is
@@ -44,7 +44,7 @@ def simulate_candidates(pred, fitted, logits, fit_logits, true, base_slots, obs_
   they are `decompose`'s (`ppd_key_is_own`: no fit), else from a key derived from it.
   `face_spreads`: per fit group, > 0 draws its candidates' faces too."""
   def one(args):
-    p, fs, lg, flg, t, bs, traj, k = args
+    p, fs, lg, flg, t, bs, traj, k, m = args
     kk = jax.random.split(k, 4)
     slots, _ = sampling.candidate_slots(lg, p.valid, samples, k if ppd_key_is_own else kk[0])
     cands = [sampling.with_slots(p, slots)]
@@ -60,24 +60,25 @@ def simulate_candidates(pred, fitted, logits, fit_logits, true, base_slots, obs_
     if pool is not None:
       cands += _table4_candidates(t, pool, kk, samples)
     cands = jax.tree.map(lambda *x: jnp.concatenate(x), *cands)
-    dist, mae = sampling.score_candidates(cands, traj, pushes, settings,
+    dist, mae = sampling.score_candidates(cands, traj, pushes.replace(magnitudes=m), settings,
                                           horizons=SELECTION_HORIZONS)
     return dist, mae, slots, tuple(fit_slots)
 
-  return jax.lax.map(one, (pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys),
-                     batch_size=chunk)
+  return jax.lax.map(one, (pred, fitted, logits, fit_logits, true, base_slots, obs_traj, keys,
+                           mags), batch_size=chunk)
 
 
-def simulate_table4(true, pool, obs_traj, keys, *, samples, chunk, pushes, settings):
+def simulate_table4(true, pool, obs_traj, keys, mags, *, samples, chunk, pushes, settings):
   """Table 4's sampling baselines per object, (distance (C, H), MAE (C,)) of
   `_table4_candidates`: on the batches Table 4 covers when it covers only some."""
   def one(args):
-    t, traj, k = args
+    t, traj, k, m = args
     cands = jax.tree.map(lambda *x: jnp.concatenate(x),
                          *_table4_candidates(t, pool, jax.random.split(k, 4), samples))
-    return sampling.score_candidates(cands, traj, pushes, settings, horizons=SELECTION_HORIZONS)
+    return sampling.score_candidates(cands, traj, pushes.replace(magnitudes=m), settings,
+                                     horizons=SELECTION_HORIZONS)
 
-  return jax.lax.map(one, (true, obs_traj, keys), batch_size=chunk)
+  return jax.lax.map(one, (true, obs_traj, keys, mags), batch_size=chunk)
 
 
 def shape_pool(key, samples: int, num_slots: int):

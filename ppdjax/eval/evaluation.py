@@ -41,7 +41,7 @@ import numpy as np
 from flax import nnx
 from tqdm.auto import tqdm
 
-from ppdjax.conventions import OBS_KEYS
+from ppdjax.conventions import OBS_KEYS, PUSH_MAGNITUDES
 from ppdjax.dataset import storage
 from ppdjax.configs import schema
 from ppdjax.configs.schema import EvalConfig
@@ -162,7 +162,8 @@ def evaluate(trained, data_dir: str, settings: EvalConfig | None = None, *,
   clock = time.perf_counter
   bar = tqdm(total=n, desc="evaluating", unit="object", disable=not progress)
   keys_read = OBS_KEYS + ("primitives", "materials") + (
-      ("depth",) if decompose.fit.depth else ())
+      ("depth",) if decompose.fit.depth else ()) + tuple(  # each object's pushes, if recorded
+          k for k in (PUSH_MAGNITUDES,) if k in test.sample_keys)
 
   def read(start):
     """A batch's saved records, or its observations (padded to the batch size: one
@@ -176,16 +177,20 @@ def evaluate(trained, data_dir: str, settings: EvalConfig | None = None, *,
     pool = (shape_pool(jax.random.fold_in(key, start), samples,
                        batch["primitives"].density.shape[-1])
             if with_baselines and start in table4_starts else None)
-    return len(idx), None, (batch, pool), baselines.true_slots(batch["primitives"])
+    return len(idx), None, (batch, pool), (baselines.true_slots(batch["primitives"]),
+                                           baselines.true_materials(batch["primitives"],
+                                                                    batch["materials"]))
 
-  def make_records(start, keep, out, slot, base):
+  def make_records(start, keep, out, labels, base):
     """A computed batch's records, saved; made in a background thread while the next
-    batch runs on the device."""
+    batch runs on the device. `labels`: the true (slots, material ids), bottom to top."""
     t = clock()
+    slot, material = labels
     rec = ev.records(out, slot[:keep], slot[:keep] >= 0,
                      None if base is None else base[:keep], prefixes=prefixes,
                      table4=start in table4_starts, studies=studies,
                      horizon_sweep=e.horizon_sweep)
+    rec[("true_material",)] = material[:keep]  # the by-material scores (`tables.summarize`)
     if saved:
       saved.save(start, rec)
     return rec, clock() - t
@@ -208,7 +213,7 @@ def evaluate(trained, data_dir: str, settings: EvalConfig | None = None, *,
     pending.clear()
 
   with concurrent.futures.ThreadPoolExecutor(1) as behind:
-    for start, (keep, rec, read_batch, slot) in read_ahead(read, starts, prefetch):
+    for start, (keep, rec, read_batch, labels) in read_ahead(read, starts, prefetch):
       batch, pool = read_batch if read_batch is not None else (None, None)
       t = clock()
       if rec is None:
@@ -244,7 +249,7 @@ def evaluate(trained, data_dir: str, settings: EvalConfig | None = None, *,
         else:
           table4_after += start in table4_starts
         collect()  # the previous batch's, made while this one ran on the device
-        pending.append((keep, behind.submit(make_records, start, keep, out, slot, base)))
+        pending.append((keep, behind.submit(make_records, start, keep, out, labels, base)))
         computed += 1
       else:
         collect()

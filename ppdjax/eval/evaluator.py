@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from ppdjax.conventions import OBS_KEYS, slot_to_density
+from ppdjax.conventions import OBS_KEYS, PUSH_MAGNITUDES, slot_to_density
 from ppdjax.infer import sampling
 from ppdjax.configs.schema import ConfigError
 from ppdjax.infer.config import DecomposeConfig
@@ -30,7 +30,7 @@ from ppdjax.infer.refine import refine_batch
 from ppdjax.eval.rows import batch_records, screen_mask
 from ppdjax.report.tables import BASELINES, SELECTION_HORIZONS, check_horizon
 from ppdjax.primitives import bottom_to_top
-from ppdjax.sim.pushes import default_pushes
+from ppdjax.sim.pushes import default_pushes, object_magnitudes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, engine_settings, jax_engine
 from ppdjax.training import estimator as estimator_module
 from ppdjax.training import sharding
@@ -80,6 +80,7 @@ class Evaluator:
     self.baselines_on = baselines_on
     self.seconds = collections.Counter()  # per stage of `batch` (`_timed`)
     pushes = default_pushes() if pushes is None else pushes
+    self.pushes = pushes
     # every group sampled and scored; "true" (the oracle boxes) after the fits
     self.groups = self.fits + (("true",) if true_shapes else ())
     self.refine_group = self.fits[-1] if self.fits else "ppd"  # +Refine's and +Joint's boxes
@@ -121,7 +122,7 @@ class Evaluator:
         pushes=pushes, settings=settings, face_spreads=tuple(face_spread if g != "true" else 0.0
                                               for g in self.groups),
         ppd_key_is_own=not self.fits),
-        replicated=(8,) if self.table4_fused else ())
+        replicated=(9,) if self.table4_fused else ())
     self._simulate_table4 = per_device(functools.partial(
         simulate_table4, samples=samples, pushes=pushes, settings=settings,
         chunk=max(1, simultaneous_candidates() // (2 * samples))), replicated=(1,))
@@ -146,9 +147,12 @@ class Evaluator:
     return out
 
   def _inputs(self, batch: dict):
-    """The observations and the true boxes (bottom to top) of a batch, on the device."""
+    """The observations (with each object's push magnitudes, "push_magnitudes": the
+    dataset's where it records them per object) and the true boxes (bottom to top) of a
+    batch, on the device."""
     obs = {k: jnp.asarray(batch[k])
            for k in OBS_KEYS + (("depth",) if "fit_depth" in self.fits else ())}
+    obs[PUSH_MAGNITUDES] = object_magnitudes(self.pushes, batch, len(batch["trajectories"]))
     return obs, bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
 
   def _sample_args(self, decoded, true, base_slots, obs, keys, pool) -> tuple:
@@ -156,7 +160,7 @@ class Evaluator:
     Table 4's shape `pool` among them when its candidates are simulated there."""
     return (decoded["pred"], tuple(decoded["fitted"][g] for g in self.groups),
             decoded["logits"], tuple(decoded["group_logits"][g] for g in self.groups), true,
-            jnp.asarray(base_slots), obs["trajectories"], keys) + (
+            jnp.asarray(base_slots), obs["trajectories"], keys, obs[PUSH_MAGNITUDES]) + (
                 (jax.tree.map(jnp.asarray, pool),) if self.table4_fused else ())
 
   def compile(self, batch: dict, key, pool=None, execute: bool = True) -> None:
@@ -187,7 +191,7 @@ class Evaluator:
                  (b, len(BASELINES), k), np.int32), obs, keys, pool))]
     if self.baselines_on and not self.table4_fused:
       tasks.append((self._simulate_table4, (true, jax.tree.map(jnp.asarray, pool),
-                                            obs["trajectories"], keys)))
+                                            obs["trajectories"], keys, obs[PUSH_MAGNITUDES])))
     if self.refine or self.joint:
       group = self.refine_group
       boxes = decoded["fitted"][group] if self.fits else decoded["pred"]
@@ -195,10 +199,12 @@ class Evaluator:
       prior = decoded["group_logits"][group] if self.fits else decoded["logits"]
       zero = np.zeros(b, np.float32)  # the start's distance and MAE, as `batch` has them
       if self.refine:
-        tasks.append((self._refine, (prims, prior, obs["trajectories"], zero, zero)))
+        tasks.append((self._refine, (prims, prior, obs["trajectories"], zero, zero,
+                                     obs[PUSH_MAGNITUDES])))
       if self.joint:
         depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((b,))
-        tasks.append((self._joint, (prims, prior, obs["trajectories"], depth, true)))
+        tasks.append((self._joint, (prims, prior, obs["trajectories"], depth, true,
+                                    obs[PUSH_MAGNITUDES])))
     t = time.perf_counter()
     run = ((lambda fn, *args: jax.block_until_ready(fn(*args))) if execute else
            (lambda fn, *args: fn.lower(*args).compile()))
@@ -234,7 +240,8 @@ class Evaluator:
     dist, mae, slots, fit_slots = self._timed("sample", self._simulate, *args)
     if table4 and not self.table4_fused:
       d4, m4 = self._timed("sample_table4", self._simulate_table4, true,
-                           jax.tree.map(jnp.asarray, pool), obs["trajectories"], keys)
+                           jax.tree.map(jnp.asarray, pool), obs["trajectories"], keys,
+                           obs[PUSH_MAGNITUDES])
       dist, mae = jnp.concatenate([dist, d4], 1), jnp.concatenate([mae, m4], 1)
     out = jax.device_get({**decoded, "hdist": dist, "mae": mae, "slots": slots})
     out["dist"] = out["hdist"][..., SELECTION_HORIZONS.index(0)]  # the whole trajectory
@@ -247,16 +254,19 @@ class Evaluator:
       prims, prior, d0, m0 = self._best_sample(out, decoded, group)
       if self.refine:
         out["refine"] = jax.device_get(self._timed("refine", self._refine, prims, prior,
-                                                   obs["trajectories"], d0, m0))
+                                                   obs["trajectories"], d0, m0,
+                                                   obs[PUSH_MAGNITUDES]))
         out["refine"]["sample_dist"] = d0  # the start's distance
       if self.joint:
         depth = obs["depth"].astype(jnp.float32) if "depth" in obs else jnp.zeros((len(d0),))
         out["joint"] = jax.device_get(self._timed("joint", self._joint, prims, prior,
-                                                  obs["trajectories"], depth, true))
+                                                  obs["trajectories"], depth, true,
+                                                  obs[PUSH_MAGNITUDES]))
     if self.refine and "true" in self.groups:  # the oracle column refined alike
       prims, prior, d0, m0 = self._best_sample(out, decoded, "true")
       out["refine_true"] = jax.device_get(self._timed("refine", self._refine, prims, prior,
-                                                      obs["trajectories"], d0, m0))
+                                                      obs["trajectories"], d0, m0,
+                                                      obs[PUSH_MAGNITUDES]))
     return out
 
   def _best_sample(self, out: dict, decoded: dict, group: str):

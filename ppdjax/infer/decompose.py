@@ -7,7 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, TIMESTEP, VOXEL_RESOLUTION
+from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, PUSH_MAGNITUDES, TIMESTEP,
+                                VOXEL_RESOLUTION)
 from ppdjax.dataset.camera import camera_dict, check_camera
 from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.image_fit import check_image
@@ -17,7 +18,7 @@ from ppdjax.infer.refine import density_prior, refine_if_closer
 from ppdjax.infer import sampling
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.primitives import Primitives
-from ppdjax.sim.pushes import Pushes, default_pushes
+from ppdjax.sim.pushes import Pushes, check_magnitudes, default_pushes, object_magnitudes
 from ppdjax.sim.rollout_mjx import Settings, engine_settings, jax_engine
 from ppdjax.training import checkpoints
 from ppdjax.training import estimator as estimator_module
@@ -209,17 +210,18 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
     pred, raw = nnx.merge(graphdef, state).decode(obs)
     logits = raw.density_logits[:, :pred.num_slots, :NUM_DENSITY_SLOTS]
     traj = obs["trajectories"].astype(jnp.float32)
+    mags = object_magnitudes(pushes, obs, traj.shape[0])  # (B, P): each object's pushes
     prims = fit_stage(obs, pred, fit, camera)
     if est_graphdef is not None:
       logits = combine_logits(logits, nnx.merge(est_graphdef, est_state)(prims, traj),
                               config.estimator.weight)
-    sel = jax.vmap(lambda p, l, o, kk: sampling.select_densities(
-        p, l, o, pushes, num_samples=select.samples, key=kk,
+    sel = jax.vmap(lambda p, l, o, kk, m: sampling.select_densities(
+        p, l, o, pushes.replace(magnitudes=m), num_samples=select.samples, key=kk,
         prior_weight=select.prior_weight, mass_match=select.mass_match,
         screen_steps=select.screen_steps, screen_keep=select.screen_keep,
         face_spread=fit.face_spread, selection_horizon=select.horizon,
         whole_scores=refine.enabled, settings=settings))(
-            prims, logits, traj, object_keys(key, traj.shape[0]))
+            prims, logits, traj, object_keys(key, traj.shape[0]), mags)
     pick = lambda index: jax.tree.map(  # each object's candidate `index` (B,)
         lambda x: jnp.take_along_axis(x, index.reshape((-1,) + (1,) * (x.ndim - 1)), 1)[:, 0],
         sel.boxes)
@@ -227,11 +229,11 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
     if refine.enabled:  # from the candidate closest over all steps, whatever selected
       start = pick(jnp.argmin(sel.scores, -1))
-      ref = jax.vmap(lambda p, lg, o, d: refine_if_closer(
-          p, o, d, pushes, steps=refine.steps,
+      ref = jax.vmap(lambda p, lg, o, d, m: refine_if_closer(
+          p, o, d, pushes.replace(magnitudes=m), steps=refine.steps,
           prior=density_prior(lg) if refine.prior_weight > 0 else None,
           prior_weight=refine.prior_weight, jacobian=refine.jacobian,
-          settings=refine_settings))(start, logits, traj, sel.scores.min(-1))
+          settings=refine_settings))(start, logits, traj, sel.scores.min(-1), mags)
       # kept where it is closer than every candidate; else the +Sample answer stays
       prims = jax.tree.map(
           lambda r, p: jnp.where(ref.closer.reshape((-1,) + (1,) * (p.ndim - 1)), r, p),
@@ -250,7 +252,10 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
       check_depth(observation["depth"], camera, lead)  # shape, finite, > 0
     if fit.image:
       check_image(observation["image"], camera, lead)  # shape and the camera's size
-    obs = {k: jnp.asarray(observation[k]) for k in keys}
+    given = (PUSH_MAGNITUDES,) if PUSH_MAGNITUDES in observation else ()
+    if given:
+      check_magnitudes(observation[PUSH_MAGNITUDES], pushes, lead)
+    obs = {k: jnp.asarray(observation[k]) for k in keys + given}
     if not batched:
       obs = jax.tree.map(lambda x: x[None], obs)
     out = run(state, est_state, obs, key)

@@ -189,22 +189,23 @@ def refine_joint(prims: Primitives, observed: jax.Array, pushes: Pushes | None =
   return JointFit(boxes, c0, jnp.minimum(c0, c1), accepted, jnp.where(better, sim, sim0))
 
 
-def joint_batch(prims, logits, obs_traj, depth, true, *, steps, prior_weight, camera, pushes,
+def joint_batch(prims, logits, obs_traj, depth, true, mags, *, steps, prior_weight, camera, pushes,
                 settings, at_once: int = 8):
   """`refine_joint` over a batch (B, K) from the closest samples, as the evaluation runs it:
   the prior from each object's slot logits (when prior_weight > 0), the depth image with
-  `camera` (else motion only; `depth` is then ignored), `at_once` objects at a time; returns the
+  `camera` (else motion only; `depth` is then ignored), each object's push magnitudes `mags`
+  (B, P), `at_once` objects at a time; returns the
   densities, trajectory MAE (mm), costs and face errors against `true` (bottom to top)."""
-  def one(p, lg, traj, d):
+  def one(p, lg, traj, d, m):
     prior = density_prior(lg) if prior_weight > 0 else None
     kw = ({} if camera is None else
           {"depth": d, "intrinsics": jnp.asarray(camera["intrinsics"], jnp.float32),
            "camera_from_world": jnp.asarray(camera["camera_from_world"], jnp.float32)})
-    j = refine_joint(p, traj, pushes, prior=prior, prior_weight=prior_weight, steps=steps,
-                     settings=settings, **kw)
+    j = refine_joint(p, traj, pushes.replace(magnitudes=m), prior=prior,
+                     prior_weight=prior_weight, steps=steps, settings=settings, **kw)
     return j.primitives, metrics.trajectory_mae(j.trajectories, traj), j.cost_start, j.cost
   with jax.default_matmul_precision("highest"):  # the ray cast, as depth_fit
-    boxes, mae, c0, c1 = jax.lax.map(lambda a: one(*a), (prims, logits, obs_traj, depth),
+    boxes, mae, c0, c1 = jax.lax.map(lambda a: one(*a), (prims, logits, obs_traj, depth, mags),
                                      batch_size=at_once)
   return {"density": boxes.density, "mae": mae, "cost_start": c0, "cost": c1,
           "faces": metrics.face_errors(bottom_to_top(boxes), true)}

@@ -258,21 +258,22 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
                     info["cost"])
 
 
-def refine_batch(prims, logits, obs_traj, sample_dist, sample_mae, *, steps, prior_weight,
+def refine_batch(prims, logits, obs_traj, sample_dist, sample_mae, mags, *, steps, prior_weight,
                  pushes, settings, jacobian="forward"):
   """`refine_if_closer` over a batch (B, K), as the evaluation runs it: refined densities
   where kept, a MAP step under each object's slot logits when prior_weight > 0; returns
   the densities, costs, distance and trajectory MAE (mm; the sample's where not kept).
+  `mags` (B, P): each object's push magnitudes (`pushes.object_magnitudes`).
   `prior_weight` may also be (B,), one per object: then every object takes the MAP step
   (even at weight 0, accepted by its cost), and many weights share one compiled call."""
   use_prior = np.ndim(prior_weight) > 0 or prior_weight > 0
   weights = jnp.broadcast_to(jnp.asarray(prior_weight, jnp.float32), sample_dist.shape)
 
-  def one(p, lg, traj, d0, m0, w):
+  def one(p, lg, traj, d0, m0, w, m):
     prior = density_prior(lg) if use_prior else None
-    r = refine_if_closer(p, traj, d0, pushes, steps=steps, prior=prior, prior_weight=w,
+    r = refine_if_closer(p, traj, d0, pushes.replace(magnitudes=m), steps=steps, prior=prior, prior_weight=w,
                          jacobian=jacobian, settings=settings)
     mae = jnp.where(r.closer, metrics.trajectory_mae(r.trajectories, traj), m0)
     return {"density": r.primitives.density, "cost_start": r.cost_start, "cost": r.cost,
             "dist": r.distance, "mae": mae, "closer": r.closer}
-  return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae, weights)
+  return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae, weights, mags)

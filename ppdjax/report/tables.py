@@ -8,6 +8,7 @@ import numpy as np
 
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
+from ppdjax.dataset.materials import ALL_MATERIAL_NAMES, MATERIAL_NAMES, MATERIALS
 
 # Row and column names of one model's evaluation.
 BASELINES = ("Frequent", "Nearest", "Oracle")
@@ -135,6 +136,31 @@ def face_summary(errors_BxKx6) -> dict:
 INTERVAL_KEYS = ("intervals_over", "geometries", "data_kind")
 
 
+def by_material(slot, valid, material, guesses: dict) -> dict:
+  """Per row, per material of the true box (`materials.ALL_MATERIAL_NAMES`): boxes, top-1
+  (%) and RMSE (slots) of the row's arg-max guesses, and for metal, whose slots lie in two
+  ranges (aluminium-like and steel-like), "range_confusions": the boxes guessed in the
+  other range, as a percentage of every box."""
+  names = np.asarray(ALL_MATERIAL_NAMES)
+  out = {}
+  metal = MATERIALS["metal"]
+  for row, guess in guesses.items():
+    out[row] = {}
+    for m in np.unique(material[valid & (material >= 0)]):  # -1: a box of no material
+      pick = valid & (material == m)
+      err = guess[pick].astype(np.int64) - slot[pick]
+      out[row][str(names[m])] = {"boxes": int(pick.sum()),
+                                 "top1": 100.0 * float(np.mean(err == 0)),
+                                 "rmse": float(np.sqrt(np.mean(err ** 2)))}
+    # 0-based slots of metal's ranges: low (lo..hi) and high
+    in_range = lambda s, r: (s >= r[0] - 1) & (s <= r[1] - 1)  # noqa: E731
+    is_metal = valid & (material == MATERIAL_NAMES.index("metal"))
+    crossed = is_metal & ((in_range(slot, metal[0]) & in_range(guess, metal[1]))
+                          | (in_range(slot, metal[1]) & in_range(guess, metal[0])))
+    out[row]["range_confusions"] = 100.0 * float(crossed.sum()) / max(int(valid.sum()), 1)
+  return out
+
+
 def summarize(switches: dict, rec: dict, geometries=None) -> dict:
   """Tables 2, 4, 5, F1, the τ sweep, refinement statistics and confusion matrices from
   the concatenated per-object records of `rows.batch_records`, with 95 % bootstrap
@@ -219,6 +245,15 @@ def summarize(switches: dict, rec: dict, geometries=None) -> dict:
         "mean_distance_sample_m": float(d0.mean()), "mean_distance_refined_m": float(d1.mean()),
         "mean_cost_start": float(r["cost_start"].mean()), "mean_cost": float(r["cost"].mean())}
   slot, valid = rec[("true_slot",)], rec[("true_valid",)]
+  if ("true_material",) in rec:
+    guesses = {name: rec[("guess", name)] for name in PPD_ROWS if ("guess", name) in rec}
+    results["by_material"] = by_material(slot, valid, rec[("true_material",)], guesses)
+    # the network's and +Sample's hits per object, in the evaluated order: what a breakdown
+    # by a property of the objects (a tool's category) reads
+    results["per_object"] = {
+        name: {k: np.asarray(v).tolist() for k, v in group("counts", name).items()
+               if k in ("top1", "sq_err", "count")}
+        for name in ("PPD", "PPD+Sample") if name in names}
   results["confusion"] = {}
   for name in [r for r in PPD_ROWS if r in names]:
     matrix = np.zeros((NUM_DENSITY_SLOTS,) * 2, np.int64)

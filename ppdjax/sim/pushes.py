@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from ppdjax.conventions import TIMESTEP
+from ppdjax.conventions import PUSH_MAGNITUDES, TIMESTEP
 from ppdjax.primitives import Primitives, ray_box_hits
 from ppdjax.sim.mass import MassProperties, mass_properties
 
@@ -103,6 +103,28 @@ class Pushes:
     sources, targets, magnitudes, striker_masses = self.arrays()
     return self.replace(sources=sources, targets=targets, magnitudes=magnitudes,
                         striker_masses=striker_masses)
+
+
+def object_magnitudes(pushes: Pushes, observation: dict, count: int) -> jax.Array:
+  """(count, P) float32: each object's push magnitudes, observation["push_magnitudes"]
+  where given (`conventions.PUSH_MAGNITUDES`), else the pushes' own for every object."""
+  given = observation.get(PUSH_MAGNITUDES)
+  if given is not None:
+    return jnp.asarray(given, jnp.float32).reshape(count, pushes.num)
+  return jnp.broadcast_to(jnp.asarray(pushes.magnitudes, jnp.float32), (count, pushes.num))
+
+
+def check_magnitudes(magnitudes, pushes: Pushes, lead: tuple[int, ...]) -> None:
+  """Raises ValueError naming the problem with per-object push magnitudes (newtons): shape
+  lead + (P,), finite, >= 0."""
+  got = tuple(np.shape(magnitudes))
+  if got != tuple(lead) + (pushes.num,):
+    raise ValueError(f"observation[{PUSH_MAGNITUDES!r}]: expected shape "
+                     f"{tuple(lead) + (pushes.num,)} (newtons per push), got {got}")
+  if not isinstance(magnitudes, jax.core.Tracer):
+    m = np.asarray(magnitudes, np.float64)
+    if not np.all(np.isfinite(m)) or np.any(m < 0):
+      raise ValueError(f"observation[{PUSH_MAGNITUDES!r}]: expected finite magnitudes >= 0 N")
 
 
 def default_pushes(magnitude: float = PAPER_FORCE) -> Pushes:

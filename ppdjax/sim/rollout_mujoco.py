@@ -148,10 +148,8 @@ def simulate_traced(prims: Primitives, pushes: Pushes, *, steps: int,
                     settings: MujocoSettings) -> jax.Array:
   """(N, P, steps, 7) float32 trajectories of N objects (N, K) from MuJoCo C, callable
   inside `jax.jit` and under `jax.vmap` (every vmapped call becomes one batch on the host:
-  all cores at once). `pushes` must be concrete (a jitted function's constant)."""
-  if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(pushes)):
-    raise ValueError("the C engine (MujocoSettings) needs the pushes as constants of the "
-                     "jitted function, not as its arguments")
+  all cores at once). The pushes' arrays may be traced (each object's own magnitudes):
+  their wrenches are computed in JAX before the host call."""
   n, p = prims.density.shape[0], pushes.num
   inputs = jax.vmap(object_inputs, in_axes=(0, None))(prims, pushes.float32())
 
