@@ -124,7 +124,9 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
   print(f"{mesh}: {len(tool.parts)} parts "
         + ", ".join(f"{n} ({m}, {d:.0f} kg/m^3)" for n, m, d in
                     zip(tool.names, tool.materials, tool.densities)))
-  pushes = tool_scene.tool_pushes(tool_generation.push_force(config.data))  # the model's data's
+  # the pushes the model's data had for a tool of this volume (`tool_generation.tool_pushes`)
+  pushes = tool_generation.tool_pushes(config.data, list(tool.parts))
+  print(f"pushes of {float(pushes.magnitudes[0]):.4g} N ({tool_generation.push_mode(config.data)})")
   protocol = tool_generation.protocol(config.data)
   print(f"model {model}: " + (
       "tools under the paper's protocol (the mesh's boxes are the body, each of the material "

@@ -10,6 +10,8 @@ import sys
 import numpy as np
 import pytest
 
+from ppdjax.dataset import tools
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY = ["--config=ppdjax/configs/tiny.py", "--config.train.geometry_steps=10",
         "--config.train.joint_steps=10", "--config.train.eval_every=10", "--max_objects=4",
@@ -157,8 +159,9 @@ def test_light_steps_run_beside_the_jobs(tmp_path):
 
 @pytest.mark.slow  # about 5 minutes on 2 cores
 def test_tools_pipeline_runs_and_reports_table3(tmp_path):
-  """ppdjax.reproduce tools on the tools preset's tiny size: every step, two at a time as
-  their inputs allow, then the report."""
+  """ppdjax.reproduce tools on the tools preset's tiny size (the realistic benchmark: labels
+  by physical piece, pushes by volume): every step, two at a time as their inputs allow,
+  then the report with its breakdowns by material and category."""
   root, results, assets = (str(tmp_path / d) for d in ("root", "results", "assets"))
   env = {**os.environ, "JAX_PLATFORMS": "cpu",
          "JAX_COMPILATION_CACHE_DIR": os.path.join(ROOT, ".jax_cache")}
@@ -167,14 +170,26 @@ def test_tools_pipeline_runs_and_reports_table3(tmp_path):
                         f"--results={results}", f"--assets={assets}", "--jobs=2"], cwd=ROOT,
                        env=env, capture_output=True, text=True, timeout=900)
   assert run.returncode == 0, run.stderr[-3000:]
-  with open(os.path.join(results, "tools.json")) as f:
+  with open(os.path.join(results, "tools_realistic.json")) as f:
     table = json.load(f)
-  assert list(table["rows"])[:7] == ["Frequent", "Nearest", "Oracle", "PPD (no trajectory)",
-                                     "PPD (no image)", "PPD (full)", "PPD (full)+Sample"]
-  assert table["objects"] >= 1 and "f1" in table["shape"]
+  assert list(table["table3"])[:7] == ["Frequent", "Nearest", "Oracle", "PPD (no trajectory)",
+                                       "PPD (no image)", "PPD (full)", "PPD (full)+Sample"]
+  assert table["objects"] >= 1 and "f1" in table["shape"] and table["commit"]
   assert "train:pretrain" in table["steps"] and table["wall_seconds"] > 0
-  assert os.path.exists(os.path.join(results, "tools_decomposition.png"))
-  assert os.path.exists(os.path.join(results, "tools_learning_curves.png"))
+  # the breakdowns: boxes by material add up to the headline row's; categories recorded
+  boxes = sum(v["boxes"] for v in table["by_material"].values())
+  top1 = sum(v["boxes"] * v["top1"] for v in table["by_material"].values()) / boxes
+  assert top1 == pytest.approx(table["table3"]["PPD (full)+Sample"]["top1"])
+  assert set(table["by_material"]) <= {"wood", "stone", "ceramic", "metal"}  # never brick
+  assert 0 <= table["metal_range_confusions"] <= 100
+  assert set(table["by_category"]["PPD (full)"]) <= set(tools.CATEGORIES)
+  assert table["push"] == "by_volume" and table["speeds"]["percentiles"]["p50"] > 0
+  assert 0 <= table["floor"]["top1"] <= 100 and table["floor"]["boxes"] >= 1
+  text = open(os.path.join(results, "tools_realistic.md")).read()
+  assert "## By material" in text and "## By category" in text and "start" in text
+  assert "## The floor" in text
+  assert os.path.exists(os.path.join(results, "tools_realistic_decomposition.png"))
+  assert os.path.exists(os.path.join(results, "tools_realistic_learning_curves.png"))
   assert os.path.exists(os.path.join(assets, "tools_model", "config.json"))
   from ppdjax.eval import partial  # pylint: disable=import-outside-toplevel
   kept = os.path.join(root, "full", "eval", "partial")  # the full model's records, compacted
@@ -184,7 +199,7 @@ def test_tools_pipeline_runs_and_reports_table3(tmp_path):
                            "--config=ppdjax/configs/tools.py:tiny", f"--root={root}"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
   states = [line.split()[0] for line in listed.stdout.splitlines()]
-  assert states == ["done"] * 9 + ["todo"], listed.stdout  # the report always runs again
+  assert states == ["done"] * 10 + ["todo"], listed.stdout  # the report always runs again
 
 
 def test_step_log_counts_overlapping_calls_once(tmp_path):
@@ -596,7 +611,7 @@ def test_tools_study_runs_some_variants_from_another_pretraining(tmp_path):
   done = lister("--variants=full", f"--pretrained={pretrained}")
   assert done.returncode == 0, done.stderr[-2000:]
   assert [line.split()[1] for line in done.stdout.splitlines()] == [
-      "generate:tools", "train:full", "evaluate:full"]
+      "generate:tools", "train:full", "evaluate:full", "floor"]
   bad = lister("--variants=full,no_voxels")
   assert bad.returncode != 0 and "--variants must be some of" in bad.stderr
 

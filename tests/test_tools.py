@@ -191,3 +191,155 @@ def test_load_object_errors_name_the_problem(tmp_path):
   with pytest.warns(UserWarning, match="every part is taken as wood"):
     tool, _ = ppdjax.load_object(path)
   assert tool.materials == ("wood",)
+
+
+# --- labels: the legacy "category" mode, the "plausible" mode, thickness ---------------------
+
+def _legacy_sample(seed, index):
+  """An inline copy of `sample_tool`'s labels from before pieces existed: (category, names,
+  materials, slots)."""
+  rng = np.random.default_rng([seed, index])
+  category = tools.CATEGORIES[rng.integers(len(tools.CATEGORIES))]
+  names, _, materials = zip(*tools._BUILDERS[category](rng))
+  return category, names, materials, tuple(int(rng.choice(material_slots(m))) for m in materials)
+
+
+def test_the_category_labels_are_unchanged(tool_set):
+  """`sample_tool` and `with_new_slots` draw what they drew before pieces existed (datasets
+  stay reproducible): every part its own piece, one slot per part in part order."""
+  for i, t in enumerate(tool_set):
+    assert (t.category, t.names, t.materials, t.slots) == _legacy_sample(3, i)
+    assert t.pieces == tuple(range(len(t.parts)))
+    drawn = tools.with_new_slots(t, np.random.default_rng([3, i, 1]))
+    rng = np.random.default_rng([3, i, 1])
+    assert drawn.slots == tuple(int(rng.choice(material_slots(m))) for m in t.materials)
+  # pinned: the geometry's rng calls (the builders) and the slot draws
+  from ppdjax.dataset import tool_generation
+  t = tools.sample_tool(5, 0)
+  assert (t.category, t.materials) == ("spatula", ("ceramic", "metal"))
+  assert [v.slots for v in tool_generation.density_variants(t, 5, 0, 4)] == [
+      (34, 99), (56, 88), (34, 75), (52, 28)]
+
+
+def _plausible_set(category, name):
+  return next(m for names, m in tools.PLAUSIBLE_MATERIALS[category] if name in names)
+
+
+def test_plausible_labels_share_a_piece_and_keep_the_geometry(tool_set):
+  assert set(tools.PLAUSIBLE_MATERIALS) == set(tools.CATEGORIES)
+  seen = {}
+  for i, t in enumerate(tool_set):
+    again = tools.sample_plausible_tool(3, i)
+    assert again.names == t.names and again.category == t.category
+    for p, q in zip(t.parts, again.parts):  # the same meshes, bit for bit
+      np.testing.assert_array_equal(p.vertices, q.vertices)
+      np.testing.assert_array_equal(p.faces, q.faces)
+    for k in range(5):  # ~240 labellings
+      u = tools.with_plausible_materials(t, np.random.default_rng([k, i]))
+      for v in (u, tools.with_new_slots(u, np.random.default_rng([k, i, 1]))):
+        for name, material, slot, piece in zip(v.names, v.materials, v.slots, v.pieces):
+          assert material in _plausible_set(v.category, name) and material != "brick"
+          assert slot in material_slots(material)
+          seen.setdefault((v.category, name), set()).add(material)
+          for name2, material2, slot2, piece2 in zip(v.names, v.materials, v.slots, v.pieces):
+            if piece2 == piece:
+              assert (material2, slot2) == (material, slot), (v.category, name, name2)
+      want = {"wrench": (0, 0, 0), "screwdriver": (0, 1, 1)}.get(t.category, (0, 1))
+      assert u.pieces == want, (t.category, u.pieces)
+  for (category, name), materials in seen.items():  # every member of every set occurs
+    assert materials == set(_plausible_set(category, name)), (category, name, materials)
+  assert seen["hammer", "handle"] == {"wood", "ceramic", "metal"}
+  # one piece, one density: a new configuration moves the wrench's parts together
+  wrench = tools.sample_plausible_tool(3, 0, "wrench")
+  slots = {tools.with_new_slots(wrench, np.random.default_rng(k)).slots for k in range(8)}
+  assert len(slots) > 1 and all(len(set(s)) == 1 for s in slots)
+  with pytest.raises(ValueError, match="share one material and slot"):
+    tools.Tool("wrench", wrench.parts, wrench.names, wrench.materials, (70, 71, 70), (0, 0, 0))
+  with pytest.raises(ValueError, match="pieces must give each"):
+    tools.Tool("wrench", wrench.parts, wrench.names, wrench.materials, wrench.slots, (1, 0, 0))
+  user = tools.Tool("user", wrench.parts, wrench.names, wrench.materials, wrench.slots)
+  assert user.pieces == (0, 1, 2)
+  with pytest.raises(ValueError, match="no plausible materials"):
+    tools.with_plausible_materials(user, np.random.default_rng(0))
+
+
+def _thickness_parameter(seed, index, category, drawn=False):
+  """The builder's thickness draw (metres), its rng calls repeated: the wrench's `thick`,
+  the saw's blade `bt` (`drawn`: the category was drawn first, not given)."""
+  rng = np.random.default_rng([seed, index])
+  if drawn:
+    rng.integers(len(tools.CATEGORIES))
+  if category == "wrench":
+    rng.uniform(0.15, 0.25), rng.uniform(0.012, 0.02)
+    return rng.uniform(0.005, 0.008)
+  for lo, hi in ((0.1, 0.14), (0.07, 0.1), (0.02, 0.03), (0.25, 0.45), (0.06, 0.1)):
+    rng.uniform(lo, hi)
+  return rng.uniform(0.001, 0.002)
+
+
+def test_part_thickness_is_the_builders_thickness():
+  for category, part in (("wrench", 0), ("saw", 1)):
+    tool = tools.sample_tool(8, 0, category)
+    parts, transform = meshes.normalize(list(tool.parts))
+    scale = np.linalg.norm(transform[:3, 0])
+    thick = tools.part_thicknesses(parts)
+    assert thick.shape == (len(parts),)
+    np.testing.assert_allclose(thick[part], _thickness_parameter(8, 0, category) * scale,
+                               atol=1e-3)
+    np.testing.assert_allclose(tools.part_thicknesses(tool.parts)[part] * scale, thick[part],
+                               rtol=1e-6)
+  assert thick[1] < 1 / 32  # the saw's blade: thinner than a voxel
+
+
+def test_tool_samples_record_thickness_in_both_modes():
+  """One wrench through the whole row, in both modes (~7 s): each box records its part's
+  thickness, 0 for padding; the plausible boxes share the wrench's one density."""
+  from ppdjax.dataset import tool_generation
+  index = next(i for i in range(100) if tools.sample_tool(0, i).category == "wrench")
+  tool = tools.sample_tool(0, index)
+  _, transform = meshes.normalize(list(tool.parts))
+  want = _thickness_parameter(0, index, "wrench", drawn=True) * np.linalg.norm(transform[:3, 0])
+  rows = {m: tool_generation.tool_samples(0, index, image_size=32, steps=30, configs=2,
+                                          materials=m) for m in tool_generation.MATERIAL_MODES}
+  for mode, both in rows.items():
+    for row in both:
+      valid = row["materials"] >= 0
+      assert row["thickness"].dtype == np.float32
+      assert row["thickness"].shape == row["density"].shape
+      assert np.all(row["thickness"][~valid] == 0) and valid.sum() >= 1
+      np.testing.assert_allclose(row["thickness"][valid], want, atol=1e-3)
+      if mode == "plausible":
+        assert len(set(row["density"][valid])) == 1  # one piece, one density
+  for key in ("voxels", "half_size", "pos", "quat", "valid", "thickness"):  # one geometry
+    np.testing.assert_array_equal(rows["category"][0][key], rows["plausible"][0][key])
+  with pytest.raises(ValueError, match="tool_materials must be one of"):
+    tool_generation.tool_samples(0, index, 32, 30, materials="random")
+
+
+def test_the_labels_and_push_modes_read_the_data_config():
+  import inspect
+
+  import ml_collections
+
+  from ppdjax.dataset import tool_generation
+  assert tool_generation.materials_mode({}) == "category"  # data made before the key
+  assert tool_generation.materials_mode({"tool_materials": "plausible"}) == "plausible"
+  with pytest.raises(ValueError, match="tool_materials must be one of"):
+    tool_generation.materials_mode({"tool_materials": "uniform"})
+
+  class Recorder:
+    def map(self, jobs):
+      self.jobs = jobs
+      return [[{"tower_id": np.int64(j[1])}] for j in jobs]
+
+  cfg = ml_collections.ConfigDict(dict(num_tools=3, tools_per_shard=2, image_size=32, steps=30,
+                                       split_fractions=(0.8, 0.1, 0.1),
+                                       tool_materials="plausible", tool_push="by_volume"))
+  workers = Recorder()
+  tool_generation.generate_shard(cfg, 0, 1, workers)
+  assert [j[1] for j in workers.jobs] == [2] and workers.jobs[0][-2:] == ("plausible",
+                                                                          "by_volume")
+  # the jobs are positional into tool_samples: the modes land on `materials` and `push`
+  params = list(inspect.signature(tool_generation.tool_samples).parameters)
+  assert params[len(workers.jobs[0]) - 2:len(workers.jobs[0])] == ["materials", "push"]
+  assert tool_generation.push_mode({}) == "fixed"  # data made before the key

@@ -55,6 +55,14 @@ class DataConfig:
   # "realistic" (the tool's parts are its body, materials by part) or "paper" (the tool's
   # boxes are its body, each of a material drawn from Table 1's five: configs/tools_paper.py)
   tool_protocol: str = "realistic"
+  # the realistic tools' labels: "category" (one material per part by category, a density
+  # per part: datasets made before the key) or "plausible" (a material per physical piece
+  # drawn from the part's plausible set, one density per piece: configs/tools.py)
+  tool_materials: str = "category"
+  # the realistic tools' pushes: "fixed" (tool_push_force for every tool) or "by_volume"
+  # (tool_push_force x the tool's volume / tool_scene.REFERENCE_VOLUME, so that how far a
+  # tool moves reads its density, not its size)
+  tool_push: str = "fixed"
   block_counts: tuple = ()  # video towers: block counts drawn uniformly (configs/video.py)
 
 
@@ -200,6 +208,15 @@ class FinetuneConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class FloorConfig:
+  """The realistic tools benchmark's floor (`ppdjax.eval.tool_floor`, configs/tools.py)."""
+  tools: int = 2  # test tools read (the first of the test split)
+  configs: int = 1  # density configurations of each (data.configs_per_tool at most)
+  geometries: int = 4  # geometry samples each tool's densities are read on
+  seed: int = 0  # the chain's and the tracking noise's draws
+
+
+@dataclasses.dataclass(frozen=True)
 class VideoTestConfig:
   """The video towers' test clips (configs/video.py)."""
   seed: int = 1_000_019
@@ -212,8 +229,8 @@ class VideoTestConfig:
 
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
-  """A whole preset, typed. `pretrain`, `finetune` and `test` belong to the tools and
-  video pipelines: None where a preset has no such section."""
+  """A whole preset, typed. `pretrain`, `finetune`, `floor` and `test` belong to the tools
+  and video pipelines: None where a preset has no such section."""
   name: str = "tiny"
   seed: int = 0
   demo: DemoConfig = DemoConfig()
@@ -224,6 +241,7 @@ class RunConfig:
   eval: EvalConfig = EvalConfig()
   pretrain: typing.Optional[PretrainConfig] = None
   finetune: typing.Optional[FinetuneConfig] = None
+  floor: typing.Optional[FloorConfig] = None
   test: typing.Optional[VideoTestConfig] = None
 
 
@@ -231,8 +249,8 @@ SECTIONS = {f.name: f.type for f in dataclasses.fields(RunConfig)}
 _SECTION_TYPES = {"demo": DemoConfig, "data": DataConfig, "model": ModelConfig,
                   "train": TrainConfig, "estimator": EstimatorConfig, "eval": EvalConfig,
                   "pretrain": PretrainConfig, "finetune": FinetuneConfig,
-                  "test": VideoTestConfig}
-OPTIONAL_SECTIONS = ("pretrain", "finetune", "test")
+                  "floor": FloorConfig, "test": VideoTestConfig}
+OPTIONAL_SECTIONS = ("pretrain", "finetune", "floor", "test")
 
 
 class ConfigError(ValueError):

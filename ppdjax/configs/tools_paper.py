@@ -33,6 +33,10 @@ def get_config(size: str = "paper"):
   # engine fails, and the tools start at 0.16 / 0.46 / 1.8 m/s (p10 / p50 / p90), the
   # towers' range under theirs (experiments/tools_paper/README.md).
   config.data.tool_push_force = 3e3
+  # the realistic tools' labels and per-tool pushes do not apply: Table 1's materials per box
+  config.data.tool_materials = "category"
+  config.data.tool_push = "fixed"
+  del config["floor"]  # the floor reads the realistic benchmark
   # +Sample as the paper's rule and the towers' first choice: the closest trajectory over
   # all steps (τ = 0); the tools preset's τ = 0.05 made up for boxes that were not the body
   config.eval.prior_weight = 0.0

@@ -52,6 +52,9 @@ def check_config(cfg) -> None:
     rules = [("num_tools", cfg.num_tools >= 1), ("tools_per_shard", cfg.tools_per_shard >= 1),
              ("configs_per_tool", tool_generation.configs_per_tool(cfg) >= 1),
              ("tool_protocol", tool_generation.protocol(cfg) in tool_generation.PROTOCOLS),
+             ("tool_push", tool_generation.push_mode(cfg) in tool_scene.PUSH_MODES),
+             ("tool_materials", str(cfg.get("tool_materials", "category"))
+              in tool_generation.MATERIAL_MODES),
              ("backend", cfg.backend in BACKENDS),
              # above 1e4 N MuJoCo's solver diverges on some tools (tool_scene.TOOL_PUSH_FORCE)
              ("tool_push_force", 0 < tool_generation.push_force(cfg) <= 1e4)]
@@ -140,7 +143,9 @@ def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray
 
 def _tools_engine(cfg) -> str:
   """What made a tools dataset's trajectories, in words (its manifest's "engine")."""
-  force = f"pushes of {tool_generation.push_force(cfg):g} N"
+  force = f"pushes of {tool_generation.push_force(cfg):g} N" + (
+      f" x the tool's volume / {tool_scene.REFERENCE_VOLUME:g} m^3"
+      if tool_generation.push_mode(cfg) == "by_volume" else "")
   if tool_generation.protocol(cfg) == "paper":
     return f"the paper's protocol: the tool's boxes simulated as towers ({cfg.backend}), {force}"
   return f"MuJoCo C on the parts' convex pieces, {force}"

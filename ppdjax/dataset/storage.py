@@ -48,8 +48,9 @@ SAMPLE_KEYS = OBS_KEYS + ("depth", "primitives", "materials", "tower_id")  # wha
 # Fields some datasets add (each shard of a dataset has all or none of them): each
 # object's push magnitudes (P,) newtons where they differ per object
 # (`conventions.PUSH_MAGNITUDES`), and each box's thinnest side (K,) m of the tool part it
-# covers most (the realistic tools, `tool_generation`); a sample then holds them too.
-OPTIONAL_FIELDS = (PUSH_MAGNITUDES, "thickness")
+# covers most, and the tool's category (the realistic tools, `tool_generation`); a sample
+# then holds them too.
+OPTIONAL_FIELDS = (PUSH_MAGNITUDES, "thickness", "category")
 SPLITS = {"train": 0, "val": 1, "test": 2}
 
 

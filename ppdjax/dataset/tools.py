@@ -3,10 +3,19 @@
 The paper used 204 tools from 3D Warehouse, which cannot be downloaded here; ppdjax makes
 its own. A tool is 1-3 watertight parts (trimesh primitives, tapered or bent so that boxes
 only approximate them) in one of `CATEGORIES`, with random proportions; each part carries
-one of the paper's five materials (Table 1) and a density slot drawn from its range
-(metal heads and blades, wooden or ceramic handles). Parts touch but never overlap, so
-their volumes, masses and inertias add up. Deterministic from (seed, index). Sizes are in
-metres before normalisation (`ppdjax.dataset.meshes.normalize`).
+one of the paper's five materials (Table 1) and a density slot drawn from its range. Parts
+touch but never overlap, so their volumes, masses and inertias add up. Deterministic from
+(seed, index). Sizes are in metres before normalisation (`ppdjax.dataset.meshes.normalize`).
+
+Two labellings of the same geometry:
+  * "category" (`sample_tool`, the datasets made before "plausible" existed): materials fixed
+    by category (metal heads and blades, wooden or ceramic handles), a density slot per
+    part, every part its own piece;
+  * "plausible" (`sample_plausible_tool` = `with_plausible_materials` of the same tool, drawn
+    from a separate stream, `MATERIAL_STREAM`): parts that are one physical piece share a
+    material and a slot (`Tool.pieces`: a wrench's bar and ends, a screwdriver's shaft and
+    tip), and each piece's material is drawn uniformly from its part's plausible set
+    (`PLAUSIBLE_MATERIALS`). The meshes are bit-identical in both.
 """
 
 from __future__ import annotations
@@ -22,6 +31,31 @@ from ppdjax.dataset.materials import material_slots
 CATEGORIES = ("hammer", "mallet", "axe", "screwdriver", "wrench", "spatula", "knife", "saw")
 HANDLE_MATERIALS = ("wood", "ceramic")  # "plastic-like" handles: the paper has no plastic
 
+# The "plausible" labelling: per category, its physical pieces (part names that are one piece
+# of one material, so one density) and the materials a piece may be made of, each drawn
+# uniformly. A handle may be wood, metal or plastic-like ("ceramic": Table 1 has no plastic),
+# except where a metal one would be odd (a screwdriver's or saw's grip); heads and blades that
+# take blows or hold an edge are metal, or stone or ceramic (a stone hammer or axe, a ceramic
+# knife), a mallet's head is soft or heavy rather than metal, and a spatula's blade may be
+# wooden or plastic-like. A wrench is forged in one piece; a screwdriver's shaft and tip are
+# one rod. No tool is brick.
+PLAUSIBLE_MATERIALS: dict[str, tuple[tuple[tuple[str, ...], tuple[str, ...]], ...]] = {
+    "hammer": ((("handle",), ("wood", "ceramic", "metal")), (("head",), ("metal", "stone"))),
+    "mallet": ((("handle",), ("wood", "ceramic", "metal")),
+               (("head",), ("wood", "stone", "ceramic"))),
+    "axe": ((("handle",), ("wood", "ceramic", "metal")), (("head",), ("metal", "stone"))),
+    "screwdriver": ((("handle",), ("wood", "ceramic")), (("shaft", "tip"), ("metal",))),
+    "wrench": ((("bar", "small end", "large end"), ("metal",)),),
+    "spatula": ((("handle",), ("wood", "ceramic", "metal")),
+                (("blade",), ("metal", "wood", "ceramic"))),
+    "knife": ((("handle",), ("wood", "ceramic", "metal")), (("blade",), ("metal", "ceramic"))),
+    "saw": ((("handle",), ("wood", "ceramic")), (("blade",), ("metal",))),
+}
+# The third seed word of the plausible labels' stream, (seed, index, MATERIAL_STREAM): apart
+# from the geometry's (seed, index) and the density configurations' (seed, index, c), c small,
+# so that relabelling a tool changes neither its meshes nor the legacy draws.
+MATERIAL_STREAM = 0x6D61746C  # "matl"
+
 
 @dataclasses.dataclass(frozen=True)
 class Tool:
@@ -33,6 +67,8 @@ class Tool:
     names: a name per part ("handle", "head", ...).
     materials: a material per part (keys of `materials.MATERIALS`).
     slots: a 0-based density slot per part, within its material's range.
+    pieces: the physical piece of each part, 0, 1, ... in order of first appearance; the
+      parts of one piece share material and slot (default: every part its own piece).
   """
 
   category: str
@@ -40,11 +76,34 @@ class Tool:
   names: tuple[str, ...]
   materials: tuple[str, ...]
   slots: tuple[int, ...]
+  pieces: tuple[int, ...] = ()
+
+  def __post_init__(self):
+    pieces = tuple(int(p) for p in self.pieces) or tuple(range(len(self.parts)))
+    object.__setattr__(self, "pieces", pieces)  # frozen: set once, here
+    if len(pieces) != len(self.parts) or _first_appearance(pieces) != pieces:
+      raise ValueError(f"pieces must give each of the {len(self.parts)} parts a piece "
+                       f"0, 1, ... in order of first appearance, got {pieces}")
+    for p in set(pieces):
+      labels = {(self.materials[i], self.slots[i]) for i in range(len(pieces)) if pieces[i] == p}
+      if len(labels) > 1:
+        raise ValueError(f"the parts of piece {p} ({self.category}) must share one material "
+                         f"and slot, got {sorted(labels)}")
 
   @property
   def densities(self) -> np.ndarray:
     """(parts,) kg/m^3."""
     return np.asarray([slot_to_density(s) for s in self.slots], np.float64)
+
+  @property
+  def num_pieces(self) -> int:
+    return len(set(self.pieces))
+
+
+def _first_appearance(labels) -> tuple[int, ...]:
+  """`labels` renumbered 0, 1, ... in order of first appearance."""
+  order: dict = {}
+  return tuple(order.setdefault(x, len(order)) for x in labels)
 
 
 # --- shaping parts --------------------------------------------------------------------------
@@ -190,11 +249,54 @@ def sample_tool(seed: int, index: int, category: str | None = None) -> Tool:
   return Tool(category, tuple(parts), tuple(names), tuple(str(m) for m in materials), slots)
 
 
+def _piece_slots(pieces, materials, rng) -> tuple[int, ...]:
+  """A slot per part: one drawn per piece, in piece order, uniformly within the piece's
+  material's range, shared by its parts (one per part in part order where every part is its
+  own piece: the draws from before pieces existed)."""
+  material = {}
+  for p, m in zip(pieces, materials):
+    material.setdefault(p, m)
+  drawn = [int(rng.choice(material_slots(material[p]))) for p in range(len(material))]
+  return tuple(drawn[p] for p in pieces)
+
+
 def with_new_slots(tool: Tool, rng: np.random.Generator) -> Tool:
-  """The same tool (geometry, materials) with each part's slot drawn again within its
+  """The same tool (geometry, materials) with each piece's slot drawn again within its
   material's range: another density configuration, as a tower's configurations are."""
-  slots = tuple(int(rng.choice(material_slots(m))) for m in tool.materials)
-  return dataclasses.replace(tool, slots=slots)
+  return dataclasses.replace(tool, slots=_piece_slots(tool.pieces, tool.materials, rng))
+
+
+def with_plausible_materials(tool: Tool, rng: np.random.Generator) -> Tool:
+  """The same geometry labelled by `PLAUSIBLE_MATERIALS`: its real pieces, each piece's
+  material drawn uniformly from its set, then each piece's slot uniformly within that
+  material's range (all from `rng`), shared by the piece's parts."""
+  if tool.category not in PLAUSIBLE_MATERIALS:
+    raise ValueError(f"no plausible materials for tool category {tool.category!r}; expected "
+                     f"one of {tuple(PLAUSIBLE_MATERIALS)}")
+  table = PLAUSIBLE_MATERIALS[tool.category]
+  piece_of = {name: k for k, (names, _) in enumerate(table) for name in names}
+  unknown = [n for n in tool.names if n not in piece_of]
+  if unknown:
+    raise ValueError(f"{tool.category} parts {unknown} are not in PLAUSIBLE_MATERIALS")
+  rows = [piece_of[n] for n in tool.names]
+  pieces = _first_appearance(rows)
+  choices = {p: table[r][1] for p, r in zip(pieces, rows)}
+  drawn = [choices[p][int(rng.integers(len(choices[p])))] for p in range(len(choices))]
+  materials = tuple(drawn[p] for p in pieces)
+  return dataclasses.replace(tool, materials=materials, pieces=pieces,
+                             slots=_piece_slots(pieces, materials, rng))
+
+
+def sample_plausible_tool(seed: int, index: int, category: str | None = None) -> Tool:
+  """`sample_tool(seed, index, category)` (the same meshes) under the "plausible" labels,
+  drawn from (seed, index, MATERIAL_STREAM)."""
+  return with_plausible_materials(sample_tool(seed, index, category),
+                                  np.random.default_rng([seed, index, MATERIAL_STREAM]))
+
+
+def part_thicknesses(parts) -> np.ndarray:
+  """(parts,) the thinnest side of each part's minimum oriented bounding box (its units)."""
+  return np.asarray([float(np.min(p.bounding_box_oriented.primitive.extents)) for p in parts])
 
 
 def sample_tools(seed: int, count: int) -> list[Tool]:

@@ -9,6 +9,7 @@
       --variants=full --pretrained=out/tools/pretrain  # a study: one model, no pretraining
 
 Steps: generate the 2-block pretraining towers (`config.pretrain`) and the tools dataset;
+for the realistic benchmark's labels, its floor (`ppdjax.eval.tool_floor`, CPU work);
 pretrain the full model on the towers; fine-tune the full model and the no-image and
 no-trajectory ablations on the tools from the pretrained weights (`config.finetune`);
 evaluate each on the whole tools test split (the full model with the baselines, +Sample
@@ -30,6 +31,7 @@ towers and pretraining again.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 
@@ -42,7 +44,7 @@ jax.config.update("jax_compilation_cache_dir",
 
 from ppdjax.reproduce import blocks_common as common
 from ppdjax.reproduce import steps as pipeline_steps
-from ppdjax.dataset import generation  # noqa: E402
+from ppdjax.dataset import generation, tool_generation  # noqa: E402
 from ppdjax.eval import evaluation, partial  # noqa: E402
 from ppdjax.report import markdown
 from ppdjax.training import loop  # noqa: E402
@@ -125,9 +127,32 @@ class Pipeline:
       if v != "pretrain":
         out.append((f"evaluate:{v}", lambda v=v: os.path.exists(
             os.path.join(self.eval_dir(v), "results.json")), lambda v=v: self.evaluate(v)))
+    if self.has_floor:  # the realistic benchmark's floor: CPU work beside the training
+      out.append(("floor", lambda: os.path.exists(self.floor_file), self.floor))
     if self.variants == VARIANTS:  # the report needs every model
       out.append(("report", lambda: False, self.report))
     return out
+
+  @property
+  def has_floor(self) -> bool:
+    """Whether the preset reads a floor (`ppdjax.eval.tool_floor`): the realistic labels."""
+    return "floor" in self.config and tool_generation.materials_mode(
+        self.config.data) == "plausible"
+
+  @property
+  def floor_file(self) -> str:
+    return os.path.join(self.root, "floor", "floor.json")
+
+  def floor(self) -> None:
+    from ppdjax.eval import tool_floor  # pylint: disable=import-outside-toplevel
+    result = tool_floor.compute(self.config, workers=int(self.config.data.render_workers))
+    os.makedirs(os.path.dirname(self.floor_file), exist_ok=True)
+    with open(self.floor_file + ".tmp", "w") as f:
+      json.dump(result, f, indent=1)
+    os.replace(self.floor_file + ".tmp", self.floor_file)
+    print(f"floor: top-1 {result['top1']:.1f} %, RMSE {result['rmse']:.2f} over "
+          f"{result['boxes']} boxes of {result['tools']} test tools -> {self.floor_file}",
+          flush=True)
 
   def needs(self, name: str) -> tuple[str, ...]:
     """The steps that must be done before `name` starts (the data flow of steps())."""
@@ -139,7 +164,13 @@ class Pipeline:
               else ("generate:tools",) + (() if self.pretrained else ("train:pretrain",)))
     if kind == "evaluate":
       return (f"train:{variant}",)
+    if kind == "floor":  # after the tools are made: both keep the CPU's cores busy
+      return ("generate:tools",)
     return tuple(n for n, _, _ in self.steps() if n != "report")
+
+  def light(self, name: str) -> bool:
+    """The floor is CPU work: it starts beside a full set of `--jobs` (the trainings)."""
+    return name == "floor"
 
   @staticmethod
   def _generated(path: str) -> bool:

@@ -16,9 +16,9 @@ from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import make_decompose_fn
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.report import plots
-from ppdjax.conventions import slot_to_density
+from ppdjax.conventions import TIMESTEP, slot_to_density
 from ppdjax.configs import tools as tools_preset
-from ppdjax.dataset import storage, tool_generation
+from ppdjax.dataset import storage, tool_generation, tools
 from ppdjax.report import tables
 from ppdjax.report.markdown import intervals_note, oracle_pick_md, prior_sweep_md, table2_md
 from ppdjax.training import checkpoints
@@ -33,6 +33,7 @@ PAPER = {"Frequent": (2.5, 10.2, 13.6, 25.9, 348.2), "Nearest": (2.9, 8.3, 12.4,
          "PPD (full)": (35.7, 85.2, 95.8, 2.6, 103.6),
          "PPD (full)+Sample": (38.3, 85.0, 96.1, 2.5, 74.4)}
 PAPER_F1 = 85.9
+HEADLINE_ROW = "PPD (full)+Sample"  # what `decompose` returns with the shipped settings
 
 
 def collect(pipe) -> dict:
@@ -49,6 +50,9 @@ def collect(pipe) -> dict:
     if extra in full["table2"]:
       rows[extra.replace("PPD", "PPD (full)")] = full["table2"][extra]
   return {"rows": rows, "shape": full["shape"], "shape_fit": full.get("shape_fit"),
+          # by material of the true box, each row; by the tool's category, the full model's
+          "by_material_rows": {_row_name(k): v for k, v in full.get("by_material", {}).items()},
+          **({"by_category": by_category(pipe.data, full)} if "per_object" in full else {}),
           "objects": full["objects"], "frequent_slot": full.get("frequent_slot"),
           **{k: full.get(k) for k in tables.INTERVAL_KEYS},
           "data_kind": "tools",  # also for evaluations from before they recorded it
@@ -56,6 +60,49 @@ def collect(pipe) -> dict:
           "push_force": tool_generation.push_force(pipe.config.data),
           "samples": full["samples"], "mae_units": full.get("mae_units", "mm"),
           **pipeline_steps.read_log(pipe.root)}
+
+
+def _row_name(name: str) -> str:
+  """The full model's evaluation row under Table 3's name ("PPD+Sample" -> "PPD (full)+Sample")."""
+  return name.replace("PPD", "PPD (full)", 1)
+
+
+def by_category(data_dir: str, full: dict) -> dict:
+  """The full model's PPD and +Sample rows by the test tools' category (top-1 %, RMSE
+  slots, boxes), from its per-object hits; the categories recorded by the dataset
+  ("category" ids into `tools.CATEGORIES`), in the order the evaluation read the test
+  split (its first `objects`)."""
+  test = storage.open_dataset(data_dir, "test")
+  if "category" not in test.sample_keys:
+    return {}
+  ids = test.take(np.arange(full["objects"]), keys=("category",))["category"]
+  out = {}
+  for row, per in full["per_object"].items():
+    hits, sq, count = (np.asarray(per[k]) for k in ("top1", "sq_err", "count"))
+    out[_row_name(row)] = {
+        name: {"boxes": int(count[ids == c].sum()),
+               "top1": 100.0 * float(hits[ids == c].sum() / max(count[ids == c].sum(), 1)),
+               "rmse": float(np.sqrt(sq[ids == c].sum() / max(count[ids == c].sum(), 1)))}
+        for c, name in enumerate(tools.CATEGORIES) if np.any(ids == c)}
+  return out
+
+
+SLOW = 0.05  # m/s: under 1.7 mm between two frames of a 30 fps camera (a tracker's error)
+
+
+def start_speeds(data_dir: str) -> dict:
+  """How fast the test tools start under each push (m/s, the centre's speed over the
+  steps just after the push): percentiles, the share starting slower than SLOW (not
+  measurably), and how far they go (m)."""
+  test = storage.open_dataset(data_dir, "test")
+  traj = test.take(np.arange(len(test)), keys=("trajectories",))["trajectories"]
+  pos = np.asarray(traj[..., :3], np.float64)
+  speed = np.linalg.norm(pos[..., 3, :] - pos[..., 1, :], axis=-1) / (2 * TIMESTEP)
+  travel = np.linalg.norm(pos[..., -1, :] - pos[..., 0, :], axis=-1)
+  names = ("p1", "p10", "p50", "p90", "p99")
+  q = lambda x: dict(zip(names, map(float, np.percentile(x, [1, 10, 50, 90, 99]))))  # noqa: E731
+  return {"percentiles": q(speed), "travel_m": q(travel),
+          "slow_fraction": 100.0 * float(np.mean(speed < SLOW)), "rollouts": int(speed.size)}
 
 
 def figure(pipe, path: str, model_dir: str) -> str:
@@ -155,6 +202,7 @@ def markdown(r: dict, command: str, stem: str = "tools") -> str:
     picks = {k.replace("PPD", "PPD (full)"): v
              for k, v in r["rerun"].get("oracle_pick", {}).items()}
     lines += oracle_pick_md({"table2": rows, "oracle_pick": picks}) + [""]
+  lines += realistic_md(r)
   lines += ["Fine-tuning on the tools (validation every 50 steps; the joint stage starts where "
             "the density loss appears):", "",
             f"![learning curves]({stem}_learning_curves.png)", "",
@@ -162,11 +210,74 @@ def markdown(r: dict, command: str, stem: str = "tools") -> str:
   return "\n".join(lines)
 
 
+def realistic_md(r: dict) -> list[str]:
+  """The realistic benchmark's breakdowns: by material, metal's range confusions, by
+  category, and how fast the tools start (nothing for reports without them)."""
+  lines = []
+  if r.get("floor"):
+    fl, head = r["floor"], r["rows"].get(HEADLINE_ROW, {})
+    reader = fl["reader"]
+    lines += ["## The floor: a Bayes reader of the voxels and the motion", "",
+              f"On the first {fl['tools']} test tools ({fl['objects']} objects, {fl['boxes']} "
+              "boxes; `ppdjax.eval.tool_floor`): the generator's hidden dimensions sampled "
+              f"consistently with the voxels ({reader['geometries']} samples a tool), the "
+              f"trajectories tracked at {1 / reader['frame_seconds']:.0f} frames a second with "
+              f"{reader['sigma_position_m'] * 1e3:g} mm and {reader['sigma_rotation_deg']:g}° "
+              "of noise, each piece's density read by Bayes over every slot its plausible "
+              "materials allow (the image unused).", "",
+              "| reader | top-1 | RMSE |", "|---|--:|--:|",
+              f"| floor, posterior mode | {fl['top1']:.1f} | {fl['rmse']:.1f} |",
+              f"| floor, posterior mean | – | {fl['rmse_mean']:.1f} |"]
+    if head:
+      lines.append(f"| {HEADLINE_ROW} (the whole test split) | {head['top1']:.1f} | "
+                   f"{head['rmse']:.1f} |")
+    lines += ["", "By material (floor, mode): " + ", ".join(
+        f"{m} {v['top1']:.1f} / {v['rmse']:.1f} ({v['boxes']} boxes)"
+        for m, v in fl["by_material"].items()) + ".", ""]
+  rows = r.get("by_material_rows") or {}
+  if rows:
+    materials = [m for m in next(iter(rows.values())) if m != "range_confusions"]
+    lines += ["## By material of the true box (top-1 % / RMSE slots)", "",
+              "| Method | " + " | ".join(f"{m} ({rows[next(iter(rows))][m]['boxes']})"
+                                         for m in materials) + " | metal range confusions |",
+              "|---|" + "--:|" * (len(materials) + 1)]
+    for name, per in rows.items():
+      lines.append(f"| {name} | " + " | ".join(
+          f"{per[m]['top1']:.1f} / {per[m]['rmse']:.1f}" if m in per else "–"
+          for m in materials) + f" | {per['range_confusions']:.1f} % |")
+    lines += ["", "Metal takes two slot ranges (aluminium-like 2,100-3,500 and steel-like "
+              "7,100-10,000 kg/m³) that look alike; a range confusion is a metal box read in "
+              "the other range, as a share of all boxes.", ""]
+  if r.get("by_category"):
+    cats = list(next(iter(r["by_category"].values())))
+    lines += ["## By category (top-1 % / RMSE slots; boxes)", "",
+              "| Method | " + " | ".join(cats) + " |", "|---|" + "--:|" * len(cats)]
+    for name, per in r["by_category"].items():
+      lines.append(f"| {name} | " + " | ".join(
+          f"{per[c]['top1']:.1f} / {per[c]['rmse']:.1f} ({per[c]['boxes']})" for c in cats)
+          + " |")
+    lines.append("")
+  if r.get("speeds"):
+    s = r["speeds"]
+    lines += ["## How fast the test tools start", "",
+              f"Pushes {r.get('push', 'fixed')}"
+              + (" (each tool's force scales with its volume: a tool's start speed reads "
+                 "its mean density)" if r.get("push") == "by_volume" else "")
+              + f"; the centre's speed just after each push over {s['rollouts']} rollouts, "
+              "m/s: " + ", ".join(f"{k} {v:.3g}" for k, v in s["percentiles"].items())
+              + f"; {s['slow_fraction']:.1f} % start slower than {SLOW:g} m/s (under 1.7 mm "
+              "between two frames of a 30 fps camera); distance travelled in 256 steps, m: "
+              + ", ".join(f"{k} {v:.3g}" for k, v in s["travel_m"].items()) + ".", ""]
+  return lines
+
+
 def names(config) -> tuple[str, str]:
   """(results' stem under experiments/results, the shipped model's folder under assets) of
   a tools preset: the paper's protocol and the realistic tools ship apart."""
   if tool_generation.protocol(config.data) == "paper":
     return "tools_paper", "tools_paper_model"
+  if tool_generation.materials_mode(config.data) == "plausible":  # the mended labels
+    return "tools_realistic", "tools_model"
   return "tools", "tools_model"
 
 
@@ -182,6 +293,15 @@ def write_all(pipe, results_dir: str, assets_dir: str, command: str) -> dict:
                             os.path.join(results_dir, f"{stem}_learning_curves.png"))
   r["command"] = command
   r["protocol"] = tool_generation.protocol(pipe.config.data)
+  if stem == "tools_realistic":
+    with open(pipe.floor_file) as f:
+      r["floor"] = json.load(f)
+    r["speeds"] = start_speeds(pipe.data)
+    r["push"] = tool_generation.push_mode(pipe.config.data)
+    headline = r["by_material_rows"].get(HEADLINE_ROW, {})
+    r["by_material"] = {m: {k: v[k] for k in ("top1", "rmse", "boxes")}
+                        for m, v in headline.items() if isinstance(v, dict)}
+    r["metal_range_confusions"] = headline.get("range_confusions")
   text = markdown(r, command, stem)
   # Table 3 under the name the checks read ("table3"), the learned boxes' F1 and the commit
   # beside it (tools.json, written before, keeps "rows")
