@@ -50,6 +50,7 @@ SIGMA_ROTATION = np.deg2rad(0.2)  # rad: ... and of its rotation
 GEOMETRIES = 16  # geometry samples the densities are scored on
 SWEEPS_BETWEEN = 3  # Gibbs sweeps over the dimensions between two kept samples
 STEPS_FD = (0.02, 2e-3, 0.02)  # central differences: log mass; centre (m); log inertia
+FD_RETRIES = 3
 
 
 class _Recorder:
@@ -199,16 +200,23 @@ def track(traj: np.ndarray) -> np.ndarray:
 
 def information(parts, theta_obs: np.ndarray, pushes, steps: int) -> np.ndarray:
   """(10, 10) Fisher information of θ from the tracked trajectories (`track`) at θ_obs:
-  Jᵀ J, J by central differences of MuJoCo C rollouts of the tool `parts`."""
+  Jᵀ J, J by central differences of MuJoCo C rollouts of the tool `parts` (a step whose
+  rollout MuJoCo stops as unstable is halved, up to FD_RETRIES times)."""
   scale = np.asarray([STEPS_FD[0]] + [STEPS_FD[1]] * 3 + [STEPS_FD[2]] * 6)
+  rollout = lambda theta: track(tool_scene.simulate_tool(  # noqa: E731
+      parts, None, pushes, steps=steps, inertial=_inertial(theta)))
   columns = []
   for d in range(10):
-    e = np.zeros(10)
-    e[d] = scale[d]
-    plus, minus = (track(tool_scene.simulate_tool(parts, None, pushes, steps=steps,
-                                                  inertial=_inertial(theta_obs + s * e)))
-                   for s in (1.0, -1.0))
-    columns.append((plus - minus) / (2 * scale[d]))
+    for attempt in range(FD_RETRIES + 1):
+      e = np.zeros(10)
+      e[d] = scale[d] / 2 ** attempt
+      try:
+        plus, minus = rollout(theta_obs + e), rollout(theta_obs - e)
+        break
+      except RuntimeError:
+        if attempt == FD_RETRIES:
+          raise
+    columns.append((plus - minus) / (2 * e[d]))
   jac = np.stack(columns, 1)
   return jac.T @ jac
 
@@ -298,7 +306,12 @@ def read_test_tool(data, seed: int, index: int, configs: int, geometries: int,
 
 
 def _read(args):
-  return read_test_tool(*args)
+  """`read_test_tool`, or None where MuJoCo C stops the tool's rollouts as unstable (the
+  dataset would draw another tool there: `tool_generation.ATTEMPTS`)."""
+  try:
+    return read_test_tool(*args)
+  except RuntimeError:
+    return None
 
 
 def compute(config, workers: int = 0, progress: bool = True) -> dict:
@@ -317,9 +330,25 @@ def compute(config, workers: int = 0, progress: bool = True) -> dict:
   jobs = [(data, int(config.seed), int(i), min(f.configs, data.configs_per_tool),
            f.geometries, f.seed, data.steps) for i in test[:f.tools]]
   with tool_generation.ToolWorkers(workers) as pool:
-    rows = list(tqdm(pool.imap(jobs, _read), total=len(jobs), desc="floor", unit="tool",
+    read = list(tqdm(pool.imap(jobs, _read), total=len(jobs), desc="floor", unit="tool",
                      disable=not progress))
-  return summarize(rows, config)
+  rows = [r for r in read if r is not None]
+  return {**summarize(rows, config), "unstable_tools": len(read) - len(rows)}
+
+
+def intervals(per_tool: list, resamples: int = 2000, seed: int = 0) -> dict:
+  """95 % bootstrap intervals of the mode's top-1 and RMSE over boxes, resampling whole
+  tools (their boxes and configurations share a shape): {"top1": [lo, hi], "rmse": ...}."""
+  true = [np.asarray(r["true"]) for r in per_tool]
+  mode = [np.asarray(r["mode"]) for r in per_tool]
+  rng = np.random.default_rng(seed)
+  out = []
+  for _ in range(resamples):
+    pick = rng.integers(0, len(per_tool), len(per_tool))
+    t, m = np.concatenate([true[i] for i in pick]), np.concatenate([mode[i] for i in pick])
+    out.append((100.0 * np.mean(t == m), np.sqrt(np.mean((t - m) ** 2))))
+  lo, hi = np.percentile(np.asarray(out), [2.5, 97.5], 0)
+  return {"top1": [float(lo[0]), float(hi[0])], "rmse": [float(lo[1]), float(hi[1])]}
 
 
 def summarize(rows: list, config) -> dict:
@@ -337,4 +366,5 @@ def summarize(rows: list, config) -> dict:
                      "sigma_rotation_deg": float(np.rad2deg(SIGMA_ROTATION)),
                      "geometries": int(config.floor.geometries), "uses_image": False},
           "per_tool": [{"index": r["index"], "category": r["category"],
-                        "true": r["true"], "mode": r["mode"]} for r in rows]}
+                        "true": r["true"], "mode": r["mode"]} for r in rows],
+          "ci95": intervals(rows)}
