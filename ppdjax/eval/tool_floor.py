@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ppdjax.conventions import TIMESTEP
+from ppdjax.conventions import TIMESTEP, slot_to_density
 from ppdjax.dataset import tool_scene, tools
 from ppdjax.dataset.materials import material_slots
 from ppdjax.dataset.meshes import normalize, voxelize_parts
@@ -241,7 +241,7 @@ def read_tool(geometries: list, pieces, piece_sets, theta_obs: np.ndarray, fishe
   priors = [slot_prior(s) for s in piece_sets]
   support = [np.flatnonzero(p) for p in priors]
   grid = np.stack(np.meshgrid(*support, indexing="ij"), -1).reshape(-1, len(support))
-  rho = (grid + 1) * 100.0  # slot s holds (s + 1) x 100 kg/m^3
+  rho = slot_to_density(grid)
   log_prior = sum(np.log(priors[q][grid[:, q]]) for q in range(len(support)))
   logpost = []
   for parts in geometries:
@@ -336,19 +336,17 @@ def compute(config, workers: int = 0, progress: bool = True) -> dict:
   return {**summarize(rows, config), "unstable_tools": len(read) - len(rows)}
 
 
-def intervals(per_tool: list, resamples: int = 2000, seed: int = 0) -> dict:
+def intervals(per_tool: list) -> dict:
   """95 % bootstrap intervals of the mode's top-1 and RMSE over boxes, resampling whole
   tools (their boxes and configurations share a shape): {"top1": [lo, hi], "rmse": ...}."""
-  true = [np.asarray(r["true"]) for r in per_tool]
-  mode = [np.asarray(r["mode"]) for r in per_tool]
-  rng = np.random.default_rng(seed)
-  out = []
-  for _ in range(resamples):
-    pick = rng.integers(0, len(per_tool), len(per_tool))
-    t, m = np.concatenate([true[i] for i in pick]), np.concatenate([mode[i] for i in pick])
-    out.append((100.0 * np.mean(t == m), np.sqrt(np.mean((t - m) ** 2))))
-  lo, hi = np.percentile(np.asarray(out), [2.5, 97.5], 0)
-  return {"top1": [float(lo[0]), float(hi[0])], "rmse": [float(lo[1]), float(hi[1])]}
+  from ppdjax.metrics import bootstrap_interval  # pylint: disable=import-outside-toplevel
+  true = np.concatenate([np.asarray(r["true"]) for r in per_tool])
+  mode = np.concatenate([np.asarray(r["mode"]) for r in per_tool])
+  tool = np.concatenate([np.full(len(r["true"]), k) for k, r in enumerate(per_tool)])
+  top1 = lambda i: 100.0 * float(np.mean(true[i] == mode[i]))  # noqa: E731
+  rmse = lambda i: float(np.sqrt(np.mean((true[i] - mode[i]) ** 2)))  # noqa: E731
+  return {name: list(bootstrap_interval(f, len(true), groups=tool))
+          for name, f in (("top1", top1), ("rmse", rmse))}
 
 
 def summarize(rows: list, config) -> dict:
