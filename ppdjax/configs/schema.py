@@ -47,22 +47,15 @@ class DataConfig:
   backend: str = "mjx"
   split_fractions: tuple = (0.8, 0.1, 0.1)
   render_workers: int = 0  # processes rendering in parallel (0: this process)
-  # tools (configs/tools.py)
-  num_tools: int = 0
+  num_tools: int = 0  # tools (configs/tools.py)
   tools_per_shard: int = 0
   configs_per_tool: int = 1
   tool_push_force: float = 1e3
-  # "realistic" (the tool's parts are its body, materials by part) or "paper" (the tool's
-  # boxes are its body, each of a material drawn from Table 1's five: configs/tools_paper.py)
-  tool_protocol: str = "realistic"
-  # the realistic tools' labels: "category" (one material per part by category, a density
-  # per part: datasets made before the key) or "plausible" (a material per physical piece
-  # drawn from the part's plausible set, one density per piece: configs/tools.py)
+  tool_protocol: str = "realistic"  # or "paper": the tool's boxes are its body (tools_paper.py)
+  # realistic tools' labels: "category" (by category, per part; data before the key) or
+  # "plausible" (per physical piece, from plausible sets: tools.PLAUSIBLE_MATERIALS)
   tool_materials: str = "category"
-  # the realistic tools' pushes: "fixed" (tool_push_force for every tool) or "by_volume"
-  # (tool_push_force x the tool's volume / tool_scene.REFERENCE_VOLUME, so that how far a
-  # tool moves reads its density, not its size)
-  tool_push: str = "fixed"
+  tool_push: str = "fixed"  # or "by_volume": x volume / tool_scene.REFERENCE_VOLUME
   block_counts: tuple = ()  # video towers: block counts drawn uniformly (configs/video.py)
 
 
@@ -209,7 +202,7 @@ class FinetuneConfig:
 
 @dataclasses.dataclass(frozen=True)
 class FloorConfig:
-  """The realistic tools benchmark's floor (`ppdjax.eval.tool_floor`, configs/tools.py)."""
+  """The realistic tools benchmark's floor (`ppdjax.eval.tool_floor`)."""
   tools: int = 2  # test tools read (the first of the test split)
   configs: int = 1  # density configurations of each (data.configs_per_tool at most)
   geometries: int = 4  # geometry samples each tool's densities are read on

@@ -45,11 +45,8 @@ FORMAT_VERSION = 1
 # One .npy file per field: the observations, depth, the Primitives fields, and labels.
 FIELDS = OBS_KEYS + ("depth",) + primitives.FIELDS + ("materials", "tower_id", "split")
 SAMPLE_KEYS = OBS_KEYS + ("depth", "primitives", "materials", "tower_id")  # what a sample holds
-# Fields some datasets add (each shard of a dataset has all or none of them): each
-# object's push magnitudes (P,) newtons where they differ per object
-# (`conventions.PUSH_MAGNITUDES`), and each box's thinnest side (K,) m of the tool part it
-# covers most, and the tool's category (the realistic tools, `tool_generation`); a sample
-# then holds them too.
+# Fields some datasets add, in every shard or none (the realistic tools, `tool_generation`):
+# per-object push magnitudes (P,) N, each box's part's thinnest side (K,) m, the category.
 OPTIONAL_FIELDS = (PUSH_MAGNITUDES, "thickness", "category")
 SPLITS = {"train": 0, "val": 1, "test": 2}
 

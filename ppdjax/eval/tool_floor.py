@@ -1,38 +1,26 @@
 """The realistic tools benchmark's floor: what a Bayes reader of the observations reads.
 
-A reference for `ppdjax.reproduce tools` (configs/tools.py), computed rather than argued
-(issue 61): for a sample of test tools, a reader that knows the generator and is given
-what the observations carry, the voxels and the trajectories, reads each box's density by
-Bayes over candidates. Its top-1 and RMSE say how far the benchmark's labels can be read
-at all; a model near them has nothing left to learn from these observations.
+For a sample of test tools (configs/tools.py), a reader that knows the generator reads
+each box's density by Bayes from the voxels and the trajectories: a reference for how far
+the benchmark's labels can be read at all.
 
-- **Geometry.** The reader knows the tool's category and the generator's recipe but not
-  its hidden dimensions (lengths, widths, thicknesses, tapers: the builder's uniform
-  draws, `tools`). Its geometry posterior is the prior restricted to the dimensions whose
-  normalised tool has exactly the observed voxels: a Metropolis-within-Gibbs chain that
-  redraws one dimension at a time from its prior range and keeps it when the voxels still
-  match (prior uniform x an indicator likelihood: every consistent proposal is accepted).
-  Dimensions below a voxel (a blade's thickness) wander over their whole consistent range.
-  The chain starts at the tool's own dimensions, itself a draw from that posterior, so
-  every later state is one too; but neighbouring states are alike, so a few samples spread
-  less than the posterior does, and the floor errs on the optimistic side.
-- **Physics.** The tool is one rigid body, so its trajectories depend on its densities
-  through its mass properties θ = (log mass, centre of mass, log second moments). The
-  trajectories are read as a camera would track them: a frame every FRAME_STRIDE steps
-  (30 frames a second), positions with SIGMA_POSITION and rotations with SIGMA_ROTATION of
-  noise. Locally, trajectories ~ T(θ_obs) + J (θ - θ_obs), J by central differences of
-  MuJoCo C rollouts at the true tool; so the likelihood of a candidate is
-  exp(-(θ - θ̂)ᵀ F (θ - θ̂) / 2), F = Jᵀ J / σ², θ̂ = θ_obs plus one draw of the noise's
-  effect N(0, F⁻¹) (what the reader sees is the noisy trajectory, not the truth).
-- **Densities.** The prior of each physical piece: a material drawn uniformly from its
-  part's plausible set, a slot uniformly within the material's range (as the generator
-  draws them). Every slot combination of the (at most two) pieces is scored on every
-  geometry sample; the posterior's per-piece marginals give the reading: the mode (best
-  top-1) and the mean (best RMSE). Each box reads its piece's (the label's rule: a box
-  takes the density of the part it covers most).
+- **Geometry.** The builder's hidden dimensions (its uniform draws, `tools`) restricted to
+  those whose normalised tool has exactly the observed voxels: a Metropolis-within-Gibbs
+  chain redrawing one dimension at a time in its prior range, kept where the voxels still
+  match. It starts at the tool's own dimensions, itself a posterior draw; a few samples of
+  one chain spread less than the posterior, so the floor errs on the optimistic side.
+- **Physics.** Trajectories depend on the densities through the body's mass properties θ
+  (log mass, centre of mass, log second moments), tracked as a camera would (a frame every
+  FRAME_STRIDE steps, SIGMA_POSITION / SIGMA_ROTATION of noise), linearised about the
+  true θ by central differences of MuJoCo C rollouts: likelihood exp(-(θ - θ̂)ᵀ F (θ - θ̂)
+  / 2), F = JᵀJ, θ̂ the truth plus one draw of the noise's effect N(0, F⁻¹).
+- **Densities.** Each piece's prior is the generator's (a material uniformly from its
+  part's plausible set, a slot uniformly in its range); every slot pair of the (<= 2)
+  pieces is scored on every geometry sample; each box reads its piece's marginal mode
+  (best top-1) or mean (best RMSE).
 
-The image is not used (a reader of the image's edges could pin thicknesses the voxels
-cannot): the floor is what voxels and motion identify. Offline NumPy and MuJoCo C.
+The image is unused (its edges could pin thicknesses the voxels cannot): the floor is what
+voxels and motion identify. Offline NumPy and MuJoCo C.
 """
 
 from __future__ import annotations
@@ -77,13 +65,11 @@ class _Replay:
   def __init__(self, draws, values):
     self.draws, self.values, self.i, self.u = draws, values, 0, 0
 
-  def uniform(self, low=0.0, high=1.0):
-    del low, high
+  def uniform(self, *_):
     self.i, self.u = self.i + 1, self.u + 1
     return float(self.values[self.u - 1])
 
-  def choice(self, options):
-    del options
+  def choice(self, _):
     self.i += 1
     return self.draws[self.i - 1][3]
 
@@ -146,16 +132,10 @@ def piece_terms(parts, pieces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 _UPPER = np.triu_indices(3)
 
 
-def _logm(a: np.ndarray) -> np.ndarray:
-  """Matrix logarithms of symmetric positive definite (..., 3, 3)."""
+def _logm(a: np.ndarray, f=np.log) -> np.ndarray:
+  """f of symmetric (..., 3, 3) (positive definite for the log): the matrix log or exp."""
   w, v = np.linalg.eigh(a)
-  return np.einsum("...ij,...j,...kj->...ik", v, np.log(np.maximum(w, 1e-30)), v)
-
-
-def _expm(a: np.ndarray) -> np.ndarray:
-  """Matrix exponentials of symmetric (..., 3, 3)."""
-  w, v = np.linalg.eigh(a)
-  return np.einsum("...ij,...j,...kj->...ik", v, np.exp(w), v)
+  return np.einsum("...ij,...j,...kj->...ik", v, f(np.maximum(w, 1e-30) if f is np.log else w), v)
 
 
 def thetas(terms, rho: np.ndarray) -> np.ndarray:
@@ -177,10 +157,9 @@ def thetas(terms, rho: np.ndarray) -> np.ndarray:
 
 def _inertial(theta: np.ndarray):
   """(mass, centre of mass, inertia about it) of one θ (`tool_scene.simulate_tool`)."""
-  mass = float(np.exp(theta[0]))
-  log = np.zeros((3, 3))
+  mass, log = float(np.exp(theta[0])), np.zeros((3, 3))
   log[_UPPER] = theta[4:]
-  spread = _expm(log + np.triu(log, 1).T)
+  spread = _logm(log + np.triu(log, 1).T, np.exp)
   return mass, theta[1:4], (np.trace(spread) * np.eye(3) - spread) * mass
 
 
@@ -260,8 +239,7 @@ def read_tool(geometries: list, pieces, piece_sets, theta_obs: np.ndarray, fishe
 
 def piece_sets(tool: tools.Tool) -> list[tuple[str, ...]]:
   """Each piece's plausible materials (`tools.PLAUSIBLE_MATERIALS`), in piece order."""
-  table = tools.PLAUSIBLE_MATERIALS[tool.category]
-  by_name = {n: materials for names, materials in table for n in names}
+  by_name = {n: m for names, m in tools.PLAUSIBLE_MATERIALS[tool.category] for n in names}
   first = {}
   for name, piece in zip(tool.names, tool.pieces):
     first.setdefault(piece, by_name[name])
@@ -306,8 +284,7 @@ def read_test_tool(data, seed: int, index: int, configs: int, geometries: int,
 
 
 def _read(args):
-  """`read_test_tool`, or None where MuJoCo C stops the tool's rollouts as unstable (the
-  dataset would draw another tool there: `tool_generation.ATTEMPTS`)."""
+  """`read_test_tool`, or None where MuJoCo C stops its rollouts (the data draws another)."""
   try:
     return read_test_tool(*args)
   except RuntimeError:
