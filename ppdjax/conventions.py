@@ -35,6 +35,11 @@ OBS_KEYS = ("voxels", "image", "trajectories")
 # differ from object to object (the realistic tools' pushes scale with the tool's size);
 # absent, the pushes' own magnitudes. Simulations of candidates use it; the network does not.
 PUSH_MAGNITUDES = "push_magnitudes"
+# The RGB-D row's physics observation (paper Table 2), read in place of the trajectories by
+# a model with model.physics_input = "depth_video": (P, F, S, S) float32 depth in metres
+# (z along the optical axis) of F frames per push, seen by the datasets' camera at S x S
+# pixels (`dataset.depth_video`).
+DEPTH_VIDEO = "depth_video"
 
 
 def slot_to_density(slot) -> np.ndarray:

@@ -10,7 +10,7 @@ from flax import nnx
 from ppdjax import box_overlap, metrics, primitives
 from ppdjax.configs import tiny
 from ppdjax.conventions import TIMESTEP
-from ppdjax.nn import losses, model, motion
+from ppdjax.nn import losses, model, motion, recurrent
 from ppdjax.nn.resnet import ResNet18, load_torchvision_weights
 from ppdjax.primitives import Primitives
 
@@ -78,14 +78,14 @@ def test_ablation_switches_zero_a_feature(rng):
 
 
 def test_grouped_lstm_runs_independent_lstms(rng):
-  lstm = model.GroupedLSTM(3, 5, 8, rngs=nnx.Rngs(0))
+  lstm = recurrent.GroupedLSTM(3, 5, 8, rngs=nnx.Rngs(0))
   x = jnp.asarray(rng.normal(size=(2, 3, 7, 5)), jnp.float32)
   h = lstm(x)
   for g in range(3):
     c = hg = jnp.zeros((2, 8))
     for t in range(7):
       z = x[:, g, t] @ lstm.wx.value[g] + hg @ lstm.wh.value[g] + lstm.b.value[g]
-      c, hg = model._lstm_update(z, c)
+      c, hg = recurrent._lstm_update(z, c)
     np.testing.assert_allclose(h[:, g], hg, atol=1e-5)
 
 

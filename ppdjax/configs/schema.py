@@ -25,8 +25,7 @@ class DemoConfig:
   backend: str = "mjx"  # the engine whose trajectories are shown
   reference_backend: str = "mujoco"  # compared against; "" to skip
   example_samples: int = 512  # density samples for the shipped example (the model's)
-  # the image fit (the shipped model's default; on 2 CPU cores about 12 s to compile and
-  # 1.3 s to run): the demo's example fits the boxes to the voxels alone unless this is set
+  # the image fit (the shipped model's default; 2 CPU cores: ~12 s to compile, 1.3 s to run)
   example_image_fit: bool = False
 
 
@@ -75,12 +74,16 @@ class ModelConfig:
   num_pushes: int = 4
   trajectory_unroll: int = 1  # time steps per scan iteration of the trajectory LSTMs
   max_primitives: int = 5
+  # the physics encoder's input: "trajectory" (the paper's) or "depth_video" (its RGB-D
+  # row: video_frames per push at video_size^2 pixels, made on the device; nn.depth_video)
+  physics_input: str = "trajectory"
+  video_frames: int = 16
+  video_size: int = 64
   use_voxels: bool = True  # ablation switches: a disabled encoder's feature is 0
   use_image: bool = True
   use_trajectory: bool = True
-  # True: the density head reads a second LSTM stack of its own, so the density loss does
-  # not move the geometry's LSTMs or the voxel encoder (the tools preset); False: the
-  # paper's one generator for both
+  # True: the density head reads an LSTM stack of its own, so the density loss does not move
+  # the geometry's LSTMs or the voxel encoder (tools); False: the paper's one generator
   density_branch: bool = False
   # > 0: the density branch also reads the velocities over the first this many recorded
   # steps after each push (ppdjax.nn.motion.early_motion; needs density_branch)
@@ -92,8 +95,8 @@ class TrainConfig:
   """Training (`python -m ppdjax.train`)."""
   seed: int = 0
   batch_size: int = 16  # global, split over all devices
-  # Over several devices, BatchNorm's statistics: "global" (all-reduced at every
-  # normalisation: the math of one device) or "per_device" (each device's share).
+  # BatchNorm's statistics over several devices: "global" (all-reduced: one device's
+  # math) or "per_device" (each device's share)
   batch_norm: str = "global"
   learning_rate: float = 1e-3  # Adam, beta = (0.9, 0.999), as in the appendix
   schedule: str = "constant"  # or "cosine": decay to 0 over all steps
@@ -168,16 +171,13 @@ class EvalConfig:
   baselines: bool = True  # Frequent, Nearest, Oracle and Table 4's sampling baselines
   joint: bool = False  # also +Joint: faces and densities fitted together (infer.joint)
   true_shapes: bool = False  # also the oracle rows on the true boxes
-  # Table 4's sampling baselines on whole batches spread over about this many objects
-  # (0: every object)
-  table4_objects: int = 0
+  table4_objects: int = 0  # Table 4's sampling baselines on about N objects (0: every one)
   # the studies' sweeps over the simulated candidates (τ, posterior temperatures,
   # screens, oracle picks; with horizon_sweep every selection horizon too): free in
   # rollouts, not in host time, so only when a study asks
   studies: bool = False
   horizon_sweep: bool = False
-  # kept for runs saved before 2026-11-28: +Refine's start over the first N steps (the
-  # study that chose 0 is answered; only 0 is accepted)
+  # runs saved before 2026-11-28: +Refine's start over the first N steps (only 0 accepted)
   refine_horizon: int = 0
 
 

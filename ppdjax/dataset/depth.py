@@ -83,10 +83,16 @@ def render_depth(prims: Primitives, camera: dict) -> jax.Array:
 
 def depth_from_rays(prims: Primitives, origin, dirs_HWx3) -> jax.Array:
   """`render_depth` from the camera's rays (traceable)."""
+  return depth_of_world(to_world(prims), origin, dirs_HWx3)
+
+
+def depth_of_world(world: Primitives, origin, dirs_HWx3) -> jax.Array:
+  """(H, W) depth of boxes placed in the world (anywhere: a pushed object's too), with
+  the ground plane (traceable)."""
   h, w = dirs_HWx3.shape[:2]
   dirs = dirs_HWx3.reshape(-1, 3)
   with jax.default_matmul_precision("highest"):
-    any_hit, box, t_in, _ = nearest_hits(origin, dirs, to_world(prims))
+    any_hit, box, t_in, _ = nearest_hits(origin, dirs, world)
   t_box = jnp.where(any_hit, jnp.maximum(jnp.take_along_axis(t_in, box[:, None], -1)[:, 0],
                                          0.0), FAR)
   return jnp.minimum(t_box, floor_depth(origin, dirs)).reshape(h, w)

@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from ppdjax.conventions import OBS_KEYS, PUSH_MAGNITUDES, slot_to_density
+from ppdjax.conventions import DEPTH_VIDEO, OBS_KEYS, PUSH_MAGNITUDES, slot_to_density
+from ppdjax.dataset.depth_video import depth_videos
 from ppdjax.infer import sampling
 from ppdjax.configs.schema import ConfigError
 from ppdjax.infer.config import DecomposeConfig
@@ -101,7 +102,7 @@ class Evaluator:
     # `compile`'s stand-ins match the batches' inputs
     uncommitted = lambda state: jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), state)
     self.graphdef, self.state = nnx.split(model)
-    self.state = uncommitted(self.state)
+    self.state, self.video = uncommitted(self.state), model.video
     est_graphdef, self.est_state = (nnx.split(estimator) if estimator is not None
                                     else (None, None))
     self.est_state = None if estimator is None else uncommitted(self.est_state)
@@ -153,7 +154,10 @@ class Evaluator:
     obs = {k: jnp.asarray(batch[k])
            for k in OBS_KEYS + (("depth",) if "fit_depth" in self.fits else ())}
     obs[PUSH_MAGNITUDES] = object_magnitudes(self.pushes, batch, len(batch["trajectories"]))
-    return obs, bottom_to_top(jax.tree.map(jnp.asarray, batch["primitives"]))
+    true = jax.tree.map(jnp.asarray, batch["primitives"])
+    if self.video is not None:  # the RGB-D row's depth videos, from the true boxes' motion
+      obs[DEPTH_VIDEO] = depth_videos(true, obs["trajectories"], *self.video)
+    return obs, bottom_to_top(true)
 
   def _sample_args(self, decoded, true, base_slots, obs, keys, pool) -> tuple:
     """`_simulate`'s arguments for a batch (`compile` makes its stand-ins with it too);

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from ppdjax.conventions import (NUM_DENSITY_SLOTS, OBS_KEYS, PUSH_MAGNITUDES, TIMESTEP,
-                                VOXEL_RESOLUTION)
+from ppdjax.conventions import (DEPTH_VIDEO, NUM_DENSITY_SLOTS, OBS_KEYS, PUSH_MAGNITUDES,
+                                TIMESTEP, VOXEL_RESOLUTION)
 from ppdjax.dataset.camera import camera_dict, check_camera
 from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.image_fit import check_image
@@ -17,6 +17,7 @@ from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import density_prior, refine_if_closer
 from ppdjax.infer import sampling
 from ppdjax.nn.estimator import combine_logits
+from ppdjax.nn.model import physics_key
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes, check_magnitudes, default_pushes, object_magnitudes
 from ppdjax.sim.rollout_mjx import Settings, engine_settings, jax_engine
@@ -101,7 +102,26 @@ def check_observation(obs: dict, config) -> bool:
     v = np.asarray(voxels)
     if not (np.issubdtype(v.dtype, np.number) or v.dtype == bool) or np.any((v != 0) & (v != 1)):
       raise ValueError("observation['voxels']: expected a 0/1 occupancy grid")
+  if physics_key(config.model) == DEPTH_VIDEO:
+    check_depth_video(obs, lead + (p, config.model.video_frames, config.model.video_size,
+                                   config.model.video_size))
   return batched
+
+
+def check_depth_video(obs: dict, shape: tuple[int, ...]) -> None:
+  """The RGB-D model's physics observation: (.., P, F, S, S) finite depths in metres."""
+  if DEPTH_VIDEO not in obs:
+    raise ValueError(f"observation lacks {DEPTH_VIDEO!r}: this model reads a depth video of "
+                     f"each push, shape {shape} (pushes, frames, pixels; metres), "
+                     "as ppdjax.dataset.depth_video.depth_videos renders it")
+  got = np.shape(obs[DEPTH_VIDEO])
+  if got != shape:
+    raise ValueError(f"observation[{DEPTH_VIDEO!r}]: expected shape {shape}, got {got}")
+  if not isinstance(obs[DEPTH_VIDEO], jax.core.Tracer):
+    d = np.asarray(obs[DEPTH_VIDEO], np.float32)
+    if not np.all(np.isfinite(d)) or d.min() <= 0:
+      raise ValueError(f"observation[{DEPTH_VIDEO!r}]: depths must be finite and > 0 metres "
+                       f"(no hit: far away, e.g. 100), got {d.min():.4g}..{d.max():.4g}")
 
 
 def is_paper_pushes(pushes: Pushes) -> bool:
@@ -180,7 +200,8 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
   elif camera is not None:
     raise ValueError("camera is for the image and depth fits: this config reads neither "
                      "(fit.image, fit.depth)")
-  keys = OBS_KEYS + (("depth",) if fit.depth else ())
+  keys = (OBS_KEYS + (("depth",) if fit.depth else ())
+          + ((DEPTH_VIDEO,) if physics_key(run_config.model) == DEPTH_VIDEO else ()))
   if pushes is None:
     from ppdjax.dataset.generation import pushes_of  # pylint: disable=import-outside-toplevel
     pushes = pushes_of(run_config.data)

@@ -12,8 +12,10 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx, struct
 
-from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density_jax
+from ppdjax.conventions import DEPTH_VIDEO, NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density_jax
+from ppdjax.nn.depth_video import DepthVideoEncoder
 from ppdjax.nn.motion import TRAJ_FEATURES, early_motion, trajectory_features
+from ppdjax.nn.recurrent import GroupedLSTM, LSTMCell
 from ppdjax.nn.resnet import ResNet18
 from ppdjax.primitives import Primitives
 
@@ -21,6 +23,8 @@ START, END = NUM_DENSITY_SLOTS, NUM_DENSITY_SLOTS + 1  # the density head's two 
 NUM_CLASSES = NUM_DENSITY_SLOTS + 2
 PRIM_DIM = NUM_CLASSES + 3 + 3 + 4  # a primitive fed back to the generator
 SIZE_SCALE = TRANS_SCALE = 0.5  # C_S and C_T of Eq. 3
+# model.physics_input -> the observation the physics encoder reads
+PHYSICS_INPUTS = {"trajectory": "trajectories", "depth_video": DEPTH_VIDEO}
 REDUCED = 16  # channels per cell of a position-keeping voxel encoder before flattening
 
 
@@ -31,47 +35,6 @@ class Prediction:
   half_size: jax.Array  # (B, S, 3) in [0, C_S]
   pos: jax.Array  # (B, S, 3) in [-C_T, C_T]
   quat: jax.Array  # (B, S, 4) unit
-
-
-def _lstm_update(z, c):
-  i, f, g, o = jnp.split(z, 4, axis=-1)
-  c = nnx.sigmoid(f) * c + nnx.sigmoid(i) * jnp.tanh(g)
-  return c, nnx.sigmoid(o) * jnp.tanh(c)
-
-
-class GroupedLSTM(nnx.Module):
-  """G independent single-layer LSTMs stepped together; one `lax.scan` over time.
-
-  The trajectory encoder runs a forward and a backward LSTM for each of the P pushes
-  (G = 2P), each with its own weights, as one batched recurrence. `unroll` steps run per
-  iteration of the scan (the same arithmetic; fewer loop iterations on an accelerator).
-  """
-
-  def __init__(self, groups: int, in_features: int, hidden: int, *, rngs: nnx.Rngs,
-               unroll: int = 1):
-    init = nnx.initializers.lecun_normal(in_axis=-2, out_axis=-1, batch_axis=0)
-    ortho = nnx.initializers.orthogonal(column_axis=-1)
-    self.wx = nnx.Param(init(rngs.params(), (groups, in_features, 4 * hidden)))
-    self.wh = nnx.Param(jax.vmap(lambda k: ortho(k, (hidden, 4 * hidden)))(
-        jax.random.split(rngs.params(), groups)))
-    bias = jnp.zeros((groups, 4, hidden)).at[:, 1].set(1.0)  # forget gate starts open
-    self.b = nnx.Param(bias.reshape(groups, 4 * hidden))
-    self.hidden, self.unroll = hidden, unroll
-
-  def __call__(self, x_BGTxF: jax.Array) -> jax.Array:
-    """Final hidden states (B, G, H) of each group over its (B, G, T, F) sequence."""
-    xw = jnp.einsum("bgtf,gfk->tgbk", x_BGTxF, self.wx.value) + self.b.value[:, None]
-    wh = self.wh.value
-    b, g = x_BGTxF.shape[:2]
-
-    def step(carry, xw_t):  # group-major (G, B, ·): a batched matmul over groups
-      c, h = carry
-      return _lstm_update(xw_t + jnp.einsum("gbh,ghk->gbk", h, wh), c), None
-
-    zeros = jnp.zeros((g, b, self.hidden), xw.dtype)
-    (_, h), _ = jax.lax.scan(step, (zeros, zeros), xw, unroll=self.unroll)
-    h = jnp.swapaxes(h, 0, 1)
-    return h
 
 
 def _max_pool_2x(x: jax.Array) -> jax.Array:
@@ -173,25 +136,18 @@ class TrajectoryEncoder(nnx.Module):
     return self.proj(self.dropout(h, deterministic=not train, rngs=rngs))
 
 
-class LSTMCell(nnx.Module):
-  """One LSTM layer stepped by hand (the generator runs S ≤ 6 steps)."""
-
-  def __init__(self, in_features: int, hidden: int, *, rngs: nnx.Rngs):
-    self.x = nnx.Linear(in_features, 4 * hidden, rngs=rngs,
-                        bias_init=lambda k, s, d=jnp.float32: jnp.zeros(s, d).at[
-                            hidden:2 * hidden].set(1.0))
-    self.h = nnx.Linear(hidden, 4 * hidden, use_bias=False,
-                        kernel_init=nnx.initializers.orthogonal(), rngs=rngs)
-
-  def __call__(self, carry, x):
-    c, h = carry
-    c, h = _lstm_update(self.x(x) + self.h(h), c)
-    return (c, h), h
-
-
 def primitive_vector(token: jax.Array, half_size, pos, quat) -> jax.Array:
   """(..., 112) what the generator is fed back: [one-hot density token; size; pos; quat]."""
   return jnp.concatenate([jax.nn.one_hot(token, NUM_CLASSES), half_size, pos, quat], -1)
+
+
+def physics_key(model_config) -> str:
+  """The observation a model's physics encoder reads: "trajectories" or DEPTH_VIDEO."""
+  kind = model_config.get("physics_input", "trajectory")
+  if kind not in PHYSICS_INPUTS:
+    raise ValueError(f"config.model.physics_input must be one of {tuple(PHYSICS_INPUTS)}, "
+                     f"got {kind!r}")
+  return PHYSICS_INPUTS[kind]
 
 
 class PPD(nnx.Module):
@@ -216,9 +172,22 @@ class PPD(nnx.Module):
     self.image_encoder = (ResNet18(f, c.resnet_width, rngs=rngs,
                                    dtype=None if image_dtype == "float32" else jnp.bfloat16)
                           if c.use_image else None)
-    self.trajectory_encoder = (TrajectoryEncoder(c.num_pushes, c.hidden, f, c.dropout,
-                                                 rngs=rngs, unroll=c.get("trajectory_unroll", 1))
-                               if c.use_trajectory else None)
+    # The physics observation: the trajectories, or (the RGB-D row) a depth video per push
+    self.physics_key = physics_key(c)
+    self.video = None  # (frames, size) of the depth video it reads (`dataset.depth_video`)
+    unroll = c.get("trajectory_unroll", 1)
+    if not c.use_trajectory:
+      self.trajectory_encoder = None
+    elif self.physics_key == DEPTH_VIDEO:
+      if self.early_steps:
+        raise ValueError("config.model.early_motion_steps reads the trajectories; a model "
+                         "of physics_input='depth_video' has none")
+      self.video = (c.video_frames, c.video_size)
+      self.trajectory_encoder = DepthVideoEncoder(c.num_pushes, c.video_size, c.hidden, f,
+                                                  c.dropout, rngs=rngs, unroll=unroll)
+    else:
+      self.trajectory_encoder = TrajectoryEncoder(c.num_pushes, c.hidden, f, c.dropout,
+                                                  rngs=rngs, unroll=unroll)
     self.fuse = nnx.Linear(3 * f, f, rngs=rngs)
     self.cells = nnx.List([LSTMCell((PRIM_DIM + f) if i == 0 else c.hidden, c.hidden,
                                     rngs=rngs) for i in range(c.generator_layers)])
@@ -242,14 +211,14 @@ class PPD(nnx.Module):
     """[f_V, f_I, f_T], each (B, feature), then with model.early_motion_steps the
     `early_motion` features. An ablated encoder's part is 0, and so is the part of an
     observation `obs` lacks (the geometry stream has voxels only)."""
-    b = next(obs[k].shape[0] for k in OBS_KEYS if k in obs)
+    b = next(obs[k].shape[0] for k in OBS_KEYS + (DEPTH_VIDEO,) if k in obs)
     zero = jnp.zeros((b, self.feature))
     use = lambda enc, key: enc is not None and key in obs
     parts = [
         self.voxel_encoder(obs["voxels"], train) if use(self.voxel_encoder, "voxels") else zero,
         self.image_encoder(obs["image"], train) if use(self.image_encoder, "image") else zero,
-        (self.trajectory_encoder(obs["trajectories"], train, rngs)
-         if use(self.trajectory_encoder, "trajectories") else zero),
+        (self.trajectory_encoder(obs[self.physics_key], train, rngs)
+         if use(self.trajectory_encoder, self.physics_key) else zero),
     ]
     if self.early_steps:
       parts.append(early_motion(obs["trajectories"], self.early_steps)

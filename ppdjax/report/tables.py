@@ -44,6 +44,7 @@ PAPER_TABLE2 = {
     "PPD (no trajectory)": (7.2, 35.2, 69.5, 19.0, 51.7),
     "PPD (no image)": (7.1, 31.0, 50.8, 16.7, 36.4),
     "PPD (no voxels)": (15.9, 56.3, 82.4, 10.3, 29.9),
+    "PPD (RGB-D)": (11.6, 50.5, 79.5, 12.8, 30.2),
     "PPD (full)": (16.1, 56.4, 82.5, 9.9, 21.0),
     "PPD (full)+Sample": (18.2, 59.7, 84.0, 8.8, 13.9)}
 # One model's evaluation names its rows without the variant: PPD, PPD+Sample, baselines.

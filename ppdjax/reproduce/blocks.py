@@ -75,13 +75,13 @@ flags.DEFINE_integer("step_seconds", 540, "A training or evaluation call stops a
                      "long (an evaluation after the batch that passes it).")
 flags.DEFINE_integer("jobs", 1, "Steps run at once, each in its own process on the same "
                      "devices, as soon as the steps they need are done (with --step=all).")
-flags.DEFINE_list("variants", ["full", "no_image", "no_trajectory", "no_voxels"],
+flags.DEFINE_list("variants", ["full", "no_image", "no_trajectory", "no_voxels", "rgbd"],
                   "The model variants whose steps this call runs (the report needs full).")
 flags.DEFINE_bool("exported", False, "The report only: the model and example tower in "
                   "--assets exist already (a report redone away from the run's machine, "
                   "from ROOT's results and logs; no checkpoints or dataset needed).")
 FLAGS = flags.FLAGS
-ORDER = ("full", "no_image", "no_trajectory", "no_voxels")
+ORDER = ("full", "no_image", "no_trajectory", "no_voxels", "rgbd")
 GEOMETRY = "geometry"  # the voxel-only geometry stage the voxel-using variants start from
 
 

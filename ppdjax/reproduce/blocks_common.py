@@ -23,19 +23,20 @@ from ppdjax.report.provenance import write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax.training import loop  # noqa: E402
 
-# variant -> (model switch turned off, the paper's Table 2 row)
-VARIANTS = {"full": (None, "PPD (full)"), "no_trajectory": ("use_trajectory", "PPD (no trajectory)"),
-            "no_image": ("use_image", "PPD (no image)"), "no_voxels": ("use_voxels", "PPD (no voxels)")}
-
+# variant -> (its model keys over the preset's, the paper's Table 2 row). The ablations
+# turn an encoder off; the RGB-D row reads a depth video of each push instead of its 3D
+# trajectory (nn.depth_video).
+VARIANTS = {"full": ({}, "PPD (full)"),
+            "no_trajectory": ({"use_trajectory": False}, "PPD (no trajectory)"),
+            "no_image": ({"use_image": False, "image_weights": ""}, "PPD (no image)"),
+            "no_voxels": ({"use_voxels": False}, "PPD (no voxels)"),
+            "rgbd": ({"physics_input": "depth_video"}, "PPD (RGB-D)")}
 
 
 def variant_config(config, variant: str):
   config = config.copy_and_resolve_references()
-  switch = VARIANTS[variant][0]
-  if switch:
-    config.model[switch] = False
-    if switch == "use_image":
-      config.model.image_weights = ""
+  for key, value in VARIANTS[variant][0].items():
+    config.model[key] = value
   return config
 
 

@@ -26,8 +26,8 @@ from ppdjax.report import markdown, tables
 from ppdjax.report.plots import plot_confusion, plot_variant_curves
 from ppdjax.training import checkpoints
 
-ABLATIONS = {"no_trajectory": "PPD (no trajectory)", "no_image": "PPD (no image)",
-             "no_voxels": "PPD (no voxels)"}
+ABLATIONS = {v: common.VARIANTS[v][1]
+             for v in ("no_trajectory", "no_image", "no_voxels", "rgbd")}
 TABLE5_ROWS = (("Texture", "no_trajectory", "PPD"), ("Physics", "no_image", "PPD"),
                ("Texture + Physics", "full", "PPD"),
                ("Texture + Physics (+Sample)", "full", "PPD+Sample"),
@@ -43,14 +43,14 @@ TABLE5_ROWS = (("Texture", "no_trajectory", "PPD"), ("Physics", "no_image", "PPD
                 "PPD+True boxes+Sample+Refine"))
 # the best row's own targets beyond the paper's (shape and density together)
 BEST_TOP1, BEST_RMSE, BEST_ROW_FIT = 50.0, 6.5, "PPD (full)+Fit(depth)+Sample+Refine"
-PIPELINE_MINUTES = 25  # generate, train the four models, evaluate: one H100
+PIPELINE_MINUTES = 25  # generate, train the five models, evaluate: one H100
 SUFFIXES = tuple(row[len("PPD"):] for row in tables.PPD_ROWS)  # "", "+Sample", ...
 KEYS = ("top1", "top5", "top10", "rmse", "mae")
 BEST_ROW = "PPD (full)+Sample"
 
 
 def collect(pipe) -> dict:
-  """blocks.json's content from the four evaluations and ROOT/steps.jsonl."""
+  """blocks.json's content from the five evaluations and ROOT/steps.jsonl."""
   res = {}
   for v in ("full",) + tuple(ABLATIONS):
     if os.path.exists(pipe.eval_path(v)) or v == "full":  # a report may come before the
@@ -108,7 +108,7 @@ def whole_split(r: dict, full: dict, command: str) -> dict:
   for name in ABLATIONS.values():  # evaluated on the whole split by the run
     if name in r["table2"]:
       table2[name] = r["table2"][name]
-  order = [*tables.BASELINES, *ABLATIONS.values()]
+  order = [k for k in (*tables.BASELINES, *ABLATIONS.values()) if k in table2]
   table2 = {k: table2[k] for k in order + [k for k in table2 if k not in order]}
   table5 = {name: r["table5"][name] for name, v, _ in TABLE5_ROWS
             if v != "full" and name in r["table5"]}

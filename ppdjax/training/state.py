@@ -12,7 +12,7 @@ from flax import nnx
 
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
-from ppdjax.dataset import batching, storage, stream
+from ppdjax.dataset import batching, depth_video, storage, stream
 from ppdjax.nn import losses
 from ppdjax.nn.model import PPD
 from ppdjax.nn.resnet import load_torchvision_weights
@@ -116,6 +116,7 @@ def loss_weights(t) -> dict:
 def _loss(model, batch, w, train, key, weights):
   rngs = nnx.Rngs(dropout=key) if key is not None else None
   tgt = losses.targets(batch["primitives"])
+  batch = depth_video.with_depth_video(batch, model.video)  # the RGB-D row's, on the device
   pred = model(batch, tgt["prev"], train=train, rngs=rngs)
   end = w if weights["end_weight"] is None else weights["end_weight"]
   return losses.loss_fn(pred, tgt, w, end_weight=end,
@@ -177,7 +178,7 @@ def train_step(graphdef, state, batch, step, w, t, sharding=None, axis=None, dev
 def eval_step(graphdef, state, batch, w, weights):
   """Validation loss (teacher forced, eval mode) and metric counts of decoded predictions."""
   model = nnx.merge(graphdef, state).model
-  tgt = losses.targets(batch["primitives"])
+  tgt, batch = losses.targets(batch["primitives"]), depth_video.with_depth_video(batch, model.video)
   end = w if weights["end_weight"] is None else weights["end_weight"]
   _, aux = losses.loss_fn(model(batch, tgt["prev"], train=False), tgt, w, end_weight=end,
                           geometry_weight=weights["geometry_weight"])
