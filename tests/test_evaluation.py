@@ -197,6 +197,27 @@ def test_sample_rows_pick_the_closest_candidate_at_micrometre_distances():
                                   np.where(valid, (picked - slot) ** 2, 0).sum(-1), name)
 
 
+def test_the_network_boxes_row_selects_with_its_own_tau():
+  """PPD+Sample (the network's boxes) reads `network_prior_weight`, the fitted row
+  `prior_weight`: each picks argmin of distance - tau log prior with its own tau."""
+  from ppdjax.eval import rows
+  from ppdjax.infer import sampling
+  out, slot, base, layout = _fake_batch_output(b=8, s=64)
+  kw = dict(samples=64, prefixes=(1, 64), with_baselines=True, refine=False, layout=layout,
+            headline="fit")
+  rec = rows.batch_records(out, slot, slot >= 0, base, prior_weight=0.0,
+                           network_prior_weight=10.0, **kw)
+  same = rows.batch_records(out, slot, slot >= 0, base, prior_weight=0.0, **kw)
+  h = tables.SELECTION_HORIZONS.index(0)
+  for tau, r in ((10.0, rec), (0.0, same)):
+    objective = sampling.selection_objective(out["hdist"][:, layout["ppd"], h], out["logp"], tau)
+    picked = out["slots"][np.arange(8), np.argmin(objective, -1)]
+    np.testing.assert_array_equal(r[("guess", "PPD+Sample")], picked)
+  np.testing.assert_array_equal(rec[("guess", "PPD+Fit+Sample")],
+                                same[("guess", "PPD+Fit+Sample")])
+  assert (rec[("guess", "PPD+Sample")] != same[("guess", "PPD+Sample")]).any()
+
+
 def _fake_batch_output(b=4, s=16, k=3, seed=0):
   """What `Evaluator.batch` returns for b objects, with random candidates: the network's
   boxes, one voxel-fit group and the baselines."""

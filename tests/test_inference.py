@@ -206,6 +206,14 @@ def test_decompose_config_maps_the_eval_section_and_names_bad_settings():
     DecomposeConfig.from_eval({"sample": 3})
   with pytest.raises(ConfigError, match="config.eval.samples must be a whole number"):
     DecomposeConfig.from_eval({"samples": "many"})
+  # +Sample's τ by box source: the network's own boxes may have their own
+  own = DecomposeConfig.from_eval({"prior_weight": 0.0, "network_prior_weight": 0.002})
+  assert own.select.tau(fitted=True) == 0.0 and own.select.tau(fitted=False) == 0.002
+  assert SelectConfig(prior_weight=0.05).tau(fitted=False) == 0.05  # None: prior_weight
+  assert DecomposeConfig.from_eval(own.to_eval()) == own
+  for bad in (-1.0, float("nan")):
+    with pytest.raises(ValueError, match="select.network_prior_weight must be finite"):
+      DecomposeConfig(select=SelectConfig(network_prior_weight=bad))
 
 
 def test_the_screen_refuses_bad_settings_and_knows_when_it_is_off():

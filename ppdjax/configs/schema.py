@@ -149,11 +149,12 @@ class EvalConfig:
   the evaluation adds for its tables (`python -m ppdjax.evaluate`)."""
   # --- decomposition: `DecomposeConfig.from_eval` reads these -------------------------
   samples: int = 8  # density candidates per object (the paper: 512)
-  fit: bool = False  # boxes fitted to the voxels instead of the network's (infer.fit)
+  fit: bool = False  # boxes fitted to the voxels, not the network's (infer.fit)
   image_fit: bool = False  # ... then their faces moved onto the image's edges (image_fit)
   depth: bool = False  # ... then refined against the depth image (depth_fit; implies fit)
   face_spread: float = 0.0  # > 0 voxels: candidates' faces drawn too (infer.faces)
   prior_weight: float = 0.0  # +Sample: distance - tau log prior (m per nat; 0: the paper's)
+  network_prior_weight: typing.Optional[float] = None  # tau on the network's boxes; None: same
   selection_horizon: int = 0  # +Sample's distance over the first N steps (0: all, the paper's)
   mass_match: bool = False  # candidates scaled to the closest's total mass, simulated again
   screen_steps: int = 0  # > 0: every candidate over N steps, the screen_keep closest whole
@@ -177,8 +178,7 @@ class EvalConfig:
   # rollouts, not in host time, so only when a study asks
   studies: bool = False
   horizon_sweep: bool = False
-  # runs saved before 2026-11-28: +Refine's start over the first N steps (only 0 accepted)
-  refine_horizon: int = 0
+  refine_horizon: int = 0  # runs saved before 2026-11-28 (+Refine's start; only 0 accepted)
 
 
 @dataclasses.dataclass(frozen=True)

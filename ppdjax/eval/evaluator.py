@@ -297,7 +297,8 @@ class Evaluator:
     `decompose`'s settings for its row."""
     select = self.decompose.select
     return batch_records(out, slot, valid, base, samples=self.samples,
-                         prior_weight=select.prior_weight, prefixes=prefixes,
+                         prior_weight=select.prior_weight,
+                         network_prior_weight=select.tau(False), prefixes=prefixes,
                          with_baselines=self.baselines_on, refine=self.refine,
                          layout=self.layout, selection_horizon=select.horizon,
                          horizon_sweep=horizon_sweep, table4=table4, studies=studies,

@@ -189,7 +189,7 @@ def _sweep(row, logits, slots, objective, mae, pvalid, slot, valid, selection_in
 
 
 def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: float,
-                   prefixes, with_baselines: bool, refine: bool, layout: dict,
+                   network_prior_weight: float | None = None, prefixes, with_baselines: bool, refine: bool, layout: dict,
                    selection_horizon: int = 0, horizon_sweep: bool = False,
                    table4: bool = True, studies: bool = False, headline: str = "ppd",
                    screen: tuple[int, int] = (0, 0)) -> dict:
@@ -202,7 +202,9 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   sampling baselines (with the baselines on): then, and only then, every row's best of N
   is recorded, so that Table 4 compares its rows on the same objects. `headline`: the
   group whose +Sample row is `decompose`'s (`Evaluator.refine_group`); its selection
-  keeps only the candidates `screen` (steps, keep) keeps, as `decompose` does.
+  keeps only the candidates `screen` (steps, keep) keeps, as `decompose` does. +Sample
+  on the network's own boxes selects with `network_prior_weight` (None: `prior_weight`),
+  on fitted ones with `prior_weight` (`SelectConfig.tau`).
   `studies`: also the sweeps (τ, temperatures, screens, oracle picks), free in rollouts
   but not in host time."""
   check_horizon("selection_horizon", selection_horizon)
@@ -219,10 +221,10 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
   rec = {("blocks",): valid.sum(-1), ("true_slot",): slot, ("true_valid",): valid}
   rec.update({("shape", k): np.asarray(v) for k, v in out["shape"].items()})
   rec.update({("faces", g): np.asarray(v) for g, v in out["faces"].items()})  # (B, K, 6) m
-  best = np.argmin(objective(prior_weight), -1)
+  tau = prior_weight if network_prior_weight is None else network_prior_weight
+  best = np.argmin(objective(tau), -1)
   pick = (slots[rows, best], omae[rows, best])  # the +Sample answer of `headline`
-  scores = {"PPD": logits,
-            "PPD+Sample": sample_scores(logits, slots, objective(prior_weight), pvalid)}
+  scores = {"PPD": logits, "PPD+Sample": sample_scores(logits, slots, objective(tau), pvalid)}
   mae = {"PPD": omae[:, 0], "PPD+Sample": omae[rows, best]}
   if studies:
     rec.update(_sweep("PPD+Sample", logits, slots, objective, omae, pvalid, slot, valid, hi,
@@ -230,7 +232,7 @@ def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: f
     rec.update(oracle_pick("PPD+Sample", logits, slots, slot, valid, pvalid))
     rec.update(posterior_records("PPD+Sample", logits, slots, hdist[..., hi], out["logp"],
                                  omae, pvalid, slot, valid))
-    rec.update(screen_records("PPD+Sample", hdist, objective(prior_weight), omae, logits,
+    rec.update(screen_records("PPD+Sample", hdist, objective(tau), omae, logits,
                               slots, slot, valid, pvalid))
   table4 = table4 or not with_baselines  # without the baselines: the network's rows
   if table4:

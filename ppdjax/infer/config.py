@@ -60,6 +60,10 @@ class SelectConfig:
     samples: candidates per object (candidate 0: the scores' arg-max; 1: the arg-max only).
     prior_weight: τ (m per nat): the winner minimises distance − τ · log prior (0: the
       paper's closest trajectory).
+    network_prior_weight: τ where the boxes are the network's own (no fit; and the
+      evaluation's PPD+Sample row beside a fitted headline); None: prior_weight. A voxel
+      off, the network's boxes need densities pulled toward its scores: the closest
+      trajectory alone picks densities that make up for the geometry (`tau`).
     horizon: > 0 compares trajectories over their first this many steps (0: all).
     mass_match: a second pass with every candidate scaled to the closest's total mass.
     screen_steps: > 0 simulates every candidate over this many steps and only the
@@ -72,6 +76,13 @@ class SelectConfig:
   mass_match: bool = False
   screen_steps: int = 0
   screen_keep: int = 64
+  network_prior_weight: float | None = None
+
+  def tau(self, fitted: bool) -> float:
+    """+Sample's τ on fitted boxes or on the network's own."""
+    if fitted or self.network_prior_weight is None:
+      return self.prior_weight
+    return self.network_prior_weight
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,8 +150,10 @@ class DecomposeConfig:
       check_simulator(self.simulator)
     except ValueError as e:
       raise ConfigError(str(e)) from e
-    if not _finite_at_least_zero(s.prior_weight):
-      raise ConfigError(f"select.prior_weight must be finite and >= 0, got {s.prior_weight!r}")
+    for name in ("prior_weight", "network_prior_weight"):
+      value = getattr(s, name)
+      if not (name == "network_prior_weight" and value is None or _finite_at_least_zero(value)):
+        raise ConfigError(f"select.{name} must be finite and >= 0, got {value!r}")
     if isinstance(r.steps, bool) or not isinstance(r.steps, int) or r.steps < 1:
       raise ConfigError(f"refine.steps must be a whole number >= 1, got {r.steps!r}")
     if not _finite_at_least_zero(r.prior_weight):
@@ -194,7 +207,8 @@ class DecomposeConfig:
                       face_spread=e.face_spread),
         select=SelectConfig(samples=e.samples, prior_weight=e.prior_weight,
                             horizon=e.selection_horizon, mass_match=e.mass_match,
-                            screen_steps=e.screen_steps, screen_keep=e.screen_keep),
+                            screen_steps=e.screen_steps, screen_keep=e.screen_keep,
+                            network_prior_weight=e.network_prior_weight),
         refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
                             prior_weight=e.refine_prior, jacobian=e.refine_jacobian),
         estimator=EstimatorConfig(path=e.estimator, weight=e.estimator_weight),
@@ -205,6 +219,7 @@ class DecomposeConfig:
     f, s, r, e = self.fit, self.select, self.refine, self.estimator
     return {"samples": s.samples, "fit": f.enabled, "image_fit": f.image, "depth": f.depth,
             "face_spread": f.face_spread, "prior_weight": s.prior_weight,
+            "network_prior_weight": s.network_prior_weight,
             "selection_horizon": s.horizon, "mass_match": s.mass_match,
             "screen_steps": s.screen_steps, "screen_keep": s.screen_keep,
             "refine": r.enabled, "refine_steps": r.steps, "refine_prior": r.prior_weight,
@@ -215,8 +230,10 @@ class DecomposeConfig:
   def paper(cls) -> "DecomposeConfig":
     """The paper's inputs (voxels, image, trajectories): boxes fitted to the voxels and the
     image's edges, 512 candidates compared over their first 32 steps (chosen on the
-    validation split), no refinement: the blocks' headline +Fit+Sample row."""
-    return cls(fit=FitConfig(image=True), select=SelectConfig(horizon=32))
+    validation split), no refinement: the blocks' headline +Fit+Sample row (and τ = 0.005
+    on the network's own boxes, should the fit be turned off; the `paper` preset's)."""
+    return cls(fit=FitConfig(image=True),
+               select=SelectConfig(horizon=32, network_prior_weight=0.005))
 
   @classmethod
   def best(cls) -> "DecomposeConfig":

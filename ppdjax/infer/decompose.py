@@ -238,7 +238,7 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
                               config.estimator.weight)
     sel = jax.vmap(lambda p, l, o, kk, m: sampling.select_densities(
         p, l, o, pushes.replace(magnitudes=m), num_samples=select.samples, key=kk,
-        prior_weight=select.prior_weight, mass_match=select.mass_match,
+        prior_weight=select.tau(fit.enabled), mass_match=select.mass_match,
         screen_steps=select.screen_steps, screen_keep=select.screen_keep,
         face_spread=fit.face_spread, selection_horizon=select.horizon,
         whole_scores=refine.enabled, settings=settings))(
