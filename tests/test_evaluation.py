@@ -601,6 +601,10 @@ def test_partial_records_round_trip_and_recompute_what_is_unreadable(tmp_path):
   assert saved.load(4) is None  # recomputed, not a crash
   with pytest.raises(partial.OtherEvaluation, match="samples"):
     partial.PartialRecords(str(tmp_path), {"samples": 16})
+  # records saved before a setting existed ran as its default: they resume with it only
+  partial.PartialRecords(str(tmp_path), {"samples": 8, "network_prior_weight": -1.0})
+  with pytest.raises(partial.OtherEvaluation, match="network_prior_weight"):
+    partial.PartialRecords(str(tmp_path), {"samples": 8, "network_prior_weight": 0.005})
 
 
 def test_compacted_records_read_back_whole_and_resume_nothing(tmp_path):

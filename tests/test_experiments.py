@@ -34,7 +34,8 @@ def test_list_shows_every_step_and_bad_steps_are_named(tmp_path):
   assert names == ["generate", "compile:full", "train:full", "evaluate:full", "export",
                    "train:no_image",
                    "evaluate:no_image", "train:no_trajectory", "evaluate:no_trajectory",
-                   "train:no_voxels", "evaluate:no_voxels", "report"]
+                   "train:no_voxels", "evaluate:no_voxels", "train:rgbd", "evaluate:rgbd",
+                   "report"]
   streamed = _blocks(*TINY, "--config.train.stream_steps=5", f"--root={tmp_path}", "--list")
   assert [line.split()[1] for line in streamed.stdout.splitlines()[:3]] == [
       "generate", "compile:full", "train:geometry"], streamed.stdout
@@ -46,7 +47,7 @@ def test_list_shows_every_step_and_bad_steps_are_named(tmp_path):
 def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
   root, results, assets = (str(tmp_path / d) for d in ("root", "results", "assets"))
   args = [*TINY, f"--root={root}", f"--results={results}", f"--assets={assets}"]
-  for _ in range(13):  # one step per call, as an interrupted user would go on
+  for _ in range(15):  # one step per call, as an interrupted user would go on
     done = _blocks(*args, "--step=next", timeout=900)
     assert done.returncode == 0, done.stderr[-3000:]
     if os.path.exists(os.path.join(results, "blocks.json")):
@@ -54,7 +55,7 @@ def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
   with open(os.path.join(results, "blocks.json")) as f:
     r = json.load(f)
   assert set(r["table2"]) >= {"Frequent", "Nearest", "Oracle", "PPD (no trajectory)",
-                              "PPD (no image)", "PPD (no voxels)", "PPD (full)",
+                              "PPD (no image)", "PPD (no voxels)", "PPD (RGB-D)", "PPD (full)",
                               "PPD (full)+Sample"}
   assert all(set(row) >= {"top1", "top5", "top10", "rmse", "mae", "ci95", "objects"}
              for row in r["table2"].values())
@@ -67,9 +68,10 @@ def test_tiny_pipeline_runs_step_by_step_and_reports(tmp_path):
   assert sorted(os.listdir(kept)) == ["records.npz", "settings.json"]
   logs = sorted(os.listdir(os.path.join(results, "blocks_runs")))
   assert logs == ["data_card.md", "full.metrics.jsonl", "no_image.metrics.jsonl",
-                  "no_trajectory.metrics.jsonl", "no_voxels.metrics.jsonl", "steps.jsonl"]
+                  "no_trajectory.metrics.jsonl", "no_voxels.metrics.jsonl", "rgbd.metrics.jsonl",
+                  "steps.jsonl"]
   listed = _blocks(*args, "--list")
-  assert listed.stdout.count("done") == 11  # every step but the report (rerun each time)
+  assert listed.stdout.count("done") == 13  # every step but the report (rerun each time)
 
 
 _FAKE_STEP = """

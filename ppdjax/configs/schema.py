@@ -154,7 +154,7 @@ class EvalConfig:
   depth: bool = False  # ... then refined against the depth image (depth_fit; implies fit)
   face_spread: float = 0.0  # > 0 voxels: candidates' faces drawn too (infer.faces)
   prior_weight: float = 0.0  # +Sample: distance - tau log prior (m per nat; 0: the paper's)
-  network_prior_weight: typing.Optional[float] = None  # tau on the network's boxes; None: same
+  network_prior_weight: float = -1.0  # tau on the network's boxes (< 0: prior_weight's)
   selection_horizon: int = 0  # +Sample's distance over the first N steps (0: all, the paper's)
   mass_match: bool = False  # candidates scaled to the closest's total mass, simulated again
   screen_steps: int = 0  # > 0: every candidate over N steps, the screen_keep closest whole

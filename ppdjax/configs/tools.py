@@ -107,6 +107,9 @@ def get_config(size: str = "paper"):
   # checked again with the density-branch model: 15.7 at 0.05, 15.6 at 0.1, 20.4 at 0
   # (tool_fill_study/tau_choice_density_branch)
   config.eval.prior_weight = 0.05 if size == "paper" else config.eval.prior_weight
+  # the network's boxes are the headline's here: prior_weight above, not the blocks' τ for
+  # them (-1: the same)
+  config.eval.network_prior_weight = -1.0
   # +Sample over all 256 steps (the paper's rule; ppdjax.reproduce tools evaluates so): the
   # paper preset's 32 steps were chosen on towers, and tools kept no horizon sweep
   config.eval.selection_horizon = 0

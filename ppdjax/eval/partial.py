@@ -19,6 +19,9 @@ import zipfile
 
 import numpy as np
 
+# eval settings added after records were saved, with the value older records ran as
+UNSET_BEFORE = {"network_prior_weight": -1.0}
+
 
 class EvaluationPaused(Exception):
   """`evaluate` stopped after its time budget: `done` of `total` objects are saved in
@@ -50,8 +53,10 @@ class PartialRecords:
       if saved is None and self.count():
         raise OtherEvaluation(f"{path} is unreadable and batch records lie beside it: "
                               "delete the folder to start again")
+      # a key the saved records predate ran as the schema's default (what it was added as)
+      old = lambda k: saved.get(k, UNSET_BEFORE.get(k))
       differ = [] if saved is None else sorted(
-          k for k in set(saved) | set(self.settings) if saved.get(k) != self.settings.get(k))
+          k for k in set(saved) | set(self.settings) if old(k) != self.settings.get(k))
       if differ:
         raise OtherEvaluation(f"{folder} holds records of another evaluation (settings "
                               f"differ: {', '.join(differ)}); delete the folder or choose "

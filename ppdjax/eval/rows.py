@@ -189,7 +189,8 @@ def _sweep(row, logits, slots, objective, mae, pvalid, slot, valid, selection_in
 
 
 def batch_records(out: dict, slot, valid, base, *, samples: int, prior_weight: float,
-                   network_prior_weight: float | None = None, prefixes, with_baselines: bool, refine: bool, layout: dict,
+                   prefixes, with_baselines: bool, refine: bool, layout: dict,
+                   network_prior_weight: float | None = None,
                    selection_horizon: int = 0, horizon_sweep: bool = False,
                    table4: bool = True, studies: bool = False, headline: str = "ppd",
                    screen: tuple[int, int] = (0, 0)) -> dict:

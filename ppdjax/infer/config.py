@@ -208,7 +208,8 @@ class DecomposeConfig:
         select=SelectConfig(samples=e.samples, prior_weight=e.prior_weight,
                             horizon=e.selection_horizon, mass_match=e.mass_match,
                             screen_steps=e.screen_steps, screen_keep=e.screen_keep,
-                            network_prior_weight=e.network_prior_weight),
+                            network_prior_weight=(None if e.network_prior_weight < 0
+                                                  else e.network_prior_weight)),
         refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
                             prior_weight=e.refine_prior, jacobian=e.refine_jacobian),
         estimator=EstimatorConfig(path=e.estimator, weight=e.estimator_weight),
@@ -219,7 +220,8 @@ class DecomposeConfig:
     f, s, r, e = self.fit, self.select, self.refine, self.estimator
     return {"samples": s.samples, "fit": f.enabled, "image_fit": f.image, "depth": f.depth,
             "face_spread": f.face_spread, "prior_weight": s.prior_weight,
-            "network_prior_weight": s.network_prior_weight,
+            "network_prior_weight": (-1.0 if s.network_prior_weight is None
+                                     else s.network_prior_weight),
             "selection_horizon": s.horizon, "mass_match": s.mass_match,
             "screen_steps": s.screen_steps, "screen_keep": s.screen_keep,
             "refine": r.enabled, "refine_steps": r.steps, "refine_prior": r.prior_weight,

@@ -212,6 +212,9 @@ class PPD(nnx.Module):
     `early_motion` features. An ablated encoder's part is 0, and so is the part of an
     observation `obs` lacks (the geometry stream has voxels only)."""
     b = next(obs[k].shape[0] for k in OBS_KEYS + (DEPTH_VIDEO,) if k in obs)
+    if self.video is not None and "trajectories" in obs and DEPTH_VIDEO not in obs:
+      raise ValueError(f"this model reads a depth video of each push: the observations need "
+                       f"{DEPTH_VIDEO!r} (dataset.depth_video.with_depth_video renders it)")
     zero = jnp.zeros((b, self.feature))
     use = lambda enc, key: enc is not None and key in obs
     parts = [

@@ -13,6 +13,14 @@ from ppdjax.report.tables import (FIT_ROWS, PAPER_SHAPE_F1, PAPER_TABLE2_ONE_MOD
 from ppdjax.report.plots import plot_confusion
 
 
+def taus(results: dict) -> str:
+  """+Sample's τ as the results record it: one, or the fitted boxes' and the network's."""
+  own = results.get("network_prior_weight", -1.0)
+  if own is None or own < 0:
+    return f"{results['prior_weight']}"
+  return f"{results['prior_weight']} (on the network's own boxes: {own})"
+
+
 def face_md(face_error_mm: dict, image_fit: bool = False) -> list[str]:
   """Markdown lines: the face-error table (mm) of the network's and the fitted boxes."""
   names = {"ppd": "network's boxes",
@@ -196,7 +204,7 @@ def results_md(results: dict, command: str = "") -> str:
   if sweeps:
     lines += ["## +Sample selection: distance − τ · log prior", ""]
     lines += prior_sweep_md(sweeps)
-    lines += ["", f"Table 2's +Sample rows use τ = {results['prior_weight']}"
+    lines += ["", f"Table 2's +Sample rows use τ = {taus(results)}"
               + (f" on the first {results['selection_horizon']} steps"
                  if results.get("selection_horizon") else "") + ".", ""]
   if results.get("posterior_sweeps"):

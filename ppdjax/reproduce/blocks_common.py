@@ -19,6 +19,7 @@ from absl import app, logging
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("JAX_COMPILATION_CACHE_DIR", ".jax_cache"))
 
+from ppdjax.eval import partial
 from ppdjax.report.provenance import write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax.training import loop  # noqa: E402
@@ -56,7 +57,8 @@ def ensure_trained(config, data_dir: str, root: str, variant: str) -> str:
 NETWORK_ONLY = {"samples": 1, "refine": False, "baselines": False, "fit": False,
                 "image_fit": False, "depth": False, "face_spread": 0.0,
                 "selection_horizon": 0, "screen_steps": 0, "mass_match": False,
-                "estimator": "", "joint": False, "true_shapes": False, "table4_objects": 0}
+                "estimator": "", "joint": False, "true_shapes": False, "table4_objects": 0,
+                "network_prior_weight": -1.0}
 
 
 def eval_command(workdir: str, data: str, settings, **extra) -> str:
@@ -75,7 +77,8 @@ def same_settings(results: dict, settings, **extra) -> bool:
   if not settings.baselines:
     want["table4_objects"] = 0
   want.update(extra)
-  return all(json.dumps(results.get(k)) == json.dumps(v) for k, v in want.items())
+  return all(json.dumps(results.get(k, partial.UNSET_BEFORE.get(k))) == json.dumps(v)
+             for k, v in want.items())
 
 
 def write(out_dir: str, name: str, payload: dict, markdown: str) -> None:

@@ -90,6 +90,7 @@ def collect(pipe) -> dict:
       "subset": full.get("subset", "first"), "samples": full["samples"],
       "refine": full["refine"],
       "prior_weight": full.get("prior_weight", 0.0), "prior_sweep": full.get("prior_sweep"),
+      "network_prior_weight": full.get("network_prior_weight", -1.0),
       "prior_sweeps": full.get("prior_sweeps"), "validation": val,
       "refine_stats": full.get("refine_stats"), **log,
       "paper": {"table2": tables.PAPER_TABLE2, "table4": tables.PAPER_TABLE4,
@@ -191,7 +192,7 @@ def report_md(r: dict, command: str) -> str:
            + (f"first {r['objects']} objects; " if r.get("subset", "first") == "first"
               else f"{r['objects']} objects spread over the split; ")
            + f"{r['samples']} density samples" + (", LM refinement" if r["refine"] else "")
-           + f"; +Sample selects by distance − {r['prior_weight']} · log prior, "
+           + f"; +Sample selects by distance − {markdown.taus(r)} · log prior, "
            + steps_note(r.get("selection_horizon"))
            + (f" (the whole-split table below: {steps_note(ws_horizon)})"
               if ws_horizon != (r.get("selection_horizon") or 0) else "")
@@ -234,7 +235,7 @@ def report_md(r: dict, command: str) -> str:
               "", "Where τ is to be chosen (the test split's sweep is in the full model's "
               "`eval/results.md`):", ""]
     lines += markdown.prior_sweep_md(r["validation"]["prior_sweeps"])
-    lines += ["", f"This run's +Sample rows use τ = {r['prior_weight']}.", ""]
+    lines += ["", f"This run's +Sample rows use τ = {markdown.taus(r)}.", ""]
   if r.get("refine_stats"):
     s = r["refine_stats"]
     lines += [f"Refinement lowered the trajectory distance on {100 * s['improved_fraction']:.0f}%"

@@ -16,6 +16,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from ppdjax.conventions import DEPTH_VIDEO
 from ppdjax.dataset import storage
 from ppdjax.dataset.depth_video import frame_steps
 from ppdjax.nn.model import physics_key
@@ -65,8 +66,7 @@ def check_config(config) -> None:
     raise ValueError("config.model.max_primitives must be 5 (datasets pad to 5 boxes)")
   if not (m.use_voxels or m.use_image or m.use_trajectory):
     raise ValueError("config.model: at least one of use_voxels, use_image, use_trajectory")
-  physics_key(m)  # names a bad physics_input
-  if m.get("physics_input") == "depth_video":
+  if physics_key(m) == DEPTH_VIDEO:  # (and names a bad physics_input)
     frame_steps(m.video_frames, config.data.steps)  # names a bad frame count
     if m.video_size < 16 or m.video_size % 16:
       raise ValueError(f"config.model.video_size must be a multiple of 16, got {m.video_size}")
