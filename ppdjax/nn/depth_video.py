@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from ppdjax.nn.recurrent import GroupedLSTM
+from ppdjax.nn.recurrent import GroupedLSTM, per_push_bidirectional
 
 FRAME_FEATURES = 64  # per frame, into the LSTMs
 CHANNELS = (16, 32, 64, 64)  # the four stride-2 convolutions (S / 16 pixels left per side)
@@ -49,9 +49,5 @@ class DepthVideoEncoder(nnx.Module):
     return x.reshape(b, p, f, -1)
 
   def __call__(self, video_BPFSS: jax.Array, train: bool, rngs) -> jax.Array:
-    x = self.frame_features(video_BPFSS)
-    x = jnp.concatenate([x, x[:, :, ::-1]], axis=1)  # forward groups, then backward ones
-    h = self.lstm(x)  # (B, 2P, H)
-    p = video_BPFSS.shape[1]
-    h = jnp.stack([h[:, :p], h[:, p:]], 2).reshape(h.shape[0], -1)  # [h->_k; h<-_k] per push
+    h = per_push_bidirectional(self.lstm, self.frame_features(video_BPFSS))
     return self.proj(self.dropout(h, deterministic=not train, rngs=rngs))

@@ -15,7 +15,7 @@ from flax import nnx, struct
 from ppdjax.conventions import DEPTH_VIDEO, NUM_DENSITY_SLOTS, OBS_KEYS, slot_to_density_jax
 from ppdjax.nn.depth_video import DepthVideoEncoder
 from ppdjax.nn.motion import TRAJ_FEATURES, early_motion, trajectory_features
-from ppdjax.nn.recurrent import GroupedLSTM, LSTMCell
+from ppdjax.nn.recurrent import GroupedLSTM, LSTMCell, per_push_bidirectional
 from ppdjax.nn.resnet import ResNet18
 from ppdjax.primitives import Primitives
 
@@ -128,11 +128,7 @@ class TrajectoryEncoder(nnx.Module):
     self.proj = nnx.Linear(2 * num_pushes * hidden, out_features, rngs=rngs)
 
   def __call__(self, traj_BPTx7: jax.Array, train: bool, rngs) -> jax.Array:
-    x = trajectory_features(traj_BPTx7)
-    x = jnp.concatenate([x, x[:, :, ::-1]], axis=1)  # forward groups, then backward ones
-    h = self.lstm(x)  # (B, 2P, H)
-    p = traj_BPTx7.shape[1]
-    h = jnp.stack([h[:, :p], h[:, p:]], 2).reshape(h.shape[0], -1)  # [h→_k; h←_k] per push
+    h = per_push_bidirectional(self.lstm, trajectory_features(traj_BPTx7))
     return self.proj(self.dropout(h, deterministic=not train, rngs=rngs))
 
 

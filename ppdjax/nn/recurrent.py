@@ -63,3 +63,11 @@ class LSTMCell(nnx.Module):
     c, h = carry
     c, h = _lstm_update(self.x(x) + self.h(h), c)
     return (c, h), h
+
+
+def per_push_bidirectional(lstm: GroupedLSTM, x_BPTxF: jax.Array) -> jax.Array:
+  """(B, P * 2H): [h->_k; h<-_k] of each push's sequence through its own forward and
+  backward LSTM (`lstm` has 2P groups: the forward ones, then the backward ones)."""
+  p = x_BPTxF.shape[1]
+  h = lstm(jnp.concatenate([x_BPTxF, x_BPTxF[:, :, ::-1]], axis=1))  # (B, 2P, H)
+  return jnp.stack([h[:, :p], h[:, p:]], 2).reshape(h.shape[0], -1)
