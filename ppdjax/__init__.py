@@ -25,9 +25,11 @@ from ppdjax.training.checkpoints import load  # noqa: E402
 from ppdjax.infer.fit import fit_boxes  # noqa: E402
 from ppdjax.infer.config import DecomposeConfig  # noqa: E402
 from ppdjax.infer.decompose import make_decompose_fn  # noqa: E402
+from ppdjax.infer.active import candidate_pushes, make_next_push_fn  # noqa: E402
 
 __all__ = ["Primitives", "MassProperties", "mass_properties", "Pushes", "default_pushes",
            "simulate", "sample_towers", "voxelize", "open_dataset", "load_object",
            "primitives_from_mesh", "load",
-           "fit_boxes", "DecomposeConfig", "make_decompose_fn"]
+           "fit_boxes", "DecomposeConfig", "make_decompose_fn", "candidate_pushes",
+           "make_next_push_fn"]
 __version__ = "0.1.0"

@@ -421,6 +421,33 @@ def test_decompose_one_and_a_batch_with_refinement(decompose, tiny_dataset):
   np.testing.assert_allclose(metrics.trajectory_distance(one.trajectories,
                                                          obs["trajectories"][0]), one.score,
                              rtol=1e-4)
+  # the candidates and each box's posterior over them (tests/test_posterior.py)
+  valid = np.asarray(one.primitives.valid)
+  assert one.candidates.shape == (SAMPLES, 5) and one.posterior.probs.shape == (5, 100)
+  np.testing.assert_array_equal(np.asarray(one.candidates[0])[valid],
+                                np.asarray(one.density_logits).argmax(-1)[valid])
+  np.testing.assert_allclose(np.asarray(one.posterior.probs).sum(-1), valid, atol=1e-5)
+  assert np.all(np.asarray(one.posterior.lower) <= np.asarray(one.posterior.upper))
+
+
+@pytest.mark.slow  # the decompose fixture's compile, then 16 hypotheses x 64 pushes
+def test_next_push_scores_the_candidate_pushes_for_one_object_and_a_batch(decompose,
+                                                                          tiny_dataset):
+  """`make_next_push_fn` beside a decompose: every candidate push gets a finite gain in
+  [0, log hypotheses] nats, the best is the largest, one object and a batch of one agree."""
+  sample = storage.open_dataset(tiny_dataset, "test").take([0])
+  obs = {k: sample[k] for k in OBS_KEYS}
+  batched = decompose(obs, jax.random.key(0))
+  next_push = ppdjax.make_next_push_fn(decompose, hypotheses=4)
+  assert next_push.candidates.num == 64
+  many, one = next_push(batched), next_push(jax.tree.map(lambda x: x[0], batched))
+  gain = np.asarray(one.gain)
+  assert gain.shape == (64,) and many.gain.shape == (1, 64)
+  assert np.all(np.isfinite(gain)) and gain.min() >= -1e-6 and gain.max() <= np.log(4) + 1e-3
+  assert int(one.best) == int(gain.argmax())
+  np.testing.assert_allclose(gain, np.asarray(many.gain[0]), rtol=1e-5, atol=1e-6)
+  with pytest.raises(ValueError, match="hypotheses must be a whole number >= 2"):
+    ppdjax.make_next_push_fn(decompose, hypotheses=1)
 
 
 def test_bad_observations_are_named(decompose, tiny_dataset):

@@ -166,6 +166,9 @@ class EvalConfig:
   estimator: str = ""  # a trained density estimator's folder: its scores join the network's
   estimator_weight: float = 1.0  # its log-probabilities' weight beside the network's
   simulator: str = "auto"  # the candidates' engine: auto (C on a CPU) | jax | mujoco
+  posterior_scale: float = 1.0  # each density's posterior: T = scale x the least distance
+  posterior_level: float = 0.9  # ... its intervals' probability
+  identified_width: int = 2  # ... flagged identified when at most this many slots wide
   # --- evaluation only ------------------------------------------------------------------
   seed: int = 0  # the candidates' draws (object i of batch b: `decompose`'s key for it)
   batch_size: int = 8
@@ -173,9 +176,8 @@ class EvalConfig:
   joint: bool = False  # also +Joint: faces and densities fitted together (infer.joint)
   true_shapes: bool = False  # also the oracle rows on the true boxes
   table4_objects: int = 0  # Table 4's sampling baselines on about N objects (0: every one)
-  # the studies' sweeps over the simulated candidates (τ, posterior temperatures,
-  # screens, oracle picks; with horizon_sweep every selection horizon too): free in
-  # rollouts, not in host time, so only when a study asks
+  # the studies' sweeps over the candidates (τ, posterior temperatures, screens, oracle
+  # picks; horizon_sweep: every horizon): free in rollouts, not in host time
   studies: bool = False
   horizon_sweep: bool = False
   refine_horizon: int = 0  # runs saved before 2026-11-28 (+Refine's start; only 0 accepted)
@@ -336,8 +338,7 @@ def default_config() -> ml_collections.ConfigDict:
   return to_config_dict(RunConfig())
 
 
-# Keys whose behaviour before they existed differs from today's default: a run saved
-# without one keeps the behaviour it was trained with.
+# Keys whose earlier behaviour is not today's default: a run saved without one keeps it.
 SAVED_BEFORE = {("train", "end_weight"): None}  # the end token weighted by w, as the paper
 
 

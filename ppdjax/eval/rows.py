@@ -13,6 +13,7 @@ import numpy as np
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, SLOT_DENSITY
 from ppdjax.infer import sampling
+from ppdjax.infer.posterior import log_weights
 from ppdjax.report.tables import (BASELINES, FIT_ROWS, POSTERIOR_TEMPERATURES, PRIOR_WEIGHTS,
                                  SCREENS, SELECTION_HORIZONS, check_horizon)
 
@@ -47,16 +48,13 @@ def sample_scores(logits, slots, objective, valid):
 
 def posterior_weights(distance, logp, temperature):
   """(B, S) log weights of the candidates under the posterior p(slots) · exp(−distance / T)
-  over the sampled set (the candidates are distinct, so the prior enters once), T in metres
+  over the sampled set (`infer.posterior.log_weights`, decompose's posterior), T in metres
   of trajectory distance; a string "rel:α" makes T = α × each object's least distance
   (noise that grows with the misfit). Shifted so that each object's best is 0."""
-  d = np.asarray(distance, np.float64)
-  dmin = d.min(-1, keepdims=True)
-  if isinstance(temperature, str):
-    t = float(temperature.split(":")[1]) * np.maximum(dmin, 1e-9)
-  else:
-    t = float(temperature)
-  w = np.asarray(logp, np.float64) - (d - dmin) / t
+  relative = isinstance(temperature, str)
+  scale = float(temperature.split(":")[1]) if relative else float(temperature)
+  w = log_weights(np.asarray(distance, np.float64), np.asarray(logp, np.float64), scale,
+                  relative=relative)
   return w - w.max(-1, keepdims=True)
 
 

@@ -111,8 +111,24 @@ class EstimatorConfig:
   weight: float = 1.0
 
 
+@dataclasses.dataclass(frozen=True)
+class PosteriorConfig:
+  """How sure each density is (`infer.posterior`): the candidates' posterior.
+
+  Attributes:
+    scale: the likelihood exp(−(d − d_min) / T) has T = scale × the closest candidate's
+      distance d_min (chosen on validation towers for 90 % coverage).
+    level: the intervals' probability.
+    identified_width: a box is flagged identified when its interval spans at most this
+      many slots beyond one (0: a single slot).
+  """
+  scale: float = 1.0
+  level: float = 0.9
+  identified_width: int = 2
+
+
 PARTS = {"fit": FitConfig, "select": SelectConfig, "refine": RefineConfig,
-         "estimator": EstimatorConfig}
+         "estimator": EstimatorConfig, "posterior": PosteriorConfig}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,6 +145,7 @@ class DecomposeConfig:
   select: SelectConfig = SelectConfig()
   refine: RefineConfig = RefineConfig()
   estimator: EstimatorConfig = EstimatorConfig()
+  posterior: PosteriorConfig = PosteriorConfig()
   simulator: str = "auto"
 
   def __post_init__(self):
@@ -160,6 +177,15 @@ class DecomposeConfig:
       raise ConfigError(f"refine.prior_weight must be finite and >= 0, got {r.prior_weight!r}")
     if self.estimator.path and not f.enabled:
       raise ConfigError("the estimator reads fitted boxes: it needs fit.enabled")
+    q = self.posterior
+    if not (_finite_at_least_zero(q.scale) and q.scale > 0):
+      raise ConfigError(f"posterior.scale must be finite and > 0, got {q.scale!r}")
+    if not (_finite_at_least_zero(q.level) and 0 < q.level < 1):
+      raise ConfigError(f"posterior.level must lie in (0, 1), got {q.level!r}")
+    if (isinstance(q.identified_width, bool) or not isinstance(q.identified_width, int)
+        or q.identified_width < 0):
+      raise ConfigError("posterior.identified_width must be a whole number of slots >= 0, "
+                        f"got {q.identified_width!r}")
 
   def replace(self, **changes) -> "DecomposeConfig":
     """A copy with dotted changes, e.g. `replace(**{"select.samples": 64})`, whole parts
@@ -213,11 +239,13 @@ class DecomposeConfig:
         refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
                             prior_weight=e.refine_prior, jacobian=e.refine_jacobian),
         estimator=EstimatorConfig(path=e.estimator, weight=e.estimator_weight),
+        posterior=PosteriorConfig(scale=e.posterior_scale, level=e.posterior_level,
+                                  identified_width=e.identified_width),
         simulator=e.simulator)
 
   def to_eval(self) -> dict:
     """The `eval` section's keys for these settings (`from_eval`'s inverse)."""
-    f, s, r, e = self.fit, self.select, self.refine, self.estimator
+    f, s, r, e, q = self.fit, self.select, self.refine, self.estimator, self.posterior
     return {"samples": s.samples, "fit": f.enabled, "image_fit": f.image, "depth": f.depth,
             "face_spread": f.face_spread, "prior_weight": s.prior_weight,
             "network_prior_weight": (-1.0 if s.network_prior_weight is None
@@ -226,7 +254,9 @@ class DecomposeConfig:
             "screen_steps": s.screen_steps, "screen_keep": s.screen_keep,
             "refine": r.enabled, "refine_steps": r.steps, "refine_prior": r.prior_weight,
             "refine_jacobian": r.jacobian, "estimator": e.path,
-            "estimator_weight": e.weight, "simulator": self.simulator}
+            "estimator_weight": e.weight, "posterior_scale": q.scale,
+            "posterior_level": q.level, "identified_width": q.identified_width,
+            "simulator": self.simulator}
 
   @classmethod
   def paper(cls) -> "DecomposeConfig":

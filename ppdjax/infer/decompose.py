@@ -15,6 +15,7 @@ from ppdjax.infer.image_fit import check_image
 from ppdjax.infer.config import DecomposeConfig, FitConfig
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import density_prior, refine_if_closer
+from ppdjax.infer import posterior as posterior_module
 from ppdjax.infer import sampling
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.nn.model import physics_key
@@ -46,6 +47,10 @@ class Decomposition:
       (`SelectConfig.horizon`) and no refinement, the distance over that horizon: the
       candidates are simulated that far only (the winner over every step).
     trajectories: (B, P, T, 7) the returned object simulated under the pushes.
+    candidates: (B, S, K) int32, the candidates' density slots, in `scores`' order.
+    posterior: each box's density posterior over the candidates (`DensityPosterior`
+      (B, K): marginals, mean, interval, identified flag, correlation between boxes;
+      `PosteriorConfig`). It reads the candidates, not the refined answer.
   """
 
   primitives: Primitives
@@ -53,6 +58,8 @@ class Decomposition:
   score: jax.Array
   scores: jax.Array
   trajectories: jax.Array
+  candidates: jax.Array
+  posterior: posterior_module.DensityPosterior
 
 
 def check_observation(obs: dict, config) -> bool:
@@ -194,7 +201,7 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
   if not isinstance(config, DecomposeConfig):
     raise TypeError(f"config: expected a DecomposeConfig, got {type(config).__name__}")
   config.validate()
-  fit, select, refine = config.fit, config.select, config.refine
+  fit, select, refine, belief = config.fit, config.select, config.refine, config.posterior
   if fit.with_:
     camera = check_camera(model_camera(path or trained) if camera is None else camera)
   elif camera is not None:
@@ -243,6 +250,10 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
         face_spread=fit.face_spread, selection_horizon=select.horizon,
         whole_scores=refine.enabled, settings=settings))(
             prims, logits, traj, object_keys(key, traj.shape[0]), mags)
+    post = jax.vmap(lambda s, d, l, v: posterior_module.density_posterior(
+        s, d, sampling.log_prior(l, s, v), v, scale=belief.scale, level=belief.level,
+        identified_width=belief.identified_width))(sel.slots, sel.scores, logits,
+                                                   prims.valid)
     pick = lambda index: jax.tree.map(  # each object's candidate `index` (B,)
         lambda x: jnp.take_along_axis(x, index.reshape((-1,) + (1,) * (x.ndim - 1)), 1)[:, 0],
         sel.boxes)
@@ -261,7 +272,7 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
           ref.primitives, prims)
       score = jnp.where(ref.closer, ref.distance, score)
       sim = jnp.where(ref.closer[:, None, None, None], ref.trajectories, sim)
-    return Decomposition(prims, logits, score, sel.scores, sim)
+    return Decomposition(prims, logits, score, sel.scores, sim, sel.slots, post)
 
   def decompose(observation: dict, key: jax.Array) -> Decomposition:
     batched = check_observation(observation, run_config)
