@@ -430,7 +430,7 @@ def test_decompose_one_and_a_batch_with_refinement(decompose, tiny_dataset):
   assert np.all(np.asarray(one.posterior.lower) <= np.asarray(one.posterior.upper))
 
 
-@pytest.mark.slow  # the decompose fixture's compile, then 16 hypotheses x 64 pushes
+@pytest.mark.slow  # the decompose fixture's compile, then 4 hypotheses x 64 pushes
 def test_next_push_scores_the_candidate_pushes_for_one_object_and_a_batch(decompose,
                                                                           tiny_dataset):
   """`make_next_push_fn` beside a decompose: every candidate push gets a finite gain in

@@ -103,3 +103,24 @@ def test_information_gain_is_zero_for_one_motion_and_log_two_for_two_apart():
   np.testing.assert_allclose(gains(same, [0.01, 0.01]), 0.0, atol=1e-3)  # d_ii: 1e-6 m
   apart = np.array([[0, 0, 0, 0, 0], [99, 99, 0, 0, 0]])  # 100 against 10,000 kg/m3
   np.testing.assert_allclose(gains(apart, [1e-5, 1e-5]), np.log(2.0), rtol=1e-3)
+
+
+def test_repeated_candidates_weigh_nothing_and_no_finite_distance_leaves_the_prior():
+  """A repeat of an earlier candidate (a small support) is counted once, not twice; an
+  object whose every candidate failed (distance inf or NaN) reads its prior, not NaN."""
+  slots = jnp.array([[10], [12], [10]])
+  d = jnp.full(3, 0.01)
+  logp = jnp.log(jnp.array([0.5, 0.5, 0.5]))
+  valid = jnp.array([True])
+  once = posterior.density_posterior(slots, d, logp, valid, scale=1.0, level=0.9,
+                                     identified_width=2,
+                                     distinct_S=jnp.array([True, True, False]))
+  assert float(once.probs[0, 10]) == pytest.approx(0.5, abs=1e-6)
+  failed = posterior.density_posterior(slots[:2], jnp.array([INF, float("nan")]),
+                                       jnp.log(jnp.array([0.8, 0.2])), valid, scale=1.0,
+                                       level=0.9, identified_width=2)
+  np.testing.assert_allclose(np.asarray(failed.probs)[0, [10, 12]], [0.8, 0.2], atol=1e-6)
+  # one candidate alone says nothing of how sure it is
+  alone = posterior.density_posterior(slots[:1], d[:1], logp[:1], valid, scale=1.0,
+                                      level=0.9, identified_width=2)
+  assert not bool(alone.identified[0])

@@ -168,7 +168,7 @@ class EvalConfig:
   simulator: str = "auto"  # the candidates' engine: auto (C on a CPU) | jax | mujoco
   posterior_scale: float = 1.0  # each density's posterior: T = scale x the least distance
   posterior_level: float = 0.9  # ... its intervals' probability
-  identified_width: int = 2  # ... flagged identified when at most this many slots wide
+  identified_width: int = 2  # ... identified: the interval this many slots beyond one at most
   # --- evaluation only ------------------------------------------------------------------
   seed: int = 0  # the candidates' draws (object i of batch b: `decompose`'s key for it)
   batch_size: int = 8

@@ -79,9 +79,13 @@ def paper_push_indices(candidates: Pushes, paper: Pushes) -> np.ndarray:
 
 
 def push_gains(prims, slots_SxK, distance_S, log_prior_S, candidates: Pushes, *,
-               hypotheses: int, scale: float, steps: int, settings) -> PushChoice:
+               hypotheses: int, scale: float, steps: int, settings,
+               distinct_S=None) -> PushChoice:
   """`PushChoice` of one object: its boxes `prims` (K), its +Sample candidates (slots,
-  distances, log prior) and the pushes to score (N), simulated over `steps` steps."""
+  distances, log prior; repeats, `distinct_S` False, weigh nothing) and the pushes to
+  score (N), simulated over `steps` steps."""
+  if distinct_S is not None:
+    log_prior_S = jnp.where(distinct_S, log_prior_S, -jnp.inf)
   w = log_weights(distance_S, log_prior_S, scale)
   top_w, top = jax.lax.top_k(w, hypotheses)
   w_h = jax.nn.softmax(top_w)  # the top hypotheses' weights, renormalised
@@ -91,6 +95,7 @@ def push_gains(prims, slots_SxK, distance_S, log_prior_S, candidates: Pushes, *,
   pairwise = lambda y: jax.vmap(lambda a: jax.vmap(
       lambda b: metrics.trajectory_distance(a, b))(y))(y)  # (H, H)
   d = jax.lax.map(pairwise, per_push)  # (N, H, H), one push at a time: H² trajectories
+  d = jnp.where(jnp.eye(hypotheses, dtype=bool), 0.0, d)  # the metric's floor: 1e-6 m
   t = scale * jnp.maximum(jnp.min(distance_S), MIN_DISTANCE)
   mix = jax.scipy.special.logsumexp(-d / t, axis=-1, b=w_h[None, None, :])  # (N, H)
   gain = -jnp.sum(w_h[None] * mix, -1)
@@ -115,20 +120,28 @@ def make_next_push_fn(decompose, candidates: Pushes | None = None, *, hypotheses
   """
   candidates = candidate_pushes() if candidates is None else candidates.validate()
   config = decompose.config
-  if isinstance(hypotheses, bool) or not isinstance(hypotheses, int) or hypotheses < 2:
+  if (isinstance(hypotheses, bool) or not isinstance(hypotheses, (int, np.integer))
+      or hypotheses < 2):
     raise ValueError(f"hypotheses must be a whole number >= 2, got {hypotheses!r}")
+  if config.select.samples < 2:
+    raise ValueError("choosing a push weighs the posterior's candidates: select.samples "
+                     f"must be >= 2, got {config.select.samples}")
+  if config.select.mass_match:
+    raise ValueError("select.mass_match scores mass-scaled candidates, not the drawn slots "
+                     "the hypotheses would simulate: choose pushes without it")
   horizon = config.select.horizon if not config.refine.enabled else 0
 
   @jax.jit
   def run(dec):
     steps = dec.trajectories.shape[-2]
     steps = horizon if 0 < horizon < steps else steps
-    count = min(hypotheses, dec.candidates.shape[-2])
+    count = min(int(hypotheses), dec.candidates.shape[-2])
     logp = jax.vmap(sampling.log_prior)(dec.density_logits, dec.candidates,
                                         dec.primitives.valid)
-    return jax.vmap(lambda p, s, d, l: push_gains(
+    return jax.vmap(lambda p, s, d, l, u: push_gains(
         p, s, d, l, candidates, hypotheses=count, scale=config.posterior.scale, steps=steps,
-        settings=decompose.settings))(dec.primitives, dec.candidates, dec.scores, logp)
+        settings=decompose.settings, distinct_S=u))(dec.primitives, dec.candidates,
+                                                    dec.scores, logp, dec.distinct)
 
   def next_push(decomposition) -> PushChoice:
     batched = np.ndim(decomposition.scores) == 2

@@ -48,6 +48,8 @@ class Decomposition:
       candidates are simulated that far only (the winner over every step).
     trajectories: (B, P, T, 7) the returned object simulated under the pushes.
     candidates: (B, S, K) int32, the candidates' density slots, in `scores`' order.
+    distinct: (B, S) False for a candidate that repeats an earlier one (a small support;
+      with `fit.face_spread` each has its own faces, so none repeats).
     posterior: each box's density posterior over the candidates (`DensityPosterior`
       (B, K): marginals, mean, interval, identified flag, correlation between boxes;
       `PosteriorConfig`). It reads the candidates, not the refined answer.
@@ -59,6 +61,7 @@ class Decomposition:
   scores: jax.Array
   trajectories: jax.Array
   candidates: jax.Array
+  distinct: jax.Array
   posterior: posterior_module.DensityPosterior
 
 
@@ -250,10 +253,11 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
         face_spread=fit.face_spread, selection_horizon=select.horizon,
         whole_scores=refine.enabled, settings=settings))(
             prims, logits, traj, object_keys(key, traj.shape[0]), mags)
-    post = jax.vmap(lambda s, d, l, v: posterior_module.density_posterior(
+    distinct = sel.distinct | (fit.face_spread > 0)
+    post = jax.vmap(lambda s, d, l, v, u: posterior_module.density_posterior(
         s, d, sampling.log_prior(l, s, v), v, scale=belief.scale, level=belief.level,
-        identified_width=belief.identified_width))(sel.slots, sel.scores, logits,
-                                                   prims.valid)
+        identified_width=belief.identified_width, distinct_S=u))(
+            sel.slots, sel.scores, logits, prims.valid, distinct)
     pick = lambda index: jax.tree.map(  # each object's candidate `index` (B,)
         lambda x: jnp.take_along_axis(x, index.reshape((-1,) + (1,) * (x.ndim - 1)), 1)[:, 0],
         sel.boxes)
@@ -272,7 +276,7 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
           ref.primitives, prims)
       score = jnp.where(ref.closer, ref.distance, score)
       sim = jnp.where(ref.closer[:, None, None, None], ref.trajectories, sim)
-    return Decomposition(prims, logits, score, sel.scores, sim, sel.slots, post)
+    return Decomposition(prims, logits, score, sel.scores, sim, sel.slots, distinct, post)
 
   def decompose(observation: dict, key: jax.Array) -> Decomposition:
     batched = check_observation(observation, run_config)

@@ -1,7 +1,9 @@
 """Each box's density posterior, read from the candidates +Sample already simulated.
 
-The S candidates are distinct joint slot assignments drawn from the density scores, so
-over that set the posterior is p(slots) · likelihood, each assignment counted once. The
+The S candidates are joint slot assignments drawn from the density scores; over the
+distinct ones the posterior is p(slots) · likelihood, each assignment counted once (a
+repeat, `sampling.Selection.distinct` False, weighs nothing: counted again it would square
+the prior of a confident box). The
 likelihood is exp(−(d − d_min) / T) in the trajectory distance d (metres,
 `metrics.trajectory_distance`, over the selection's horizon): the selection objective
 d − τ · log p is its negative log at T = τ. The noise scale is estimated per object, not
@@ -31,8 +33,8 @@ class DensityPosterior:
     mean: (K,) its mean slot (slot s is (s + 1) × 100 kg/m³).
     lower, upper: (K,) int32, the central interval of `PosteriorConfig.level` (both ends
       included).
-    identified: (K,) the interval is at most `PosteriorConfig.identified_width` slots wide
-      (False for padded boxes).
+    identified: (K,) the interval spans at most `PosteriorConfig.identified_width` slots
+      beyond one, and at least two candidates were weighed (False for padded boxes).
     correlation: (K, K) the slots' correlation between boxes under the posterior (two
       boxes trading mass read near -1; 0 where a box is padded or certain).
     effective: () the candidates' effective number, 1 / Σ w²: near 1, one candidate
@@ -50,13 +52,17 @@ class DensityPosterior:
 
 def log_weights(distance_S, log_prior_S, scale: float, *, relative: bool = True):
   """(S,) normalised log weights log p(slots) − (d − d_min) / T, T = scale · d_min (or
-  `scale` metres where not `relative`); candidates screened out (distance inf) weigh
-  nothing. Leading axes are objects. Works on NumPy arrays (float64, the evaluation's
-  studies) and on JAX arrays (inside `decompose`)."""
+  `scale` metres where not `relative`); candidates screened out (distance inf, or NaN)
+  weigh nothing; an object without any finite distance gets its prior. Leading axes are
+  objects. Works on NumPy arrays (float64, the evaluation's studies) and on JAX arrays
+  (inside `decompose`)."""
   xp = jnp if isinstance(distance_S, jax.Array) else np
-  dmin = xp.min(distance_S, -1, keepdims=True)
+  finite = xp.isfinite(distance_S)
+  some = xp.any(finite, -1, keepdims=True)
+  d = xp.where(finite, distance_S, xp.inf)
+  dmin = xp.where(some, xp.min(d, -1, keepdims=True), 0.0)
   t = scale * xp.maximum(dmin, MIN_DISTANCE) if relative else scale
-  w = log_prior_S - (distance_S - dmin) / t
+  w = log_prior_S - xp.where(some, (d - dmin) / t, 0.0)
   w = w - xp.max(w, -1, keepdims=True)
   return w - xp.log(xp.sum(xp.exp(w), -1, keepdims=True))
 
@@ -73,7 +79,8 @@ def interval(probs_Kx100: jax.Array, level: float) -> tuple[jax.Array, jax.Array
 
 def density_posterior(slots_SxK: jax.Array, distance_S: jax.Array, log_prior_S: jax.Array,
                       valid_K: jax.Array, *, scale: float, level: float,
-                      identified_width: int) -> DensityPosterior:
+                      identified_width: int, distinct_S: jax.Array | None = None
+                      ) -> DensityPosterior:
   """The posterior of one object's box slots over its candidates (`DensityPosterior`).
 
   Args:
@@ -84,8 +91,13 @@ def density_posterior(slots_SxK: jax.Array, distance_S: jax.Array, log_prior_S: 
     scale: the likelihood's temperature over the closest candidate's distance.
     level: the intervals' probability (0.9: 90 % intervals).
     identified_width: the widest interval (upper − lower, slots) flagged identified.
+    distinct_S: False for a candidate that repeats an earlier one (it weighs nothing);
+      None: every candidate is distinct.
   """
+  if distinct_S is not None:
+    log_prior_S = jnp.where(distinct_S, log_prior_S, -jnp.inf)
   w = jnp.exp(log_weights(distance_S, log_prior_S, scale))  # (S,)
+  weighed = jnp.sum(w > 0) >= 2
   one_hot = jax.nn.one_hot(slots_SxK, NUM_DENSITY_SLOTS)  # (S, K, 100)
   probs = jnp.where(valid_K[:, None], jnp.einsum("s,skn->kn", w, one_hot), 0.0)
   x = slots_SxK.astype(jnp.float32)
@@ -99,5 +111,6 @@ def density_posterior(slots_SxK: jax.Array, distance_S: jax.Array, log_prior_S: 
   lower, upper = interval(probs, level)
   return DensityPosterior(
       probs=probs, mean=jnp.where(valid_K, mean, 0.0), lower=lower, upper=upper,
-      identified=valid_K & (upper - lower <= identified_width), correlation=correlation,
+      identified=valid_K & weighed & (upper - lower <= identified_width),
+      correlation=correlation,
       effective=1.0 / jnp.sum(w ** 2))
