@@ -60,13 +60,15 @@ def test_two_boxes_trading_mass_read_a_negative_correlation():
 
 
 def test_posterior_settings_map_the_eval_section_and_bad_ones_are_named():
-  cfg = DecomposeConfig.from_eval({"posterior_scale": 0.5, "identified_width": 3})
-  assert cfg.posterior == PosteriorConfig(scale=0.5, level=0.9, identified_width=3)
+  cfg = DecomposeConfig.from_eval({"posterior_scale": (0.5, 2.0), "identified_width": 3})
+  assert cfg.posterior == PosteriorConfig(scale=(0.5, 2.0), level=0.9, identified_width=3)
+  assert PosteriorConfig(scale=0.5).scale == (0.5,)
   assert DecomposeConfig.from_eval(cfg.to_eval()) == cfg
   assert DecomposeConfig.from_dict(cfg.to_dict()) == cfg
   assert cfg.replace(**{"posterior.level": 0.8}).posterior.level == 0.8
-  for bad, match in (({"scale": 0.0}, "posterior.scale must be finite and > 0"),
-                     ({"scale": float("nan")}, "posterior.scale"),
+  for bad, match in (({"scale": 0.0}, "posterior.scale must be a tuple of finite numbers"),
+                     ({"scale": (1.0, float("nan"))}, "posterior.scale"),
+                     ({"scale": ()}, "posterior.scale"),
                      ({"level": 1.0}, r"posterior.level must lie in \(0, 1\)"),
                      ({"identified_width": -1}, "identified_width must be a whole number"),
                      ({"identified_width": 1.5}, "identified_width must be a whole number")):
@@ -124,3 +126,12 @@ def test_repeated_candidates_weigh_nothing_and_no_finite_distance_leaves_the_pri
   alone = posterior.density_posterior(slots[:1], d[:1], logp[:1], valid, scale=1.0,
                                       level=0.9, identified_width=2)
   assert not bool(alone.identified[0])
+
+
+def test_a_scale_per_box_count_is_read_by_the_objects_own_count():
+  """`scale` (1, 2, ... boxes): a 2-box object takes the second entry, a 5-box object past
+  the table's end its last."""
+  two = jnp.array([True, True, False, False, False])
+  assert float(posterior.scale_for((0.1, 0.2, 0.3), two)) == pytest.approx(0.2)
+  assert float(posterior.scale_for((0.1, 0.2, 0.3), jnp.ones(5, bool))) == pytest.approx(0.3)
+  assert posterior.scale_for(0.7, two) == 0.7

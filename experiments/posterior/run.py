@@ -11,10 +11,10 @@
 `DecomposeConfig.paper()`; depth: `DecomposeConfig.best()`) and keeps per object the
 candidates' slots, distances and log prior, the answer and the true slots, boxes paired
 bottom to top. `report` recomputes the posterior with `infer.posterior.density_posterior`
-for each scale (the candidates do not depend on it), chooses on validation the scale whose
-90 % intervals cover closest to 90 % and the widest interval flagged identified whose boxes
-are still exact for `--identified_top1` %, and reports both on test with intervals over
-towers.
+for each scale (the candidates do not depend on it), chooses on validation, for each
+block count, the scale whose 90 % intervals cover closest to 90 % (`PosteriorConfig.scale`
+holds one per box count), then the widest interval flagged identified whose boxes are still
+exact for `--identified_top1` %, and reports both on test with intervals over towers.
 """
 
 from __future__ import annotations
@@ -39,7 +39,9 @@ from ppdjax.primitives import bottom_to_top, bottom_to_top_order
 from ppdjax.report.provenance import write_provenance
 
 SETTINGS = {"paper_inputs": DecomposeConfig.paper, "depth": DecomposeConfig.best}
-SCALES = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
+SCALES = (0.01, 0.02, 0.03, 0.045, 0.06, 0.09, 0.125, 0.18, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4,
+          2.0, 2.8, 4.0, 5.6, 8.0, 16.0, 32.0, 64.0)
+POWERS = (1.0, 0.7, 0.5, 0.3)  # the density scores' power in the posterior
 WIDTHS = tuple(range(0, 11))
 
 flags.DEFINE_enum("mode", "record", ["record", "report"], "What to do (or the first argument).")
@@ -102,13 +104,15 @@ def distinct_of(rec) -> np.ndarray:
   return out
 
 
-def boxes_of(rec, scale: float, level: float = 0.9):
+def boxes_of(rec, scale, level: float = 0.9, prior_power: float = 1.0):
   """Per paired box: (lower, upper, mean, answer, true, blocks, tower) of one record file,
-  the posterior at `scale`; only objects whose box count is the truth's."""
+  the posterior at `scale` (a number or one per box count); only objects whose box count
+  is the truth's."""
   valid, true = rec["valid"], rec["true"]
   same = valid.sum(-1) == (true >= 0).sum(-1)
   fn = jax.jit(jax.vmap(lambda s, d, l, v, u: post.density_posterior(
-      s, d, l, v, scale=scale, level=level, identified_width=0, distinct_S=u)))
+      s, d, l, v, scale=scale, level=level, identified_width=0, distinct_S=u,
+      prior_power=prior_power)))
   p = fn(jnp.asarray(rec["slots"], jnp.int32), jnp.asarray(rec["scores"], jnp.float32),
          jnp.asarray(rec["logp"], jnp.float32), jnp.asarray(valid),
          jnp.asarray(distinct_of(rec)))
@@ -155,30 +159,39 @@ def report(val_pattern: str, test_pattern: str, targets: dict, out: str) -> None
       print(f"{setting}: no records ({val_file}, {test_file})")
       continue
     val, test = np.load(val_file), np.load(test_file)
-    sweep = {}
-    for scale in SCALES:
-      cols, _ = boxes_of(val, scale)
-      sweep[scale] = summary(cols, 0)["coverage_90"]
-    scale = min(SCALES, key=lambda s: abs(sweep[s] - 0.9))
-    cols, _ = boxes_of(val, scale)
+    options, sweeps = {}, {}
+    for power in POWERS:  # per power, the scale per block count closest to 90 % coverage
+      sweep = {s: summary(boxes_of(val, s, prior_power=power)[0], 0)["coverage_90_by_blocks"]
+               for s in SCALES}
+      counts = sorted(sweep[SCALES[0]], key=int)
+      best = {b: min(SCALES, key=lambda s, b=b: abs(sweep[s][b] - 0.9)) for b in counts}
+      scale = tuple(best.get(str(k), best[counts[0] if k < int(counts[0]) else counts[-1]])
+                    for k in range(1, 6))  # one per box count, 1..5
+      worst = max(abs(sweep[best[b]][b] - 0.9) for b in counts)
+      options[power], sweeps[str(power)] = (worst, scale), {str(s): v for s, v in sweep.items()}
+    power = min(POWERS, key=lambda p: options[p][0])  # the worst block count's closest
+    scale = options[power][1]
+    cols, _ = boxes_of(val, scale, prior_power=power)
     ok = [w for w in WIDTHS if summary(cols, w)["identified_top1"] >= target]
     width = max(ok) if ok else 0  # none meets the target: the narrowest, said below
-    test_cols, skipped = boxes_of(test, scale)
+    test_cols, skipped = boxes_of(test, scale, prior_power=power)
     result["calibration"][setting] = {**summary(test_cols, width), "scale": scale,
+                                      "prior_power": power,
                                       "identified_width": width,
                                       "identified_target_met_on_validation": bool(ok),
                                       "identified_target": target,
-                                      "scale_at_grid_edge": scale in (SCALES[0], SCALES[-1]),
+                                      "scale_at_grid_edge": any(s in (SCALES[0], SCALES[-1])
+                                                                for s in scale),
                                       "objects": int(len(test["valid"])),
                                       "objects_skipped_box_count": skipped}
-    result["choices"][setting] = {"validation_coverage_by_scale": sweep,
+    result["choices"][setting] = {"validation_coverage_by_power_and_scale": sweeps,
                                   "validation": summary(cols, width),
                                   "validation_objects": int(len(val["valid"]))}
     # reliability: nominal level against the test boxes' coverage
     levels = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99)
     result["calibration"][setting]["reliability"] = {
         str(lv): float(np.mean((lambda c: (c[0] <= c[4]) & (c[4] <= c[1]))(
-            boxes_of(test, scale, lv)[0]))) for lv in levels}
+            boxes_of(test, scale, lv, power)[0]))) for lv in levels}
   result["command"] = ("python experiments/posterior/run.py report "
                        f"--val={val_pattern} --test={test_pattern}")
   plot_reliability(result["calibration"], os.path.splitext(out)[0] + "_reliability.png")

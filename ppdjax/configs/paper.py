@@ -66,6 +66,13 @@ def get_config():
   # whose top-1 is at least the network's (11.1 %, RMSE 9.44 against 9.69; 320 validation
   # towers of a fresh seed, experiments/results/sample_network_boxes/)
   config.eval.network_prior_weight = 0.005
+  # how sure each density is (infer.posterior): a scale per box count (1..5) and the scores'
+  # power chosen on 160 validation towers of a fresh seed for 90 % coverage by block count,
+  # the widest interval flagged identified whose boxes stay exact for 60 % of them
+  # (experiments/posterior/README.md)
+  config.eval.posterior_scale = (0.02, 0.02, 0.5, 2.8, 4.0)
+  config.eval.posterior_prior_power = 0.7
+  config.eval.identified_width = 5
   # ... over the first 32 of the 256 steps, chosen on the validation split (4,792 objects):
   # +Fit+Sample top-1 26.5 -> 28.7 %, RMSE 6.22 -> 5.82 slots against all steps; 16, 64
   # and 128 steps were no better (experiments/results/selection_horizon_2026-11-27)

@@ -166,8 +166,9 @@ class EvalConfig:
   estimator: str = ""  # a trained density estimator's folder: its scores join the network's
   estimator_weight: float = 1.0  # its log-probabilities' weight beside the network's
   simulator: str = "auto"  # the candidates' engine: auto (C on a CPU) | jax | mujoco
-  posterior_scale: float = 1.0  # each density's posterior: T = scale x the least distance
+  posterior_scale: tuple = (1.0,)  # each density's posterior: T = scale x least distance, by K
   posterior_level: float = 0.9  # ... its intervals' probability
+  posterior_prior_power: float = 1.0  # ... the density scores raised to this power
   identified_width: int = 2  # ... identified: the interval this many slots beyond one at most
   # --- evaluation only ------------------------------------------------------------------
   seed: int = 0  # the candidates' draws (object i of batch b: `decompose`'s key for it)

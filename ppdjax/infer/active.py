@@ -22,7 +22,7 @@ from flax import struct
 
 from ppdjax import metrics
 from ppdjax.infer import sampling
-from ppdjax.infer.posterior import MIN_DISTANCE, log_weights
+from ppdjax.infer.posterior import MIN_DISTANCE, log_weights, scale_for
 from ppdjax.sim.pushes import PAPER_FORCE, Pushes
 from ppdjax.sim.rollout_mjx import simulate
 
@@ -80,12 +80,15 @@ def paper_push_indices(candidates: Pushes, paper: Pushes) -> np.ndarray:
 
 def push_gains(prims, slots_SxK, distance_S, log_prior_S, candidates: Pushes, *,
                hypotheses: int, scale: float, steps: int, settings,
-               distinct_S=None) -> PushChoice:
+               distinct_S=None, prior_power: float = 1.0) -> PushChoice:
   """`PushChoice` of one object: its boxes `prims` (K), its +Sample candidates (slots,
   distances, log prior; repeats, `distinct_S` False, weigh nothing) and the pushes to
-  score (N), simulated over `steps` steps."""
+  score (N), simulated over `steps` steps; the posterior's settings as
+  `posterior.density_posterior`'s."""
+  log_prior_S = prior_power * log_prior_S
   if distinct_S is not None:
     log_prior_S = jnp.where(distinct_S, log_prior_S, -jnp.inf)
+  scale = scale_for(scale, prims.valid)
   w = log_weights(distance_S, log_prior_S, scale)
   top_w, top = jax.lax.top_k(w, hypotheses)
   w_h = jax.nn.softmax(top_w)  # the top hypotheses' weights, renormalised
@@ -140,7 +143,8 @@ def make_next_push_fn(decompose, candidates: Pushes | None = None, *, hypotheses
                                         dec.primitives.valid)
     return jax.vmap(lambda p, s, d, l, u: push_gains(
         p, s, d, l, candidates, hypotheses=count, scale=config.posterior.scale, steps=steps,
-        settings=decompose.settings, distinct_S=u))(dec.primitives, dec.candidates,
+        settings=decompose.settings, distinct_S=u,
+        prior_power=config.posterior.prior_power))(dec.primitives, dec.candidates,
                                                     dec.scores, logp, dec.distinct)
 
   def next_push(decomposition) -> PushChoice:

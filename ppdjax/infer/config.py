@@ -117,14 +117,24 @@ class PosteriorConfig:
 
   Attributes:
     scale: the likelihood exp(−(d − d_min) / T) has T = scale × the closest candidate's
-      distance d_min (chosen on validation towers for 90 % coverage).
+      distance d_min; one scale per box count (the k-th for k + 1 boxes, the last for
+      more), chosen on validation towers for 90 % coverage.
     level: the intervals' probability.
     identified_width: a box is flagged identified when its interval spans at most this
       many slots beyond one (0: a single slot).
+    prior_power: the density scores enter the posterior raised to this power (< 1: the
+      network's scores trusted less than they say).
   """
-  scale: float = 1.0
+  scale: tuple[float, ...] = (1.0,)
   level: float = 0.9
   identified_width: int = 2
+  prior_power: float = 1.0
+
+  def __post_init__(self):  # a number, or a list read from JSON, as the tuple it means
+    if isinstance(self.scale, (int, float)) and not isinstance(self.scale, bool):
+      object.__setattr__(self, "scale", (self.scale,))
+    elif isinstance(self.scale, list):
+      object.__setattr__(self, "scale", tuple(self.scale))
 
 
 PARTS = {"fit": FitConfig, "select": SelectConfig, "refine": RefineConfig,
@@ -178,14 +188,18 @@ class DecomposeConfig:
     if self.estimator.path and not f.enabled:
       raise ConfigError("the estimator reads fitted boxes: it needs fit.enabled")
     q = self.posterior
-    if not (_finite_at_least_zero(q.scale) and q.scale > 0):
-      raise ConfigError(f"posterior.scale must be finite and > 0, got {q.scale!r}")
+    if (not isinstance(q.scale, tuple) or not q.scale
+        or not all(_finite_at_least_zero(x) and x > 0 for x in q.scale)):
+      raise ConfigError("posterior.scale must be a tuple of finite numbers > 0 (one per box "
+                        f"count), got {q.scale!r}")
     if not (_finite_at_least_zero(q.level) and 0 < q.level < 1):
       raise ConfigError(f"posterior.level must lie in (0, 1), got {q.level!r}")
     if (isinstance(q.identified_width, bool) or not isinstance(q.identified_width, int)
         or q.identified_width < 0):
       raise ConfigError("posterior.identified_width must be a whole number of slots >= 0, "
                         f"got {q.identified_width!r}")
+    if not (_finite_at_least_zero(q.prior_power) and q.prior_power > 0):
+      raise ConfigError(f"posterior.prior_power must be finite and > 0, got {q.prior_power!r}")
 
   def replace(self, **changes) -> "DecomposeConfig":
     """A copy with dotted changes, e.g. `replace(**{"select.samples": 64})`, whole parts
@@ -239,8 +253,9 @@ class DecomposeConfig:
         refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
                             prior_weight=e.refine_prior, jacobian=e.refine_jacobian),
         estimator=EstimatorConfig(path=e.estimator, weight=e.estimator_weight),
-        posterior=PosteriorConfig(scale=e.posterior_scale, level=e.posterior_level,
-                                  identified_width=e.identified_width),
+        posterior=PosteriorConfig(scale=tuple(e.posterior_scale), level=e.posterior_level,
+                                  identified_width=e.identified_width,
+                                  prior_power=e.posterior_prior_power),
         simulator=e.simulator)
 
   def to_eval(self) -> dict:
@@ -256,6 +271,7 @@ class DecomposeConfig:
             "refine_jacobian": r.jacobian, "estimator": e.path,
             "estimator_weight": e.weight, "posterior_scale": q.scale,
             "posterior_level": q.level, "identified_width": q.identified_width,
+            "posterior_prior_power": q.prior_power,
             "simulator": self.simulator}
 
   @classmethod
@@ -263,9 +279,12 @@ class DecomposeConfig:
     """The paper's inputs (voxels, image, trajectories): boxes fitted to the voxels and the
     image's edges, 512 candidates compared over their first 32 steps (chosen on the
     validation split), no refinement: the blocks' headline +Fit+Sample row (and τ = 0.005
-    on the network's own boxes, should the fit be turned off; the `paper` preset's)."""
+    on the network's own boxes, should the fit be turned off; the `paper` preset's); the
+    posterior calibrated on validation towers (experiments/posterior)."""
     return cls(fit=FitConfig(image=True),
-               select=SelectConfig(horizon=32, network_prior_weight=0.005))
+               select=SelectConfig(horizon=32, network_prior_weight=0.005),
+               posterior=PosteriorConfig(scale=(0.02, 0.02, 0.5, 2.8, 4.0), prior_power=0.7,
+                                         identified_width=5))
 
   @classmethod
   def best(cls) -> "DecomposeConfig":

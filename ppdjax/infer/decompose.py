@@ -256,7 +256,8 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
     distinct = sel.distinct | (fit.face_spread > 0)
     post = jax.vmap(lambda s, d, l, v, u: posterior_module.density_posterior(
         s, d, sampling.log_prior(l, s, v), v, scale=belief.scale, level=belief.level,
-        identified_width=belief.identified_width, distinct_S=u))(
+        identified_width=belief.identified_width, distinct_S=u,
+        prior_power=belief.prior_power))(
             sel.slots, sel.scores, logits, prims.valid, distinct)
     pick = lambda index: jax.tree.map(  # each object's candidate `index` (B,)
         lambda x: jnp.take_along_axis(x, index.reshape((-1,) + (1,) * (x.ndim - 1)), 1)[:, 0],

@@ -8,8 +8,10 @@ likelihood is exp(−(d − d_min) / T) in the trajectory distance d (metres,
 `metrics.trajectory_distance`, over the selection's horizon): the selection objective
 d − τ · log p is its negative log at T = τ. The noise scale is estimated per object, not
 assumed: T = `scale` × d_min, the closest candidate's distance, which is what the
-observations' noise and the boxes' misfit leave when the densities are right; `scale` is
-chosen on validation towers (docs/inference.md, "How sure each density is").
+observations' noise and the boxes' misfit leave when the densities are right; `scale`,
+one per box count (more boxes share one misfit), is chosen on validation towers
+(docs/inference.md, "How sure each density is"). The density scores enter raised to
+`prior_power` (< 1 widens what they say; the network is overconfident on tall towers).
 """
 
 from __future__ import annotations
@@ -67,6 +69,15 @@ def log_weights(distance_S, log_prior_S, scale: float, *, relative: bool = True)
   return w - xp.log(xp.sum(xp.exp(w), -1, keepdims=True))
 
 
+def scale_for(scale, valid_K: jax.Array):
+  """The temperature's scale of an object with `valid_K` boxes: `scale` itself, or of a
+  sequence the entry of its box count (the last for more boxes)."""
+  if np.ndim(scale) == 0:
+    return scale
+  table = jnp.asarray(scale, jnp.float32)
+  return table[jnp.clip(jnp.sum(valid_K) - 1, 0, table.shape[0] - 1)]
+
+
 def interval(probs_Kx100: jax.Array, level: float) -> tuple[jax.Array, jax.Array]:
   """(lower, upper) (K,) slots of each marginal's central `level` interval: the first slot
   whose cumulative probability reaches (1 − level) / 2, and (1 + level) / 2."""
@@ -79,8 +90,8 @@ def interval(probs_Kx100: jax.Array, level: float) -> tuple[jax.Array, jax.Array
 
 def density_posterior(slots_SxK: jax.Array, distance_S: jax.Array, log_prior_S: jax.Array,
                       valid_K: jax.Array, *, scale: float, level: float,
-                      identified_width: int, distinct_S: jax.Array | None = None
-                      ) -> DensityPosterior:
+                      identified_width: int, distinct_S: jax.Array | None = None,
+                      prior_power: float = 1.0) -> DensityPosterior:
   """The posterior of one object's box slots over its candidates (`DensityPosterior`).
 
   Args:
@@ -88,14 +99,18 @@ def density_posterior(slots_SxK: jax.Array, distance_S: jax.Array, log_prior_S: 
     distance_S: their trajectory distances (inf where screened out).
     log_prior_S: their log-probabilities under the density scores (`sampling.log_prior`).
     valid_K: the boxes.
-    scale: the likelihood's temperature over the closest candidate's distance.
+    scale: the likelihood's temperature over the closest candidate's distance: a number,
+      or one per box count (the k-th for k + 1 valid boxes; the last for more).
     level: the intervals' probability (0.9: 90 % intervals).
     identified_width: the widest interval (upper − lower, slots) flagged identified.
     distinct_S: False for a candidate that repeats an earlier one (it weighs nothing);
       None: every candidate is distinct.
+    prior_power: the density scores' log-probabilities are multiplied by it.
   """
+  log_prior_S = prior_power * log_prior_S
   if distinct_S is not None:
     log_prior_S = jnp.where(distinct_S, log_prior_S, -jnp.inf)
+  scale = scale_for(scale, valid_K)
   w = jnp.exp(log_weights(distance_S, log_prior_S, scale))  # (S,)
   weighed = jnp.sum(w > 0) >= 2
   one_hot = jax.nn.one_hot(slots_SxK, NUM_DENSITY_SLOTS)  # (S, K, 100)
