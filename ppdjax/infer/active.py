@@ -99,7 +99,8 @@ def push_gains(prims, slots_SxK, distance_S, log_prior_S, candidates: Pushes, *,
       lambda b: metrics.trajectory_distance(a, b))(y))(y)  # (H, H)
   d = jax.lax.map(pairwise, per_push)  # (N, H, H), one push at a time: H² trajectories
   d = jnp.where(jnp.eye(hypotheses, dtype=bool), 0.0, d)  # the metric's floor: 1e-6 m
-  t = scale * jnp.maximum(jnp.min(distance_S), MIN_DISTANCE)
+  closest = jnp.min(jnp.where(jnp.isfinite(distance_S), distance_S, jnp.inf))
+  t = scale * jnp.maximum(closest, MIN_DISTANCE)  # the posterior's T
   mix = jax.scipy.special.logsumexp(-d / t, axis=-1, b=w_h[None, None, :])  # (N, H)
   gain = -jnp.sum(w_h[None] * mix, -1)
   return PushChoice(gain=gain, best=jnp.argmax(gain), hypotheses=jnp.asarray(hypotheses))

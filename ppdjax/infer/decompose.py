@@ -52,7 +52,8 @@ class Decomposition:
       with `fit.face_spread` each has its own faces, so none repeats).
     posterior: each box's density posterior over the candidates (`DensityPosterior`
       (B, K): marginals, mean, interval, identified flag, correlation between boxes;
-      `PosteriorConfig`). It reads the candidates, not the refined answer.
+      `PosteriorConfig`). It reads the candidates, not the refined answer (and with
+      `select.mass_match` the drawn slots at their mass-scaled distances).
   """
 
   primitives: Primitives
