@@ -224,7 +224,10 @@ class DecomposeConfig:
     return dataclasses.replace(self, **parts)
 
   def to_dict(self) -> dict:
-    return dataclasses.asdict(self)
+    """The settings as JSON writes and reads them (the posterior's scales a list)."""
+    d = dataclasses.asdict(self)
+    d["posterior"]["scale"] = list(d["posterior"]["scale"])
+    return d
 
   @classmethod
   def from_dict(cls, d: dict) -> "DecomposeConfig":
