@@ -1,11 +1,9 @@
 """The one config schema: a frozen dataclass per section, defaults in one place.
 
 Presets (`tiny`, `paper`, `tools`, `video`) are `get_config()` ConfigDicts for the command
-lines' `--config.<section>.<key>=<value>` overrides; at the edge `read(config)` turns one
-into a `RunConfig` of typed sections, naming an unknown or ill-typed key, and
-`complete(config)` fills the keys a run saved before they existed with these defaults (the
-behaviour those runs had). The defaults are the `tiny` preset's: every command runs on a
-laptop CPU with them.
+lines' `--config.<section>.<key>=<value>` overrides; `read(config)` turns one into a
+`RunConfig` of typed sections, naming an unknown or ill-typed key; `complete(config)` fills
+the keys a saved run predates with these defaults, the `tiny` preset's (a laptop CPU's).
 """
 
 from __future__ import annotations
