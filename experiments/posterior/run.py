@@ -36,7 +36,8 @@ from ppdjax.infer import sampling
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.metrics import bootstrap_interval
 from ppdjax.primitives import bottom_to_top, bottom_to_top_order
-from ppdjax.report.provenance import write_provenance
+from ppdjax.dataset.materials import MATERIAL_NAMES
+from ppdjax.report.provenance import read_provenance, write_provenance
 
 SETTINGS = {"paper_inputs": DecomposeConfig.paper, "depth": DecomposeConfig.best}
 SCALES = (0.01, 0.02, 0.03, 0.045, 0.06, 0.09, 0.125, 0.18, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4,
@@ -105,7 +106,8 @@ def distinct_of(rec) -> np.ndarray:
 
 
 def boxes_of(rec, scale, level: float = 0.9, prior_power: float = 1.0):
-  """Per paired box: (lower, upper, mean, answer, true, blocks, tower) of one record file,
+  """Per paired box: (lower, upper, mean, answer, true, blocks, tower, material) of one
+  record file,
   the posterior at `scale` (a number or one per box count); only objects whose box count
   is the truth's."""
   valid, true = rec["valid"], rec["true"]
@@ -120,12 +122,12 @@ def boxes_of(rec, scale, level: float = 0.9, prior_power: float = 1.0):
   blocks = np.broadcast_to(valid.sum(-1, keepdims=True), valid.shape)
   tower = np.broadcast_to(np.arange(len(valid))[:, None], valid.shape)
   cols = (np.asarray(p.lower), np.asarray(p.upper), np.asarray(p.mean), rec["answer"],
-          true, blocks, tower)
+          true, blocks, tower, rec["materials"])  # materials: the towers' order is bottom-up
   return [c[mask] for c in cols], int((~same).sum())
 
 
 def summary(cols, width: int) -> dict:
-  lower, upper, mean, answer, true, blocks, tower = cols
+  lower, upper, mean, answer, true, blocks, tower, material = cols
   inside = (lower <= true) & (true <= upper)
   flagged = upper - lower <= width
   exact = answer == true
@@ -139,6 +141,8 @@ def summary(cols, width: int) -> dict:
       "coverage_90_by_blocks": {str(b): float(inside[blocks == b].mean())
                                 for b in np.unique(blocks)},
       "boxes_by_blocks": {str(b): int((blocks == b).sum()) for b in np.unique(blocks)},
+      "coverage_90_by_material": {MATERIAL_NAMES[m]: float(inside[material == m].mean())
+                                  for m in np.unique(material)},
       "identified_share": float(flagged.mean()),
       "identified_top1": pct(flagged), "unidentified_top1": pct(~flagged),
       "top1": pct(np.ones_like(flagged)),
@@ -150,7 +154,14 @@ def summary(cols, width: int) -> dict:
 
 
 def report(val_pattern: str, test_pattern: str, targets: dict, out: str) -> None:
-  result = {"calibration": {}, "choices": {}}
+  """Writes `out`, keeping the keys of an existing file that this report does not make
+  (the closed-loop study's "active", the seeds)."""
+  kept = {}
+  if os.path.exists(out):
+    with open(out) as f:
+      kept = {k: v for k, v in json.load(f).items()
+              if k not in ("calibration", "choices", "command", "not_measured")}
+  result = {**kept, "calibration": {}, "choices": {}}
   for setting in SETTINGS:
     target = targets.get(setting, 85.0)
     val_file, test_file = val_pattern.format(setting=setting), test_pattern.format(
@@ -168,8 +179,12 @@ def report(val_pattern: str, test_pattern: str, targets: dict, out: str) -> None
       scale = tuple(best.get(str(k), best[counts[0] if k < int(counts[0]) else counts[-1]])
                     for k in range(1, 6))  # one per box count, 1..5
       worst = max(abs(sweep[best[b]][b] - 0.9) for b in counts)
-      options[power], sweeps[str(power)] = (worst, scale), {str(s): v for s, v in sweep.items()}
-    power = min(POWERS, key=lambda p: options[p][0])  # the worst block count's closest
+      mean = float(np.mean([abs(sweep[best[b]][b] - 0.9) for b in counts]))
+      options[power], sweeps[str(power)] = (worst, scale, mean), {
+          str(s): v for s, v in sweep.items()}
+    # the worst block count's closest; ties (a block count whose closest candidate is exact
+    # more often than 90 % is over-covered at every scale) go to the mean deviation
+    power = min(POWERS, key=lambda p: (round(options[p][0], 6), options[p][2]))
     scale = options[power][1]
     cols, _ = boxes_of(val, scale, prior_power=power)
     ok = [w for w in WIDTHS if summary(cols, w)["identified_top1"] >= target]
@@ -194,10 +209,12 @@ def report(val_pattern: str, test_pattern: str, targets: dict, out: str) -> None
             boxes_of(test, scale, lv, power)[0]))) for lv in levels}
   result["command"] = ("python experiments/posterior/run.py report "
                        f"--val={val_pattern} --test={test_pattern}")
+  result["objects"] = max(c["objects"] for c in result["calibration"].values())
   plot_reliability(result["calibration"], os.path.splitext(out)[0] + "_reliability.png")
+  write_provenance(out, command=result["command"])
+  result["commit"] = read_provenance(out).get("commit")  # the code that made the figures
   with open(out, "w") as f:
     json.dump(result, f, indent=1)
-  write_provenance(out, command=result["command"])
   print(json.dumps(result["calibration"], indent=1)[:3000])
 
 
