@@ -193,6 +193,9 @@ def test_decompose_config_maps_the_eval_section_and_names_bad_settings():
   assert DecomposeConfig.paper().fit == cfg.fit and DecomposeConfig.paper().select == cfg.select
   best = DecomposeConfig.best()
   assert best.fit.depth and best.refine.enabled and best.fit.with_ == ("depth",)
+  assert best.posterior.scale != DecomposeConfig().posterior.scale  # its own calibration
+  assert DecomposeConfig.from_eval(best.to_eval()) == best
+  assert DecomposeConfig.from_dict(best.to_dict()) == best
   assert cfg.replace(**{"select.samples": 8}).select.samples == 8
   with pytest.raises(ValueError, match="no part 'sample'"):
     cfg.replace(**{"sample.samples": 8})

@@ -293,7 +293,10 @@ class DecomposeConfig:
   def best(cls) -> "DecomposeConfig":
     """Observations with a depth image: boxes fitted to the voxels and the depth, 512
     candidates screened over 32 steps (the 64 closest simulated whole), then refinement
-    by forward differences: the blocks' best row."""
+    by forward differences: the blocks' best row; the posterior calibrated on validation
+    towers for these settings (experiments/posterior)."""
     return cls(fit=FitConfig(depth=True),
                select=SelectConfig(screen_steps=32, screen_keep=64),
-               refine=RefineConfig(enabled=True, jacobian="differences"))
+               refine=RefineConfig(enabled=True, jacobian="differences"),
+               posterior=PosteriorConfig(scale=(0.01, 0.01, 1.0, 1.4, 2.8), prior_power=0.5,
+                                         identified_width=5))
