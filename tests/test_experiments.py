@@ -707,3 +707,33 @@ def test_selection_horizon_study_reads_the_sweep_by_hand_and_chooses_on_the_firs
     shs.tower_groups({"geometries": 3}, n)
   with pytest.raises(ValueError, match="no horizon sweep"):
     shs.horizon_rows({("blocks",): np.full(n, 2)}, groups, 0.0)
+
+
+def test_active_pushes_loop_picks_the_push_that_tells_hypotheses_apart():
+  """Four candidates that move alike under every push but push 5, where they split in two
+  pairs: after the paper's first push the active policy takes push 5, never repeats one,
+  and each decomposition is the closest candidate over the pushes made."""
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from active_pushes import run as study  # pylint: disable=import-outside-toplevel
+
+  s, n, t = 4, 8, 6
+  sims = np.zeros((s, n, t, 7), np.float32)
+  sims[..., 3] = 1.0  # identity quaternions
+  sims[2:, 5, :, 0] = 0.1  # push 5 moves candidates 2 and 3 by 10 cm
+  distances = np.full((s, n), 0.02, np.float32)
+  distances[3] = 0.01  # candidate 3 is the closest under every push
+  slots = np.asarray([[1, 2], [1, 3], [7, 2], [7, 3]], np.int32)
+  out = jax.jit(lambda k: study.closed_loop(
+      jnp.asarray(sims), jnp.asarray(distances), jnp.asarray(slots), jnp.ones(s, bool),
+      jnp.zeros(s), jnp.ones(2, bool), k, paper=jnp.asarray([0, 1, 2, 3]), scale=1.0,
+      power=1.0, hypotheses=4))(jax.random.key(0))
+  active = np.asarray(out["active"]["pushes"])
+  assert active[0] == 0 and active[1] == 5 and len(set(active.tolist())) == 4
+  assert np.asarray(out["fixed"]["pushes"]).tolist() == [0, 1, 2, 3]
+  assert len(set(np.asarray(out["random"]["pushes"]).tolist())) == 4
+  for policy in study.POLICIES:
+    assert (np.asarray(out[policy]["answer"]) == slots[3]).all()
+    lower, upper = np.asarray(out[policy]["lower"]), np.asarray(out[policy]["upper"])
+    assert (lower <= slots[3]).all() and (slots[3] <= upper).all()

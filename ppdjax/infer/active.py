@@ -94,16 +94,25 @@ def push_gains(prims, slots_SxK, distance_S, log_prior_S, candidates: Pushes, *,
   w_h = jax.nn.softmax(top_w)  # the top hypotheses' weights, renormalised
   boxes = sampling.with_slots(prims, slots_SxK[top])  # (H, K)
   traj = simulate(boxes, candidates, steps=steps, settings=settings)  # (H, N, steps, 7)
-  per_push = jnp.swapaxes(traj, 0, 1)[:, :, None]  # (N, H, 1, steps, 7): one push each
+  closest = jnp.min(jnp.where(jnp.isfinite(distance_S), distance_S, jnp.inf))
+  t = scale * jnp.maximum(closest, MIN_DISTANCE)  # the posterior's T
+  gain = information_gain(traj, w_h, t)
+  return PushChoice(gain=gain, best=jnp.argmax(gain), hypotheses=jnp.asarray(hypotheses))
+
+
+def information_gain(traj_HxNxTx7: jax.Array, weights_H: jax.Array,
+                     temperature: jax.Array) -> jax.Array:
+  """(N,) the expected information gain (nats) of each of N pushes, from the H weighted
+  hypotheses' simulated motion under each (`traj_HxNxTx7`) and the posterior's T."""
+  h = traj_HxNxTx7.shape[0]
+  per_push = jnp.swapaxes(traj_HxNxTx7, 0, 1)[:, :, None]  # (N, H, 1, T, 7): one push each
   pairwise = lambda y: jax.vmap(lambda a: jax.vmap(
       lambda b: metrics.trajectory_distance(a, b))(y))(y)  # (H, H)
   d = jax.lax.map(pairwise, per_push)  # (N, H, H), one push at a time: H² trajectories
-  d = jnp.where(jnp.eye(hypotheses, dtype=bool), 0.0, d)  # the metric's floor: 1e-6 m
-  closest = jnp.min(jnp.where(jnp.isfinite(distance_S), distance_S, jnp.inf))
-  t = scale * jnp.maximum(closest, MIN_DISTANCE)  # the posterior's T
-  mix = jax.scipy.special.logsumexp(-d / t, axis=-1, b=w_h[None, None, :])  # (N, H)
-  gain = -jnp.sum(w_h[None] * mix, -1)
-  return PushChoice(gain=gain, best=jnp.argmax(gain), hypotheses=jnp.asarray(hypotheses))
+  d = jnp.where(jnp.eye(h, dtype=bool), 0.0, d)  # the metric's floor: 1e-6 m
+  mix = jax.scipy.special.logsumexp(-d / temperature, axis=-1,
+                                    b=weights_H[None, None, :])  # (N, H)
+  return -jnp.sum(weights_H[None] * mix, -1)
 
 
 def make_next_push_fn(decompose, candidates: Pushes | None = None, *, hypotheses: int = 32):

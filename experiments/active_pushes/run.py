@@ -1,0 +1,292 @@
+"""Closed-loop pushes: does choosing each push by its information gain beat the paper's four?
+
+  # the loop on validation and test towers of fresh seeds (simulation-heavy: an accelerator)
+  python experiments/active_pushes/run.py record --prior_model=DIR --data=out/tau_val \
+      --split=val --objects=160 --out=out/active_val.npz
+  python experiments/active_pushes/run.py record --prior_model=DIR --data=out/post_test \
+      --split=test --objects=160 --out=out/active_test.npz
+  # accuracy and interval width by pushes made, paired intervals, the plot
+  python experiments/active_pushes/run.py report --val_records=out/active_val.npz \
+      --records=out/active_test.npz --out=experiments/results/posterior.json
+
+`record` takes each tower's boxes and density scores from `make_decompose_fn(PRIOR_MODEL,
+DecomposeConfig.paper())` (boxes fitted to the voxels and the image; the scores of a model
+that reads no trajectory, so that the prior knows none of the pushes), draws the `--samples`
+candidate assignments +Sample would, and simulates them and the true tower under each of the
+64 candidate pushes (`ppdjax.candidate_pushes()`) over the selection's horizon. Then, with
+the same candidates throughout, three policies make up to four pushes: the paper's four in
+order (fixed), four distinct random ones (random), and active: the paper's first, then each
+next push the one of largest expected information gain (`infer.active.information_gain`,
+the public `next_push`'s formula) over the posterior's top `--hypotheses`. After each push
+the tower is decomposed again: the closest candidate over the pushes made (the paper's
++Sample) and the posterior over them (`infer.posterior.density_posterior`, the paper
+settings' power). The posterior's temperature (one scale over the closest distance, for
+every box count) was calibrated for a network that reads the four pushes; with this prior
+it is chosen again: the loop runs at each of `--scales`, and `report` takes the one whose
+fixed four pushes' 90 % intervals cover closest to 90 % on the validation towers, then
+pairs the policies on the test towers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags
+from tqdm import tqdm
+
+import ppdjax
+from ppdjax import metrics
+from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, density_to_slot
+from ppdjax.infer import active, posterior, sampling
+from ppdjax.infer.config import DecomposeConfig
+from ppdjax.primitives import bottom_to_top, bottom_to_top_order
+from ppdjax.report.provenance import read_provenance, write_provenance
+from ppdjax.sim.pushes import default_pushes
+from ppdjax.sim.rollout_mjx import simulate
+
+flags.DEFINE_enum("mode", "record", ["record", "report"], "What to do (or the first argument).")
+flags.DEFINE_string("prior_model", "", "record: a model that reads no trajectory.")
+flags.DEFINE_string("data", "", "record: the dataset folder.")
+flags.DEFINE_string("split", "test", "record: the split.")
+flags.DEFINE_integer("objects", 0, "record: the first N objects (0: all).")
+flags.DEFINE_integer("batch", 8, "record: objects per call.")
+flags.DEFINE_integer("samples", 512, "record: candidate assignments per tower.")
+flags.DEFINE_integer("hypotheses", 32, "record: the posterior's top assignments for the gain.")
+flags.DEFINE_integer("seed", 0, "record: candidates' and random pushes' key.")
+flags.DEFINE_list("scales", ["0.01", "0.03", "0.1", "0.3", "1", "3"], "record: the posterior's "
+                  "temperatures over the closest distance tried (one is chosen on validation).")
+flags.DEFINE_string("val_records", "", "report: the validation towers' record file.")
+flags.DEFINE_string("records", "", "report: the test towers' record file.")
+flags.DEFINE_string("out", "", "record: the .npz; report: the results .json (its 'active').")
+FLAGS = flags.FLAGS
+POLICIES = ("fixed", "random", "active")
+MAX_PUSHES = 4
+
+
+def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, scale, power,
+                hypotheses):
+  """One tower: for each policy and each count of pushes made (1..4), the closest
+  candidate's slots and the posterior's 90 % interval; and the pushes each policy made.
+
+  sims (S, N, T, 7) candidates under the N pushes; distances (S, N) each to the truth's."""
+  n = distances.shape[1]
+  lp = jnp.where(distinct, power * logp, -jnp.inf)
+  scale_k = posterior.scale_for(scale, valid)
+
+  def decompose_with(done):  # done (N,) bool: the pushes made so far
+    d = jnp.sum(jnp.where(done, distances, 0.0), -1) / jnp.sum(done)
+    answer = slots[jnp.argmin(jnp.where(distinct, d, jnp.inf))]
+    post = posterior.density_posterior(slots, d, logp, valid, scale=scale, level=0.9,
+                                       identified_width=0, distinct_S=distinct,
+                                       prior_power=power)
+    return d, answer, post.lower, post.upper
+
+  def run(order_fn):
+    done, made, rows = jnp.zeros(n, bool), [], []
+    for k in range(MAX_PUSHES):
+      nxt = order_fn(k, done)
+      done = done.at[nxt].set(True)
+      made.append(nxt)
+      rows.append(decompose_with(done)[1:])
+    return [jnp.stack(x) for x in zip(*rows)], jnp.stack(made)
+
+  random = jax.random.permutation(key, n)
+
+  def active_next(k, done):
+    if k == 0:
+      return paper[0]
+    d = jnp.sum(jnp.where(done, distances, 0.0), -1) / jnp.sum(done)
+    w = posterior.log_weights(d, lp, scale_k)
+    top_w, top = jax.lax.top_k(w, hypotheses)
+    t = scale_k * jnp.maximum(jnp.min(d), posterior.MIN_DISTANCE)
+    gain = active.information_gain(sims[top], jax.nn.softmax(top_w), t)
+    return jnp.argmax(jnp.where(done, -jnp.inf, gain))
+
+  out = {}
+  for name, fn in (("fixed", lambda k, done: paper[k]), ("random", lambda k, done: random[k]),
+                   ("active", active_next)):
+    (answer, lower, upper), made = run(fn)
+    out[name] = {"answer": answer, "lower": lower, "upper": upper, "pushes": made}
+  return out
+
+
+def record(prior_model: str, data: str, split: str, objects: int, batch: int, samples: int,
+           hypotheses: int, seed: int, scales: tuple[float, ...], out: str) -> None:
+  ds = ppdjax.open_dataset(data, split)
+  n = len(ds) if objects <= 0 else min(objects, len(ds))
+  config = DecomposeConfig.paper()
+  decompose = ppdjax.make_decompose_fn(prior_model, config)
+  pushes = ppdjax.candidate_pushes()
+  paper = jnp.asarray(active.paper_push_indices(pushes, default_pushes()))
+  steps = config.select.horizon
+  power = config.posterior.prior_power
+
+  def one(prims, logits, true, key):
+    slots, distinct = sampling.candidate_slots(logits[:, :NUM_DENSITY_SLOTS], prims.valid,
+                                               samples, key)
+    logp = sampling.log_prior(logits, slots, prims.valid)
+    observed = simulate(true, pushes, steps=steps, settings=decompose.settings)  # (N, T, 7)
+    sims = simulate(sampling.with_slots(prims, slots), pushes, steps=steps,
+                    settings=decompose.settings)  # (S, N, T, 7)
+    distances = jax.vmap(jax.vmap(lambda a, b: metrics.trajectory_distance(
+        a[None], b[None]), (0, 0)), (0, None))(sims, observed)  # (S, N)
+    loops = [closed_loop(sims, distances, slots, distinct, logp, prims.valid,
+                         jax.random.fold_in(key, 1), paper=paper, scale=scale, power=power,
+                         hypotheses=hypotheses) for scale in scales]
+    return jax.tree.map(lambda *x: jnp.stack(x), *loops)  # leading axis: the scales
+
+  loop = jax.jit(jax.vmap(one))
+  keep: dict[str, list] = {"true": [], "valid": [], "materials": []}
+  start = time.time()
+  for lo in tqdm(range(0, n, batch), desc="closed loop", unit="batch"):
+    sample = ds.take(np.arange(lo, min(lo + batch, n)))
+    res = decompose({k: sample[k] for k in OBS_KEYS}, jax.random.key(seed + lo))
+    keys = jax.random.split(jax.random.key(seed + 1 + lo), len(sample["image"]))
+    rows = loop(res.primitives, res.density_logits, sample["primitives"], keys)
+    order = np.asarray(bottom_to_top_order(res.primitives))  # pair boxes bottom to top
+    take = lambda x: np.take_along_axis(  # noqa: E731
+        np.asarray(x), order.reshape(order.shape[:1] + (1,) * (np.ndim(x) - 2)
+                                     + order.shape[1:]), -1)
+    for name, r in rows.items():
+      for field in ("answer", "lower", "upper"):
+        keep.setdefault(f"{name}_{field}", []).append(take(r[field]))
+      keep.setdefault(f"{name}_pushes", []).append(np.asarray(r["pushes"]))
+    true = jax.tree.map(np.asarray, bottom_to_top(jax.tree.map(jnp.asarray,
+                                                               sample["primitives"])))
+    keep["true"].append(np.where(true.valid, density_to_slot(true.density), -1))
+    keep["valid"].append(take(res.primitives.valid))
+    keep["materials"].append(np.asarray(sample["materials"]))
+  arrays = {k: np.concatenate(v) for k, v in keep.items()}
+  np.savez_compressed(out, seconds=time.time() - start, data=data, split=split,
+                      prior_model=prior_model, samples=samples, hypotheses=hypotheses,
+                      scales=np.asarray(scales), power=power, **arrays)
+  print(f"{n} towers in {time.time() - start:.0f} s -> {out}")
+
+
+def scores(rec, policy: str, k: int, scale: int) -> dict:
+  """Per tower (towers whose box count is the truth's): exact boxes, squared slot errors,
+  interval widths and coverage after k pushes (1-based), the posterior at the scale of
+  index `scale` (its choices of push too)."""
+  valid, true = rec["valid"], rec["true"]
+  same = valid.sum(-1) == (true >= 0).sum(-1)
+  a, lo, hi = (rec[f"{policy}_{f}"][:, scale, k - 1] for f in ("answer", "lower", "upper"))
+  m = valid & same[:, None]
+  return {"exact": np.where(m, a == true, 0).sum(-1), "sq": np.where(m, (a - true) ** 2.0, 0
+                                                                      ).sum(-1),
+          "width": np.where(m, hi - lo + 1, 0).sum(-1),
+          "inside": np.where(m, (lo <= true) & (true <= hi), 0).sum(-1),
+          "boxes": m.sum(-1), "same": same}
+
+
+def summary(s: dict, towers: np.ndarray) -> dict:
+  stat = {"top1": lambda i: 100.0 * s["exact"][i].sum() / s["boxes"][i].sum(),
+          "rmse": lambda i: float(np.sqrt(s["sq"][i].sum() / s["boxes"][i].sum())),
+          "width": lambda i: float(s["width"][i].sum() / s["boxes"][i].sum()),
+          "coverage_90": lambda i: float(s["inside"][i].sum() / s["boxes"][i].sum())}
+  out = {k: float(f(towers)) for k, f in stat.items()}
+  for k, f in stat.items():
+    out[f"{k}_ci95"] = list(metrics.bootstrap_interval(lambda i, f=f: f(towers[i]),
+                                                       len(towers)))
+  return out
+
+
+def paired(first: dict, second: dict, towers: np.ndarray) -> dict:
+  """second − first, top-1 and RMSE, 95 % intervals over towers drawing both."""
+  def diff(i, key):
+    t = towers[i]
+    b = first["boxes"][t].sum()
+    if key == "top1":
+      return 100.0 * (second["exact"][t].sum() - first["exact"][t].sum()) / b
+    return float(np.sqrt(second["sq"][t].sum() / b) - np.sqrt(first["sq"][t].sum() / b))
+  return {key: list(metrics.bootstrap_interval(lambda i, key=key: diff(i, key), len(towers)))
+          for key in ("top1", "rmse")}
+
+
+def report(val_records: str, records: str, out: str) -> None:
+  val, rec = np.load(val_records), np.load(records)
+  # the temperature whose fixed four pushes' 90 % intervals cover closest to 90 % (validation)
+  val_cover = []
+  for i in range(len(val["scales"])):
+    c = scores(val, "fixed", MAX_PUSHES, i)
+    val_cover.append(float(c["inside"][c["same"]].sum() / c["boxes"][c["same"]].sum()))
+  chosen = int(np.argmin(np.abs(np.asarray(val_cover) - 0.9)))
+  curves = {p: [scores(rec, p, k, chosen) for k in range(1, MAX_PUSHES + 1)]
+            for p in POLICIES}
+  towers = np.flatnonzero(curves["fixed"][0]["same"])
+  active_result = {
+      "fixed4": summary(curves["fixed"][3], towers),
+      "random4": summary(curves["random"][3], towers),
+      "active2": summary(curves["active"][1], towers),
+      "active4": summary(curves["active"][3], towers),
+      "paired": {"active2_minus_fixed4": paired(curves["fixed"][3], curves["active"][1],
+                                                towers),
+                 "active4_minus_fixed4": paired(curves["fixed"][3], curves["active"][3],
+                                                towers),
+                 "active4_minus_random4": paired(curves["random"][3], curves["active"][3],
+                                                 towers)},
+      "by_pushes": {p: [summary(c, towers) for c in curves[p]] for p in POLICIES},
+      "towers": int(len(towers)), "boxes": int(curves["fixed"][0]["boxes"][towers].sum()),
+      "towers_skipped_box_count": int(len(rec["valid"]) - len(towers)),
+      "prior_model": str(rec["prior_model"]), "samples": int(rec["samples"]),
+      "hypotheses": int(rec["hypotheses"]), "prior_power": float(rec["power"]),
+      "scale": float(rec["scales"][chosen]),
+      "validation_fixed4_coverage_by_scale": dict(zip(map(str, val["scales"].tolist()),
+                                                      val_cover)),
+      "validation_towers": int(len(val["valid"])),
+      "pushes_chosen": {p: np.bincount(rec[f"{p}_pushes"][towers, chosen].ravel(),
+                                       minlength=64).tolist() for p in ("active", "random")},
+      "command": ("python experiments/active_pushes/run.py report "
+                  f"--val_records={val_records} --records={records}")}
+  result = {}
+  if os.path.exists(out):
+    with open(out) as f:
+      result = json.load(f)
+  result["active"] = active_result
+  plot(active_result["by_pushes"], os.path.splitext(out)[0] + "_active.png")
+  made_by = [c for c in (result.get("command"), active_result["command"]) if c]
+  write_provenance(out, command="; ".join(made_by))  # the calibration's and this
+  result["active"]["commit"] = read_provenance(out).get("commit")
+  with open(out, "w") as f:
+    json.dump(result, f, indent=1)
+  print(json.dumps({k: v for k, v in active_result.items() if k != "by_pushes"}, indent=1)[:3000])
+
+
+def plot(by_pushes: dict, path: str) -> None:
+  """Top-1, RMSE and interval width against the number of pushes made, per policy."""
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+  fig, axes = plt.subplots(1, 3, figsize=(11, 3.4))
+  x = np.arange(1, MAX_PUSHES + 1)
+  for ax, key, label in zip(axes, ("top1", "rmse", "width"),
+                            ("density top-1 (%)", "density RMSE (slots)",
+                             "90 % interval width (slots)")):
+    for p in POLICIES:
+      rows = by_pushes[p]
+      y = [r[key] for r in rows]
+      lo, hi = zip(*[r[f"{key}_ci95"] for r in rows])
+      ax.errorbar(x, y, yerr=[np.subtract(y, lo), np.subtract(hi, y)], marker="o",
+                  capsize=3, label=p)
+    ax.set(xlabel="pushes made", ylabel=label, xticks=x)
+  axes[0].legend(fontsize=8)
+  fig.tight_layout()
+  fig.savefig(path, dpi=110)
+
+
+def main(argv):
+  mode = argv[1] if len(argv) > 1 else FLAGS.mode
+  if mode == "record":
+    record(FLAGS.prior_model, FLAGS.data, FLAGS.split, FLAGS.objects, FLAGS.batch,
+           FLAGS.samples, FLAGS.hypotheses, FLAGS.seed, tuple(map(float, FLAGS.scales)),
+           FLAGS.out)
+  else:
+    report(FLAGS.val_records, FLAGS.records, FLAGS.out)
+
+
+if __name__ == "__main__":
+  app.run(main)
