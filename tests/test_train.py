@@ -450,3 +450,39 @@ def test_a_geometry_stream_run_reads_no_dataset_and_validates_on_a_held_out_stre
   assert 0.0 <= final["shape_f1"] <= 100.0 and np.isfinite(final["geometry_loss"])
   assert _rows(str(tmp_path / "run"), "val")[-1]["step"] == 2
   assert not os.path.exists(tmp_path / "no_dataset_here")
+
+
+def test_physics_stream_is_refused_where_it_cannot_serve():
+  """Its fresh towers are the blocks' under the paper's pushes: a tools dataset or a model
+  that reads no motion is named."""
+  for change, message in ((lambda c: c.data.update(kind="tools"), "data.kind 'towers'"),
+                          (lambda c: c.model.update(use_trajectory=False), "use_trajectory"),
+                          (lambda c: c.train.update(physics_stream_weight=-1.0), ">= 0")):
+    config = short_config()
+    config.train.physics_stream_weight = 0.5
+    change(config)
+    with pytest.raises(ValueError, match=message):
+      loop.check_config(config)
+
+
+@pytest.mark.slow  # compiles a training step with a simulation inside (minutes on 2 cores)
+def test_physics_stream_joins_the_loss_with_fresh_simulated_towers(tiny_dataset, tmp_path):
+  """With train.physics_stream_weight, each step adds the loss of simulated fresh towers
+  (no image), logged as physics_density_loss; the stream's batch is a function of its key:
+  voxels by the dataset's rule, the simulation of its own boxes."""
+  from ppdjax.dataset import physics_stream, stream  # pylint: disable=import-outside-toplevel
+  from ppdjax.sim.pushes import default_pushes  # pylint: disable=import-outside-toplevel
+  from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS  # pylint: disable=import-outside-toplevel
+  config = short_config(geometry_steps=1, joint_steps=2)
+  config.train.physics_stream_weight = 0.5
+  loop.train_and_evaluate(config, tiny_dataset, str(tmp_path), progress=False)
+  rows = _rows(str(tmp_path))
+  assert all(np.isfinite(r["physics_density_loss"]) for r in rows)
+  make = lambda: physics_stream.training_batch(  # noqa: E731
+      jax.random.key(5), 3, steps=8, pushes=default_pushes(), settings=DEFAULT_SETTINGS)
+  a, b = make(), make()
+  assert set(a) == {"voxels", "trajectories", "primitives"}  # no image: the model reads 0
+  np.testing.assert_array_equal(a["trajectories"], b["trajectories"])
+  np.testing.assert_array_equal(a["voxels"],
+                                stream.voxelize_axis_aligned(a["primitives"]).astype(np.uint8))
+  assert a["trajectories"].shape == (3, 4, 8, 7) and np.all(np.isfinite(a["trajectories"]))

@@ -105,11 +105,11 @@ class TrainConfig:
   joint_steps: int = 40  # phase 2: geometry + w x density
   density_weight: float = 0.5  # w of Eq. 4-5 (docs/training.md says why 0.5)
   density_ramp_steps: int = 0  # > 0: w rises linearly over the joint phase's first steps
-  # the end token's loss, in every phase; None (runs saved before the key): weighted by w
-  end_weight: typing.Optional[float] = 1.0
+  end_weight: typing.Optional[float] = 1.0  # in every phase; None (older runs): w
   geometry_weight: float = 1.0  # the dataset's geometry loss
   stream_weight: float = 0.0  # > 0: phases 1-2 add a stream batch's geometry loss
   augment: bool = True  # stream batches under random symmetries of the square about z
+  physics_stream_weight: float = 0.0  # > 0: simulated fresh towers' loss (training.streams)
   init_from: str = ""  # a workdir whose matching parameters start this run
   log_every: int = 10
   eval_every: int = 30  # validation and checkpoint

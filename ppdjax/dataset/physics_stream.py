@@ -20,7 +20,7 @@ from tqdm.auto import tqdm
 
 from ppdjax.conventions import NUM_DENSITY_SLOTS, NUM_SLOTS, STEPS, slot_to_density_jax
 from ppdjax.dataset.materials import MATERIAL_NAMES, material_slots
-from ppdjax.dataset.stream import sample_towers_jax
+from ppdjax.dataset.stream import sample_towers_jax, voxelize_axis_aligned
 from ppdjax.sim.pushes import Pushes, default_pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
 
@@ -55,6 +55,16 @@ def physics_batch(key: jax.Array, batch: int, *, steps: int = STEPS,
   traj = simulate(prims, default_pushes() if pushes is None else pushes, steps=steps,
                   settings=settings)
   return {"primitives": prims, "slots": slots, "materials": mats, "trajectories": traj}
+
+
+def training_batch(key: jax.Array, batch: int, *, steps: int, pushes: Pushes,
+                   settings: Settings) -> dict:
+  """A batch for the network (`training.streams`): fresh towers' voxels (the dataset's rule
+  for axis-aligned boxes), their trajectories and their boxes with densities; no image (the
+  network reads f_I = 0). Jittable."""
+  b = physics_batch(key, batch, steps=steps, pushes=pushes, settings=settings)
+  return {"voxels": voxelize_axis_aligned(b["primitives"]).astype(jnp.uint8),
+          "trajectories": b["trajectories"], "primitives": b["primitives"]}
 
 
 @functools.partial(jax.jit, static_argnames=("batch", "steps", "settings"))

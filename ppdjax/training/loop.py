@@ -47,7 +47,7 @@ def check_config(config) -> None:
       raise ValueError(f"config.{name} must be > 0, got {value}")
   for name in ("stream_steps", "geometry_steps", "joint_steps", "eval_batches", "prefetch",
                "end_weight", "geometry_weight", "stream_weight", "clip_norm", "warmup_steps",
-               "density_ramp_steps"):
+               "density_ramp_steps", "physics_stream_weight"):
     if t.get(name) is not None and t.get(name, 0) < 0:
       raise ValueError(f"config.train.{name} must be >= 0, got {t[name]}")
   if total_steps(t) == 0:
@@ -56,6 +56,11 @@ def check_config(config) -> None:
   if (t.get("stream_steps", 0) or t.get("stream_weight", 0)) and not m.use_voxels:
     raise ValueError("config.train.stream_steps / stream_weight train the voxel pathway; "
                      "this model has use_voxels=False: set them to 0")
+  if t.get("physics_stream_weight", 0) > 0 and (config.data.get("kind", "towers") != "towers"
+                                                or not m.use_trajectory):
+    raise ValueError("config.train.physics_stream_weight simulates fresh towers of the paper's "
+                     "materials under the paper's pushes: it needs data.kind 'towers' and a "
+                     "model that reads the motion (use_trajectory)")
   if t.get("init_from", "") and not os.path.isdir(t.init_from):
     raise ValueError(f"config.train.init_from={t.init_from!r} is not a directory")
   if not 0 <= m.dropout < 1:

@@ -16,11 +16,9 @@ from ppdjax.dataset import batching, depth_video, storage, stream
 from ppdjax.nn import losses
 from ppdjax.nn.model import PPD
 from ppdjax.nn.resnet import load_torchvision_weights
-from ppdjax.training import checkpoints, sharding
+from ppdjax.training import checkpoints, sharding, streams
 from ppdjax.training.loader import BATCH_KEYS, model_inputs
 
-STREAM_SEED = 7_919  # offsets the stream's key from the dropout key of the same seed
-VAL_STREAM_SEED = 7_920  # a held-out stream: validation of a run that reads no dataset
 BATCH_NORM_MODES = ("global", "per_device")  # train.batch_norm: see Trainer
 
 
@@ -123,25 +121,15 @@ def _loss(model, batch, w, train, key, weights):
                         geometry_weight=weights["geometry_weight"])
 
 
-def stream_batch(t, step, sharding=None, axis=None, devices=1) -> dict:
-  """The geometry stream's batch for `step` (fresh towers; a function of seed and step).
-
-  Inside a per-device step (`axis`, the mesh axis of `devices` devices) each device draws
-  its own share of the batch, its key folded with its index.
-  """
-  key = jax.random.fold_in(jax.random.key(t.seed + STREAM_SEED), step)
-  if axis is not None:
-    key = jax.random.fold_in(key, jax.lax.axis_index(axis))
-  batch = stream.geometry_batch(key, t.batch_size // devices, t.get("augment", True))
-  return batch if sharding is None else jax.lax.with_sharding_constraint(batch, sharding)
-
-
-def train_step(graphdef, state, batch, step, w, t, sharding=None, axis=None, devices=1):
+def train_step(graphdef, state, batch, step, w, t, sharding=None, axis=None, devices=1,
+               physics=None):
   """One Adam step; pure in (state, batch, step): the dropout key is fold_in(seed, step).
 
   `batch` None is a step of the geometry stream alone (voxels of fresh towers, w = 0);
   otherwise, with `train.stream_weight` > 0, a stream batch's geometry and end-token
-  loss joins the dataset's, so the voxel pathway keeps seeing unlimited geometries.
+  loss joins the dataset's, so the voxel pathway keeps seeing unlimited geometries; and
+  with `physics` (`streams.physics_batch_fn`), a physics-stream batch's whole loss,
+  weighted by `train.physics_stream_weight`.
 
   `axis` names the mesh axis when each of `devices` devices runs this on its share of the
   batch (`jax.shard_map`; `train.batch_norm = "per_device"`): BatchNorm then normalises
@@ -153,7 +141,7 @@ def train_step(graphdef, state, batch, step, w, t, sharding=None, axis=None, dev
   if axis is not None:  # each device its own dropout masks
     key = jax.random.fold_in(key, jax.lax.axis_index(axis))
   weights, stream_weight = loss_weights(t), t.get("stream_weight", 0.0)
-  streamed = lambda: stream_batch(t, step, sharding, axis, devices)
+  streamed = lambda: streams.geometry_batch(t, step, sharding, axis, devices)
 
   def total(m):
     if batch is None:
@@ -163,6 +151,11 @@ def train_step(graphdef, state, batch, step, w, t, sharding=None, axis=None, dev
       s_loss, s_aux = _loss(m, streamed(), 0.0, True, jax.random.fold_in(key, 1), weights)
       loss = loss + stream_weight * s_loss
       aux = {**aux, "loss": loss, "stream_geometry_loss": s_aux["geometry_loss"]}
+    if physics is not None:
+      p_loss, p_aux = _loss(m, physics(t, step, sharding, axis, devices), w, True,
+                            jax.random.fold_in(key, 2), weights)
+      loss = loss + t.physics_stream_weight * p_loss
+      aux = {**aux, "loss": loss, "physics_density_loss": p_aux["density_loss"]}
     return loss, aux
 
   grads, aux = nnx.grad(total, has_aux=True)(ts.model)
@@ -252,14 +245,16 @@ class Trainer:
     every normalisation, forward and backward; the math of one device) or over each
     device's share (`"per_device"`: a `jax.shard_map` step whose only collective is the
     average of gradients, statistics and losses at its end)."""
+    physics = (streams.physics_batch_fn(self.config.data)
+               if t.get("physics_stream_weight", 0.0) > 0 else None)
     if batch_norm_mode(t) == "global" or self.mesh.size == 1:
       return jax.jit(lambda s, b, i, w: train_step(self.graphdef, s, b, i, w, t,
-                                                   batch_sharding),
+                                                   batch_sharding, physics=physics),
                      out_shardings=(self.replicated, self.replicated), donate_argnums=0)
     P, n = jax.sharding.PartitionSpec, self.mesh.size
     local = jax.shard_map(
         lambda s, b, i, w: train_step(self.graphdef, s, b, i, w, t, None,
-                                      sharding.DATA_AXIS, n),
+                                      sharding.DATA_AXIS, n, physics),
         mesh=self.mesh, in_specs=(P(), P(sharding.DATA_AXIS), P(), P()),
         out_specs=(P(), P()), check_vma=False)
     return jax.jit(local, donate_argnums=0)
@@ -312,7 +307,7 @@ class Trainer:
     if dataset is None:
       if not num_batches:
         raise ValueError("validation on the stream needs train.eval_batches > 0")
-      key = jax.random.key(t.seed + VAL_STREAM_SEED)
+      key = jax.random.key(t.seed + streams.VAL_STREAM_SEED)
       batches = (jax.device_get(stream.geometry_batch(jax.random.fold_in(key, i),
                                                       t.batch_size, False))
                  for i in range(num_batches))
