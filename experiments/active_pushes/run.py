@@ -49,20 +49,6 @@ from ppdjax.report.provenance import read_provenance, write_provenance
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import simulate
 
-flags.DEFINE_enum("mode", "record", ["record", "report"], "What to do (or the first argument).")
-flags.DEFINE_string("prior_model", "", "record: a model that reads no trajectory.")
-flags.DEFINE_string("data", "", "record: the dataset folder.")
-flags.DEFINE_string("split", "test", "record: the split.")
-flags.DEFINE_integer("objects", 0, "record: the first N objects (0: all).")
-flags.DEFINE_integer("batch", 8, "record: objects per call.")
-flags.DEFINE_integer("samples", 512, "record: candidate assignments per tower.")
-flags.DEFINE_integer("hypotheses", 32, "record: the posterior's top assignments for the gain.")
-flags.DEFINE_integer("seed", 0, "record: candidates' and random pushes' key.")
-flags.DEFINE_list("scales", ["0.01", "0.03", "0.1", "0.3", "1", "3"], "record: the posterior's "
-                  "temperatures over the closest distance tried (one is chosen on validation).")
-flags.DEFINE_string("val_records", "", "report: the validation towers' record file.")
-flags.DEFINE_string("records", "", "report: the test towers' record file.")
-flags.DEFINE_string("out", "", "record: the .npz; report: the results .json (its 'active').")
 FLAGS = flags.FLAGS
 POLICIES = ("fixed", "random", "active")
 MAX_PUSHES = 4
@@ -278,6 +264,24 @@ def plot(by_pushes: dict, path: str) -> None:
   fig.savefig(path, dpi=110)
 
 
+def define_flags():
+  """This study's flags, defined when it runs (not when a test imports it)."""
+  flags.DEFINE_enum("mode", "record", ["record", "report"], "What to do (or the first argument).")
+  flags.DEFINE_string("prior_model", "", "record: a model that reads no trajectory.")
+  flags.DEFINE_string("data", "", "record: the dataset folder.")
+  flags.DEFINE_string("split", "test", "record: the split.")
+  flags.DEFINE_integer("objects", 0, "record: the first N objects (0: all).")
+  flags.DEFINE_integer("batch", 8, "record: objects per call.")
+  flags.DEFINE_integer("samples", 512, "record: candidate assignments per tower.")
+  flags.DEFINE_integer("hypotheses", 32, "record: the posterior's top assignments for the gain.")
+  flags.DEFINE_integer("seed", 0, "record: candidates' and random pushes' key.")
+  flags.DEFINE_list("scales", ["0.01", "0.03", "0.1", "0.3", "1", "3"], "record: the posterior's "
+                    "temperatures over the closest distance tried (one is chosen on validation).")
+  flags.DEFINE_string("val_records", "", "report: the validation towers' record file.")
+  flags.DEFINE_string("records", "", "report: the test towers' record file.")
+  flags.DEFINE_string("out", "", "record: the .npz; report: the results .json (its 'active').")
+
+
 def main(argv):
   mode = argv[1] if len(argv) > 1 else FLAGS.mode
   if mode == "record":
@@ -289,4 +293,5 @@ def main(argv):
 
 
 if __name__ == "__main__":
+  define_flags()
   app.run(main)
