@@ -61,16 +61,16 @@ def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, sc
 
   sims (S, N, T, 7) candidates under the N pushes; distances (S, N) each to the truth's."""
   n = distances.shape[1]
-  lp = jnp.where(distinct, power * logp, -jnp.inf)
-  scale_k = posterior.scale_for(scale, valid)
+  # the distance over the pushes made so far (done (N,) bool), as +Sample's over its pushes
+  over = lambda done: jnp.sum(jnp.where(done, distances, 0.0), -1) / jnp.sum(done)  # noqa: E731
 
-  def decompose_with(done):  # done (N,) bool: the pushes made so far
-    d = jnp.sum(jnp.where(done, distances, 0.0), -1) / jnp.sum(done)
+  def decompose_with(done):
+    d = over(done)
     answer = slots[jnp.argmin(jnp.where(distinct, d, jnp.inf))]
     post = posterior.density_posterior(slots, d, logp, valid, scale=scale, level=0.9,
                                        identified_width=0, distinct_S=distinct,
                                        prior_power=power)
-    return d, answer, post.lower, post.upper
+    return answer, post.lower, post.upper
 
   def run(order_fn):
     done, made, rows = jnp.zeros(n, bool), [], []
@@ -78,7 +78,7 @@ def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, sc
       nxt = order_fn(k, done)
       done = done.at[nxt].set(True)
       made.append(nxt)
-      rows.append(decompose_with(done)[1:])
+      rows.append(decompose_with(done))
     return [jnp.stack(x) for x in zip(*rows)], jnp.stack(made)
 
   random = jax.random.permutation(key, n)
@@ -86,10 +86,9 @@ def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, sc
   def active_next(k, done):
     if k == 0:
       return paper[0]
-    d = jnp.sum(jnp.where(done, distances, 0.0), -1) / jnp.sum(done)
-    w = posterior.log_weights(d, lp, scale_k)
+    w, t = posterior.candidate_weights(over(done), logp, valid, scale=scale,
+                                       distinct_S=distinct, prior_power=power)
     top_w, top = jax.lax.top_k(w, hypotheses)
-    t = scale_k * jnp.maximum(jnp.min(d), posterior.MIN_DISTANCE)
     gain = active.information_gain(sims[top], jax.nn.softmax(top_w), t)
     return jnp.argmax(jnp.where(done, -jnp.inf, gain))
 

@@ -22,7 +22,7 @@ from flax import struct
 
 from ppdjax import metrics
 from ppdjax.infer import sampling
-from ppdjax.infer.posterior import MIN_DISTANCE, log_weights, scale_for
+from ppdjax.infer.posterior import candidate_weights
 from ppdjax.sim.pushes import PAPER_FORCE, Pushes
 from ppdjax.sim.rollout_mjx import simulate
 
@@ -85,18 +85,13 @@ def push_gains(prims, slots_SxK, distance_S, log_prior_S, candidates: Pushes, *,
   distances, log prior; repeats, `distinct_S` False, weigh nothing) and the pushes to
   score (N), simulated over `steps` steps; the posterior's settings as
   `posterior.density_posterior`'s."""
-  log_prior_S = prior_power * log_prior_S
-  if distinct_S is not None:
-    log_prior_S = jnp.where(distinct_S, log_prior_S, -jnp.inf)
-  scale = scale_for(scale, prims.valid)
-  w = log_weights(distance_S, log_prior_S, scale)
+  w, t = candidate_weights(distance_S, log_prior_S, prims.valid, scale=scale,
+                           distinct_S=distinct_S, prior_power=prior_power)
   top_w, top = jax.lax.top_k(w, hypotheses)
   w_h = jax.nn.softmax(top_w)  # the top hypotheses' weights, renormalised
   boxes = sampling.with_slots(prims, slots_SxK[top])  # (H, K)
   traj = simulate(boxes, candidates, steps=steps, settings=settings)  # (H, N, steps, 7)
-  closest = jnp.min(jnp.where(jnp.isfinite(distance_S), distance_S, jnp.inf))
-  t = scale * jnp.maximum(closest, MIN_DISTANCE)  # the posterior's T
-  gain = information_gain(traj, w_h, t)
+  gain = information_gain(traj, w_h, t)  # t: the posterior's T
   return PushChoice(gain=gain, best=jnp.argmax(gain), hypotheses=jnp.asarray(hypotheses))
 
 

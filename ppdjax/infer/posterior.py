@@ -78,6 +78,20 @@ def scale_for(scale, valid_K: jax.Array):
   return table[jnp.clip(jnp.sum(valid_K) - 1, 0, table.shape[0] - 1)]
 
 
+def candidate_weights(distance_S: jax.Array, log_prior_S: jax.Array, valid_K: jax.Array, *,
+                      scale, distinct_S: jax.Array | None = None, prior_power: float = 1.0):
+  """(log weights (S,), temperature T ()) of one object's candidates under the posterior:
+  the density scores raised to `prior_power`, repeats (`distinct_S` False) weighing
+  nothing, T = the box count's scale × the closest finite distance."""
+  log_prior_S = prior_power * log_prior_S
+  if distinct_S is not None:
+    log_prior_S = jnp.where(distinct_S, log_prior_S, -jnp.inf)
+  scale = scale_for(scale, valid_K)
+  closest = jnp.min(jnp.where(jnp.isfinite(distance_S), distance_S, jnp.inf))
+  return (log_weights(distance_S, log_prior_S, scale),
+          scale * jnp.maximum(closest, MIN_DISTANCE))
+
+
 def interval(probs_Kx100: jax.Array, level: float) -> tuple[jax.Array, jax.Array]:
   """(lower, upper) (K,) slots of each marginal's central `level` interval: the first slot
   whose cumulative probability reaches (1 − level) / 2, and (1 + level) / 2."""
@@ -107,11 +121,9 @@ def density_posterior(slots_SxK: jax.Array, distance_S: jax.Array, log_prior_S: 
       None: every candidate is distinct.
     prior_power: the density scores' log-probabilities are multiplied by it.
   """
-  log_prior_S = prior_power * log_prior_S
-  if distinct_S is not None:
-    log_prior_S = jnp.where(distinct_S, log_prior_S, -jnp.inf)
-  scale = scale_for(scale, valid_K)
-  w = jnp.exp(log_weights(distance_S, log_prior_S, scale))  # (S,)
+  log_w, _ = candidate_weights(distance_S, log_prior_S, valid_K, scale=scale,
+                               distinct_S=distinct_S, prior_power=prior_power)
+  w = jnp.exp(log_w)  # (S,)
   weighed = jnp.sum(w > 0) >= 2
   one_hot = jax.nn.one_hot(slots_SxK, NUM_DENSITY_SLOTS)  # (S, K, 100)
   probs = jnp.where(valid_K[:, None], jnp.einsum("s,skn->kn", w, one_hot), 0.0)
