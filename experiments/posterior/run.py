@@ -19,6 +19,7 @@ exact for `--identified_top1` %, and reports both on test with intervals over to
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -105,19 +106,26 @@ def distinct_of(rec) -> np.ndarray:
   return out
 
 
+@functools.partial(jax.jit, static_argnames="level")
+def _posteriors(slots, scores, logp, valid, distinct, scale_5, power, *, level):
+  """The posteriors of a record's objects; the scale (one per box count, 1..5) and the
+  power are traced, so a sweep compiles once per record shape and level."""
+  return jax.vmap(lambda s, d, l, v, u: post.density_posterior(
+      s, d, l, v, scale=scale_5, level=level, identified_width=0, distinct_S=u,
+      prior_power=power))(slots, scores, logp, valid, distinct)
+
+
 def boxes_of(rec, scale, level: float = 0.9, prior_power: float = 1.0):
   """Per paired box: (lower, upper, mean, answer, true, blocks, tower, material) of one
-  record file,
-  the posterior at `scale` (a number or one per box count); only objects whose box count
-  is the truth's."""
+  record file, the posterior at `scale` (a number or one per box count); only objects
+  whose box count is the truth's."""
   valid, true = rec["valid"], rec["true"]
   same = valid.sum(-1) == (true >= 0).sum(-1)
-  fn = jax.jit(jax.vmap(lambda s, d, l, v, u: post.density_posterior(
-      s, d, l, v, scale=scale, level=level, identified_width=0, distinct_S=u,
-      prior_power=prior_power)))
-  p = fn(jnp.asarray(rec["slots"], jnp.int32), jnp.asarray(rec["scores"], jnp.float32),
-         jnp.asarray(rec["logp"], jnp.float32), jnp.asarray(valid),
-         jnp.asarray(distinct_of(rec)))
+  p = _posteriors(jnp.asarray(rec["slots"], jnp.int32), jnp.asarray(rec["scores"], jnp.float32),
+                  jnp.asarray(rec["logp"], jnp.float32), jnp.asarray(valid),
+                  jnp.asarray(distinct_of(rec)),
+                  jnp.broadcast_to(jnp.asarray(scale, jnp.float32), (5,)),
+                  jnp.float32(prior_power), level=level)
   mask = valid & same[:, None]
   blocks = np.broadcast_to(valid.sum(-1, keepdims=True), valid.shape)
   tower = np.broadcast_to(np.arange(len(valid))[:, None], valid.shape)
@@ -178,9 +186,8 @@ def report(val_pattern: str, test_pattern: str, targets: dict, out: str) -> None
       best = {b: min(SCALES, key=lambda s, b=b: abs(sweep[s][b] - 0.9)) for b in counts}
       scale = tuple(best.get(str(k), best[counts[0] if k < int(counts[0]) else counts[-1]])
                     for k in range(1, 6))  # one per box count, 1..5
-      worst = max(abs(sweep[best[b]][b] - 0.9) for b in counts)
-      mean = float(np.mean([abs(sweep[best[b]][b] - 0.9) for b in counts]))
-      options[power], sweeps[str(power)] = (worst, scale, mean), {
+      devs = [abs(sweep[best[b]][b] - 0.9) for b in counts]
+      options[power], sweeps[str(power)] = (max(devs), scale, float(np.mean(devs))), {
           str(s): v for s, v in sweep.items()}
     # the worst block count's closest; ties (a block count whose closest candidate is exact
     # more often than 90 % is over-covered at every scale) go to the mean deviation
