@@ -52,6 +52,14 @@ from ppdjax.sim.rollout_mjx import simulate
 FLAGS = flags.FLAGS
 POLICIES = ("fixed", "random", "active")
 MAX_PUSHES = 4
+# The prior's boxes: the paper's inputs (voxels and image), or the depth image
+# (`DecomposeConfig.best()` without its screening and refinement, which read the paper's four
+# pushes' motion; the loop must see only the pushes it made).
+SETTINGS = {
+    "paper_inputs": DecomposeConfig.paper,
+    "depth": lambda: DecomposeConfig.best().replace(
+        **{"select.screen_steps": 0, "select.horizon": 32, "refine.enabled": False}),
+}
 
 
 def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, scale, power,
@@ -100,11 +108,12 @@ def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, sc
   return out
 
 
-def record(prior_model: str, data: str, split: str, objects: int, batch: int, samples: int,
-           hypotheses: int, seed: int, scales: tuple[float, ...], out: str) -> None:
+def record(prior_model: str, setting: str, data: str, split: str, objects: int, batch: int,
+           samples: int, hypotheses: int, seed: int, scales: tuple[float, ...],
+           out: str) -> None:
   ds = ppdjax.open_dataset(data, split)
   n = len(ds) if objects <= 0 else min(objects, len(ds))
-  config = DecomposeConfig.paper()
+  config = SETTINGS[setting]()
   decompose = ppdjax.make_decompose_fn(prior_model, config)
   pushes = ppdjax.candidate_pushes()
   paper = jnp.asarray(active.paper_push_indices(pushes, default_pushes()))
@@ -123,14 +132,20 @@ def record(prior_model: str, data: str, split: str, objects: int, batch: int, sa
     loops = [closed_loop(sims, distances, slots, distinct, logp, prims.valid,
                          jax.random.fold_in(key, 1), paper=paper, scale=scale, power=power,
                          hypotheses=hypotheses) for scale in scales]
-    return jax.tree.map(lambda *x: jnp.stack(x), *loops)  # leading axis: the scales
+    loops = jax.tree.map(lambda *x: jnp.stack(x), *loops)  # leading axis: the scales
+    # the reference no policy of four pushes is expected to pass: the closest candidate
+    # over all the candidate pushes
+    loops["all"] = {"answer": slots[jnp.argmin(jnp.where(distinct, distances.mean(-1),
+                                                         jnp.inf))]}
+    return loops
 
   loop = jax.jit(jax.vmap(one))
   keep: dict[str, list] = {"true": [], "valid": [], "materials": []}
   start = time.time()
   for lo in tqdm(range(0, n, batch), desc="closed loop", unit="batch"):
     sample = ds.take(np.arange(lo, min(lo + batch, n)))
-    res = decompose({k: sample[k] for k in OBS_KEYS}, jax.random.key(seed + lo))
+    res = decompose({k: sample[k] for k in OBS_KEYS + config.fit.with_},
+                    jax.random.key(seed + lo))
     keys = jax.random.split(jax.random.key(seed + 1 + lo), len(sample["image"]))
     rows = loop(res.primitives, res.density_logits, sample["primitives"], keys)
     order = np.asarray(bottom_to_top_order(res.primitives))  # pair boxes bottom to top
@@ -138,16 +153,18 @@ def record(prior_model: str, data: str, split: str, objects: int, batch: int, sa
         np.asarray(x), order.reshape(order.shape[:1] + (1,) * (np.ndim(x) - 2)
                                      + order.shape[1:]), -1)
     for name, r in rows.items():
-      for field in ("answer", "lower", "upper"):
+      for field in set(r) & {"answer", "lower", "upper"}:
         keep.setdefault(f"{name}_{field}", []).append(take(r[field]))
-      keep.setdefault(f"{name}_pushes", []).append(np.asarray(r["pushes"]))
+      if "pushes" in r:
+        keep.setdefault(f"{name}_pushes", []).append(np.asarray(r["pushes"]))
     true = jax.tree.map(np.asarray, bottom_to_top(jax.tree.map(jnp.asarray,
                                                                sample["primitives"])))
     keep["true"].append(np.where(true.valid, density_to_slot(true.density), -1))
     keep["valid"].append(take(res.primitives.valid))
     keep["materials"].append(np.asarray(sample["materials"]))
   arrays = {k: np.concatenate(v) for k, v in keep.items()}
-  np.savez_compressed(out, seconds=time.time() - start, data=data, split=split,
+  np.savez_compressed(out, seconds=time.time() - start, setting=setting, data=data,
+                      split=split,
                       prior_model=prior_model, samples=samples, hypotheses=hypotheses,
                       scales=np.asarray(scales), power=power, **arrays)
   print(f"{n} towers in {time.time() - start:.0f} s -> {out}")
@@ -156,10 +173,14 @@ def record(prior_model: str, data: str, split: str, objects: int, batch: int, sa
 def scores(rec, policy: str, k: int, scale: int) -> dict:
   """Per tower (towers whose box count is the truth's): exact boxes, squared slot errors,
   interval widths and coverage after k pushes (1-based), the posterior at the scale of
-  index `scale` (its choices of push too)."""
+  index `scale` (its choices of push too). Policy "all": the closest over every candidate
+  push (no interval: its width is one slot)."""
   valid, true = rec["valid"], rec["true"]
   same = valid.sum(-1) == (true >= 0).sum(-1)
-  a, lo, hi = (rec[f"{policy}_{f}"][:, scale, k - 1] for f in ("answer", "lower", "upper"))
+  if policy == "all":
+    a = lo = hi = rec["all_answer"]
+  else:
+    a, lo, hi = (rec[f"{policy}_{f}"][:, scale, k - 1] for f in ("answer", "lower", "upper"))
   m = valid & same[:, None]
   return {"exact": np.where(m, a == true, 0).sum(-1), "sq": np.where(m, (a - true) ** 2.0, 0
                                                                       ).sum(-1),
@@ -193,7 +214,10 @@ def paired(first: dict, second: dict, towers: np.ndarray) -> dict:
 
 
 def report(val_records: str, records: str, out: str) -> None:
+  """Writes the results file's "active_by_setting"[the records' setting] and "active" (the
+  depth setting's where it is measured, else the paper inputs'), and the plot."""
   val, rec = np.load(val_records), np.load(records)
+  setting = str(rec["setting"]) if "setting" in rec else "paper_inputs"
   # the temperature whose fixed four pushes' 90 % intervals cover closest to 90 % (validation)
   val_cover = []
   for i in range(len(val["scales"])):
@@ -210,11 +234,16 @@ def report(val_records: str, records: str, out: str) -> None:
       "active4": summary(curves["active"][3], towers),
       "paired": {"active2_minus_fixed4": paired(curves["fixed"][3], curves["active"][1],
                                                 towers),
+                 "active2_minus_fixed2": paired(curves["fixed"][1], curves["active"][1],
+                                                towers),
                  "active4_minus_fixed4": paired(curves["fixed"][3], curves["active"][3],
                                                 towers),
                  "active4_minus_random4": paired(curves["random"][3], curves["active"][3],
                                                  towers)},
       "by_pushes": {p: [summary(c, towers) for c in curves[p]] for p in POLICIES},
+      "all_pushes": ({k: v for k, v in summary(scores(rec, "all", 0, 0), towers).items()
+                      if k.startswith(("top1", "rmse"))} if "all_answer" in rec else None),
+      "setting": setting,
       "towers": int(len(towers)), "boxes": int(curves["fixed"][0]["boxes"][towers].sum()),
       "towers_skipped_box_count": int(len(rec["valid"]) - len(towers)),
       "prior_model": str(rec["prior_model"]), "samples": int(rec["samples"]),
@@ -231,11 +260,13 @@ def report(val_records: str, records: str, out: str) -> None:
   if os.path.exists(out):
     with open(out) as f:
       result = json.load(f)
-  result["active"] = active_result
-  plot(active_result["by_pushes"], os.path.splitext(out)[0] + "_active.png")
+  result.setdefault("active_by_setting", {})[setting] = active_result
+  by_setting = result["active_by_setting"]
+  result["active"] = by_setting.get("depth", by_setting.get("paper_inputs"))
+  plot(active_result["by_pushes"], f"{os.path.splitext(out)[0]}_active_{setting}.png")
   made_by = [c for c in (result.get("command"), active_result["command"]) if c]
   write_provenance(out, command="; ".join(made_by))  # the calibration's and this
-  result["active"]["commit"] = read_provenance(out).get("commit")
+  active_result["commit"] = read_provenance(out).get("commit")
   with open(out, "w") as f:
     json.dump(result, f, indent=1)
   print(json.dumps({k: v for k, v in active_result.items() if k != "by_pushes"}, indent=1)[:3000])
@@ -251,11 +282,11 @@ def plot(by_pushes: dict, path: str) -> None:
   for ax, key, label in zip(axes, ("top1", "rmse", "width"),
                             ("density top-1 (%)", "density RMSE (slots)",
                              "90 % interval width (slots)")):
-    for p in POLICIES:
+    for i, p in enumerate(POLICIES):
       rows = by_pushes[p]
       y = [r[key] for r in rows]
       lo, hi = zip(*[r[f"{key}_ci95"] for r in rows])
-      ax.errorbar(x, y, yerr=[np.subtract(y, lo), np.subtract(hi, y)], marker="o",
+      ax.errorbar(x + 0.08 * (i - 1), y, yerr=[np.subtract(y, lo), np.subtract(hi, y)], marker="o",
                   capsize=3, label=p)
     ax.set(xlabel="pushes made", ylabel=label, xticks=x)
   axes[0].legend(fontsize=8)
@@ -267,6 +298,7 @@ def define_flags():
   """This study's flags, defined when it runs (not when a test imports it)."""
   flags.DEFINE_enum("mode", "record", ["record", "report"], "What to do (or the first argument).")
   flags.DEFINE_string("prior_model", "", "record: a model that reads no trajectory.")
+  flags.DEFINE_enum("setting", "paper_inputs", list(SETTINGS), "record: the prior's boxes.")
   flags.DEFINE_string("data", "", "record: the dataset folder.")
   flags.DEFINE_string("split", "test", "record: the split.")
   flags.DEFINE_integer("objects", 0, "record: the first N objects (0: all).")
@@ -284,9 +316,9 @@ def define_flags():
 def main(argv):
   mode = argv[1] if len(argv) > 1 else FLAGS.mode
   if mode == "record":
-    record(FLAGS.prior_model, FLAGS.data, FLAGS.split, FLAGS.objects, FLAGS.batch,
-           FLAGS.samples, FLAGS.hypotheses, FLAGS.seed, tuple(map(float, FLAGS.scales)),
-           FLAGS.out)
+    record(FLAGS.prior_model, FLAGS.setting, FLAGS.data, FLAGS.split, FLAGS.objects,
+           FLAGS.batch, FLAGS.samples, FLAGS.hypotheses, FLAGS.seed,
+           tuple(map(float, FLAGS.scales)), FLAGS.out)
   else:
     report(FLAGS.val_records, FLAGS.records, FLAGS.out)
 
