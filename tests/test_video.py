@@ -165,6 +165,27 @@ def test_rendered_tower_stickers_give_its_rest_pose():
   assert np.linalg.norm(world[:3, 3] - rest[:3]) < 3e-3
 
 
+def test_top_stickers_add_the_uncovered_top_corners_and_keep_the_sides():
+  """synthetic.sticker_layout: "sides_top" keeps the "sides" stickers and adds the top
+  faces' corners, but none on a spot another block covers; an unknown layout is named."""
+  from ppdjax.video import synthetic
+  half = np.array([[0.2, 0.1, 0.1], [0.1, 0.1, 0.1]])  # a narrow block on a wide one
+  pos = np.array([[0.0, 0.0, 0.1], [-0.1, 0.0, 0.3]])
+  quat = np.tile([1.0, 0.0, 0.0, 0.0], (2, 1))
+  valid = np.ones(2, bool)
+  sides, _ = synthetic.sticker_layout(half, pos, quat, valid)
+  both, q = synthetic.sticker_layout(half, pos, quat, valid,
+                                     synthetic.STICKER_LAYOUTS["sides_top"])
+  assert len(sides) == 16 and np.allclose(both[:8], sides[:8])
+  top = both[np.isclose(both[:, 2], 0.2 + synthetic.STICKER_THICKNESS / 2)]
+  # the wide block's top: its two corners at x = +0.17 are free, those at x = -0.17 lie
+  # under the narrow block (x in [-0.2, 0])
+  assert len(top) == 2 and np.allclose(top[:, 0], 0.17)
+  assert len(both) == 16 + 2 + 4 and q.shape == (22, 4)
+  with pytest.raises(ValueError, match="STICKER_LAYOUTS"):
+    synthetic.sticker_layout(half, pos, quat, valid, ((2, -1.0),))
+
+
 def test_track_command_on_a_short_clip(tmp_path):
   """python -m ppdjax.track on a lossless .avi of the synthetic block at 60 fps."""
   import json

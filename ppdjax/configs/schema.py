@@ -219,6 +219,7 @@ class VideoTestConfig:
   frame: tuple = (240, 320)
   noise: float = 3.0  # grey levels
   lighting: float = 0.1  # brightness drift, a fraction
+  stickers: str = "sides"  # video.synthetic.STICKER_LAYOUTS: "sides" or "sides_top"
 
 
 @dataclasses.dataclass(frozen=True)

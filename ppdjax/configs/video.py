@@ -50,6 +50,7 @@ def get_config(size: str = "paper"):
   config.test.frame = (480, 640) if size == "paper" else (240, 320)
   config.test.noise = 3.0  # grey levels
   config.test.lighting = 0.1  # brightness drift, a fraction
+  config.test.stickers = "sides"  # the faces with stickers (video.synthetic.STICKER_LAYOUTS)
   config.eval.samples = 512 if size == "paper" else 16
   # +Sample without refinement: with four densities far apart, least squares on a tracked
   # trajectory moves them to fit tracking noise and the fitted boxes' face error. Chosen on

@@ -109,7 +109,7 @@ class Pipeline:
     tracked, errors = observe_towers(
         jax.tree.map(np.asarray, prims), np.maximum(ids, 0), seeds, rest, truth, steps=steps,
         fps=t.fps, frame=tuple(t.frame), noise=t.noise, lighting=t.lighting, seed=t.seed,
-        workers=FLAGS.workers)
+        stickers=t.get("stickers", "sides"), workers=FLAGS.workers)
     os.makedirs(self.root, exist_ok=True)
     np.savez_compressed(
         self.test_file, voxels=vox, image=images, depth=depths, true_trajectory=truth[:, :steps],

@@ -4,9 +4,9 @@ blur, sensor noise, lighting change and occlusion.
 
 The camera looks along the dataset camera's line of sight from DISTANCE_SCALE of its
 distance with its own field of view (FOVY). Stickers are 3 cm red squares, 0.5 mm thick,
-at the four corners of the two side faces of each block that face the camera
-(STICKER_FACES), a sticker side in from each edge, so their centres are known points of
-the object frame. Motion blur averages `shutter_samples` renders spread over the
+at the four corners of the two side faces of each block that face the camera (the
+"sides" layout; "sides_top" adds the top faces: STICKER_LAYOUTS), a sticker side in from
+each edge, so their centres are known points of the object frame. Motion blur averages `shutter_samples` renders spread over the
 exposure; the other degradations act on the blurred frames (`degrade`).
 """
 
@@ -33,10 +33,15 @@ CORNERS = np.array([[sx, sy] for sx in (-1, 1) for sy in (-1, 1)], np.float64)
 
 
 # The faces that carry stickers, as (axis, sign) of the face normal in the block frame:
-# the two side faces the camera sees (-y and +x; it looks from the front right).
-STICKER_FACES = ((1, -1.0), (0, 1.0))
+# "sides", the two side faces the camera sees (-y and +x; it looks from the front right);
+# "sides_top" adds the top faces, whose stickers a tower falling away from the camera
+# turns towards it while it hides the sides (a sticker another block covers is left off).
+STICKER_LAYOUTS = {"sides": ((1, -1.0), (0, 1.0)),
+                   "sides_top": ((1, -1.0), (0, 1.0), (2, 1.0))}
+STICKER_FACES = STICKER_LAYOUTS["sides"]
 _FACE_QUATS = {(1, -1.0): (np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0),  # local z -> -y
-               (0, 1.0): (np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0)}  # local z -> +x
+               (0, 1.0): (np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0),  # local z -> +x
+               (2, 1.0): (1.0, 0.0, 0.0, 0.0)}  # local z -> +z
 
 
 def _quat_mul(a, b):
@@ -47,25 +52,33 @@ def _quat_mul(a, b):
 
 
 def sticker_layout(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
-                   valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                   valid: np.ndarray, faces=STICKER_FACES) -> tuple[np.ndarray, np.ndarray]:
   """(N, 3) sticker centres in the object frame and (N, 4) their orientations: on each
-  valid block's STICKER_FACES, one at each corner of the face, inset by a sticker side."""
+  valid block's `faces` (a `STICKER_LAYOUTS` value), one at each corner of the face,
+  inset by a sticker side; none where another block covers the spot."""
+  if tuple(faces) not in STICKER_LAYOUTS.values():
+    raise ValueError(f"faces must be one of STICKER_LAYOUTS {sorted(STICKER_LAYOUTS)}, got "
+                     f"{faces!r}")
+  blocks = [(posemod.pose_to_matrix(np.concatenate([p, q]))[:3, :3], p, q, h)
+            for h, p, q, v in zip(half_size, pos, quat, valid) if v]
+  covered = lambda c, me: any(  # noqa: E731
+      np.all(np.abs(r.T @ (c - p)) <= h + STICKER_THICKNESS)
+      for j, (r, p, _, h) in enumerate(blocks) if j != me)
   centres, quats = [], []
-  for h, p, q, v in zip(half_size, pos, quat, valid):
-    if not v:
-      continue
-    rot = posemod.pose_to_matrix(np.concatenate([p, q]))[:3, :3]
-    for axis, sign in STICKER_FACES:
-      others = [i for i in range(3) if i != axis]
+  for i, (rot, p, q, h) in enumerate(blocks):
+    for axis, sign in faces:
+      others = [a for a in range(3) if a != axis]
       for s1 in (-1, 1):
         for s2 in (-1, 1):
           local = np.zeros(3)
           local[axis] = sign * (h[axis] + STICKER_THICKNESS / 2)
           local[others[0]] = s1 * (h[others[0]] - 2 * STICKER_HALF)
           local[others[1]] = s2 * (h[others[1]] - 2 * STICKER_HALF)
-          centres.append(rot @ local + p)
-          quats.append(_quat_mul(q, _FACE_QUATS[(axis, sign)]))
-  return np.array(centres), np.array(quats)
+          centre = rot @ local + p
+          if not covered(centre, i):
+            centres.append(centre)
+            quats.append(_quat_mul(q, _FACE_QUATS[(axis, sign)]))
+  return np.array(centres).reshape(-1, 3), np.array(quats).reshape(-1, 4)
 
 
 def intrinsics(height: int, width: int, fovy: float = FOVY) -> np.ndarray:
@@ -78,10 +91,13 @@ def intrinsics(height: int, width: int, fovy: float = FOVY) -> np.ndarray:
 class VideoRenderer(render.SlotRenderer):
   """Renders a K-slot object at given poses, with its stickers, from the video camera."""
 
-  PER_BLOCK = 4 * len(STICKER_FACES)
-
   def __init__(self, height: int = 480, width: int = 640, num_slots: int = NUM_SLOTS,
-               fovy: float = FOVY, distance_scale: float = DISTANCE_SCALE):
+               fovy: float = FOVY, distance_scale: float = DISTANCE_SCALE,
+               stickers: str = "sides"):
+    if stickers not in STICKER_LAYOUTS:
+      raise ValueError(f"stickers must be one of {sorted(STICKER_LAYOUTS)}, got {stickers!r}")
+    self.faces = STICKER_LAYOUTS[stickers]
+    self.PER_BLOCK = 4 * len(self.faces)  # pylint: disable=invalid-name
     boxes = render.box_geoms(num_slots)
     stickers = "\n".join(
         f'      <geom name="sticker{i}" type="box" size="{STICKER_HALF} {STICKER_HALF} '
@@ -110,7 +126,7 @@ class VideoRenderer(render.SlotRenderer):
     valid = np.asarray(prims.valid).astype(bool)
     quat = np.asarray(prims.quat) / np.linalg.norm(prims.quat, axis=-1, keepdims=True)
     points, orient = sticker_layout(np.asarray(prims.half_size), np.asarray(prims.pos), quat,
-                                    valid)
+                                    valid, self.faces)
     total = self.PER_BLOCK * k
     s = slice(self._sticker0, self._sticker0 + total)
     m.geom_pos[s] = np.concatenate([points, np.zeros((total - len(points), 3))])
