@@ -1,17 +1,18 @@
 """Closed-loop pushes: does choosing each push by its information gain beat the paper's four?
 
   # the loop on validation and test towers of fresh seeds (simulation-heavy: an accelerator)
-  python experiments/active_pushes/run.py record --prior_model=DIR --data=out/tau_val \
-      --split=val --objects=160 --out=out/active_val.npz
-  python experiments/active_pushes/run.py record --prior_model=DIR --data=out/post_test \
-      --split=test --objects=160 --out=out/active_test.npz
+  python experiments/active_pushes/run.py record --prior_model=DIR --setting=depth \
+      --data=out/tau_val --split=val --objects=160 --out=out/active_val_depth.npz
+  python experiments/active_pushes/run.py record --prior_model=DIR --setting=depth \
+      --data=out/post_test --split=test --objects=160 --out=out/active_test_depth.npz
   # accuracy and interval width by pushes made, paired intervals, the plot
-  python experiments/active_pushes/run.py report --val_records=out/active_val.npz \
-      --records=out/active_test.npz --out=experiments/results/posterior.json
+  python experiments/active_pushes/run.py report --val_records=out/active_val_depth.npz \
+      --records=out/active_test_depth.npz --out=experiments/results/posterior.json
 
 `record` takes each tower's boxes and density scores from `make_decompose_fn(PRIOR_MODEL,
-DecomposeConfig.paper())` (boxes fitted to the voxels and the image; the scores of a model
-that reads no trajectory, so that the prior knows none of the pushes), draws the `--samples`
+SETTINGS[setting]())` (boxes fitted to the voxels and the image, or to the voxels and the
+depth image; the scores of a model that reads no trajectory, so that the prior knows none
+of the pushes), draws the `--samples`
 candidate assignments +Sample would, and simulates them and the true tower under each of the
 64 candidate pushes (`ppdjax.candidate_pushes()`) over the selection's horizon. Then, with
 the same candidates throughout, three policies make up to four pushes: the paper's four in
@@ -20,7 +21,7 @@ next push the one of largest expected information gain (`infer.active.informatio
 the public `next_push`'s formula) over the posterior's top `--hypotheses`. After each push
 the tower is decomposed again: the closest candidate over the pushes made (the paper's
 +Sample) and the posterior over them (`infer.posterior.density_posterior`, the paper
-settings' power). The posterior's temperature (one scale over the closest distance, for
+setting's power). The posterior's temperature (one scale over the closest distance, for
 every box count) was calibrated for a network that reads the four pushes; with this prior
 it is chosen again: the loop runs at each of `--scales`, and `report` takes the one whose
 fixed four pushes' 90 % intervals cover closest to 90 % on the validation towers, then
@@ -264,8 +265,8 @@ def report(val_records: str, records: str, out: str) -> None:
   by_setting = result["active_by_setting"]
   result["active"] = by_setting.get("depth", by_setting.get("paper_inputs"))
   plot(active_result["by_pushes"], f"{os.path.splitext(out)[0]}_active_{setting}.png")
-  made_by = [c for c in (result.get("command"), active_result["command"]) if c]
-  write_provenance(out, command="; ".join(made_by))  # the calibration's and this
+  made_by = [result.get("command")] + [r["command"] for r in by_setting.values()]
+  write_provenance(out, command="; ".join(c for c in made_by if c))  # calibration's, each loop's
   active_result["commit"] = read_provenance(out).get("commit")
   with open(out, "w") as f:
     json.dump(result, f, indent=1)

@@ -109,11 +109,11 @@ class Pipeline:
     tracked, errors = observe_towers(
         jax.tree.map(np.asarray, prims), np.maximum(ids, 0), seeds, rest, truth, steps=steps,
         fps=t.fps, frame=tuple(t.frame), noise=t.noise, lighting=t.lighting, seed=t.seed,
-        stickers=t.get("stickers", "sides"), workers=FLAGS.workers)
+        stickers=t.stickers, workers=FLAGS.workers)
     os.makedirs(self.root, exist_ok=True)
     np.savez_compressed(
         self.test_file, voxels=vox, image=images, depth=depths, true_trajectory=truth[:, :steps],
-        tracked_trajectory=tracked, materials=ids, rest=rest,
+        tracked_trajectory=tracked, materials=ids, rest=rest, stickers=t.stickers,
         errors=np.asarray([e or "" for e in errors]),
         **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS})
 

@@ -6,8 +6,9 @@ The camera looks along the dataset camera's line of sight from DISTANCE_SCALE of
 distance with its own field of view (FOVY). Stickers are 3 cm red squares, 0.5 mm thick,
 at the four corners of the two side faces of each block that face the camera (the
 "sides" layout; "sides_top" adds the top faces: STICKER_LAYOUTS), a sticker side in from
-each edge, so their centres are known points of the object frame. Motion blur averages `shutter_samples` renders spread over the
-exposure; the other degradations act on the blurred frames (`degrade`).
+each edge, so their centres are known points of the object frame. Motion blur averages
+`shutter_samples` renders spread over the exposure; the other degradations act on the
+blurred frames (`degrade`).
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ def sticker_layout(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
                    valid: np.ndarray, faces=STICKER_FACES) -> tuple[np.ndarray, np.ndarray]:
   """(N, 3) sticker centres in the object frame and (N, 4) their orientations: on each
   valid block's `faces` (a `STICKER_LAYOUTS` value), one at each corner of the face,
-  inset by a sticker side; none where another block covers the spot."""
+  inset by a sticker side; none on a top face where another block covers the spot."""
   if tuple(faces) not in STICKER_LAYOUTS.values():
     raise ValueError(f"faces must be one of STICKER_LAYOUTS {sorted(STICKER_LAYOUTS)}, got "
                      f"{faces!r}")
@@ -75,7 +76,7 @@ def sticker_layout(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
           local[others[0]] = s1 * (h[others[0]] - 2 * STICKER_HALF)
           local[others[1]] = s2 * (h[others[1]] - 2 * STICKER_HALF)
           centre = rot @ local + p
-          if not covered(centre, i):
+          if axis != 2 or not covered(centre, i):  # a top face may lie under a block
             centres.append(centre)
             quats.append(_quat_mul(q, _FACE_QUATS[(axis, sign)]))
   return np.array(centres).reshape(-1, 3), np.array(quats).reshape(-1, 4)
@@ -99,13 +100,13 @@ class VideoRenderer(render.SlotRenderer):
     self.faces = STICKER_LAYOUTS[stickers]
     self.PER_BLOCK = 4 * len(self.faces)  # pylint: disable=invalid-name
     boxes = render.box_geoms(num_slots)
-    stickers = "\n".join(
+    sticker_xml = "\n".join(
         f'      <geom name="sticker{i}" type="box" size="{STICKER_HALF} {STICKER_HALF} '
         f'{STICKER_THICKNESS / 2}" material="sticker" pos="0.01 {0.001 * i} 0.03" '
         f'quat="0.9 0.1 0.2 0.3"/>' for i in range(self.PER_BLOCK * num_slots))
     sticker_asset = ('    <material name="sticker" rgba="0.9 0.02 0.02 1" specular="0.1" '
                      'emission="0.3"/>')
-    xml = render.stage_xml(render.material_assets(num_slots), boxes + "\n" + stickers,
+    xml = render.stage_xml(render.material_assets(num_slots), boxes + "\n" + sticker_xml,
                            sticker_asset)
     xml = xml.replace('offwidth="1024" offheight="1024"', 'offwidth="1280" offheight="1280"')
     eye = camera.CAMERA_TARGET + distance_scale * (camera.CAMERA_POS - camera.CAMERA_TARGET)
