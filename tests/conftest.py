@@ -37,6 +37,29 @@ def face_errors(fit, truth):
   return np.abs(faces(fit) - faces(truth))[np.asarray(truth.valid)]
 
 
+CLIS = ("ppdjax.decompose", "ppdjax.evaluate")  # the command lines tests import in-process
+
+
+def cli_module(name: str):
+  """The command-line module `name` (one of CLIS), imported in this process with its flags.
+  absl's flags are global, and these modules share flag names (--out): whichever other one
+  a test of this worker imported first is forgotten, flags and module, and imported again
+  by the next test that asks for it."""
+  import importlib  # pylint: disable=import-outside-toplevel
+  import sys  # pylint: disable=import-outside-toplevel
+  import ppdjax  # pylint: disable=import-outside-toplevel
+  from absl import flags  # pylint: disable=import-outside-toplevel
+  for other in CLIS:
+    if other != name and other in sys.modules:
+      # its own flags and the --config its import defined through configs.cli
+      for module in (other, "ppdjax.configs.cli"):
+        for flag in flags.FLAGS.get_flags_for_module(module):
+          delattr(flags.FLAGS, flag.name)
+      del sys.modules[other]
+      delattr(ppdjax, other.rsplit(".", 1)[1])
+  return importlib.import_module(name)
+
+
 @pytest.fixture(scope="session")
 def rng():
   return np.random.default_rng(1234)

@@ -21,6 +21,7 @@ from ppdjax.infer import example
 from ppdjax.primitives import Primitives
 from ppdjax.training import checkpoints
 from ppdjax.video import files
+from conftest import cli_module
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SPLIT = np.array([0, 0, 0, 0, 1, 2], np.uint8)  # 4 train, 1 val, 1 test
@@ -348,7 +349,7 @@ def test_a_training_checkpoint_under_another_config_is_refused_on_load(tmp_path)
 # ---- entry points -------------------------------------------------------------------------
 
 def test_decompose_checks_its_files_first(tmp_path):
-  from ppdjax import decompose  # pylint: disable=import-outside-toplevel
+  decompose = cli_module("ppdjax.decompose")
   mesh = tmp_path / "m.obj"
   with pytest.raises(FileNotFoundError, match=f"{re.escape(str(mesh))}: no such mesh file"):
     decompose.check_files(str(mesh), os.path.join(ROOT, "assets", "video_model"))

@@ -20,6 +20,7 @@ from ppdjax.infer.config import DecomposeConfig, FitConfig, RefineConfig, Select
 from ppdjax.eval import baselines, batches, evaluation, partial
 from ppdjax.report import markdown, tables
 from ppdjax.training import checkpoints
+from conftest import cli_module
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PUSHES = ppdjax.default_pushes()
@@ -30,7 +31,7 @@ def _evaluate_cli(tiny_run, tiny_dataset, tmp_path, *extra):
   """`python -m ppdjax.evaluate` run in this process (its main, after flag parsing; the
   error test below runs it as a separate process); returns (results, out dir)."""
   from absl import flags
-  from ppdjax import evaluate as cli
+  cli = cli_module("ppdjax.evaluate")
   out = str(tmp_path / "eval")
   argv = ["ppdjax.evaluate", f"--workdir={tiny_run[0]}", f"--data={tiny_dataset}",
           f"--out={out}", "--max_objects=8", *extra]

@@ -13,6 +13,7 @@ from ppdjax.configs import tools_paper
 from ppdjax.dataset import generation, materials, storage, tool_paper, tool_scene
 from ppdjax.dataset.mesh_boxes import _signed_distance
 from ppdjax.conventions import density_to_slot
+from conftest import cli_module
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +136,7 @@ def test_the_decompose_command_observes_as_the_paper_protocol_model_was_trained(
   as the body, and the record says which protocol it read."""
   import json
   import shutil
-  from ppdjax import decompose
+  decompose = cli_module("ppdjax.decompose")
   from ppdjax.dataset import tools
   model = str(tmp_path / "model")
   shutil.copytree(tiny_run[0], model)

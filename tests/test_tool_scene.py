@@ -7,6 +7,7 @@ import trimesh
 import ppdjax
 from ppdjax import primitives
 from ppdjax.dataset import meshes, tool_scene, tools
+from conftest import cli_module
 
 
 def test_a_box_tool_moves_as_the_same_box_tower():
@@ -134,7 +135,7 @@ def test_a_tools_dataset_is_written_and_read_as_towers_are(tmp_path):
 def test_the_decompose_command_on_a_mesh_file(tiny_run, tmp_path):
   """`python -m ppdjax.decompose --mesh FILE --materials ...` end to end (tiny model)."""
   import json
-  from ppdjax import decompose
+  decompose = cli_module("ppdjax.decompose")
   tool = tools.sample_tool(3, 0, "hammer")
   scene = trimesh.Scene()
   for name, part in zip(tool.names, tool.parts):
