@@ -6,10 +6,6 @@ import json
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-# JAX's persistent cache keeps every program, however quick to compile: the two workers
-# and the command-line tests' processes compile the same small programs (a random draw per
-# parameter shape, about a second each); the environment carries it to those processes
-os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 # The suite is bound by compilation on a CPU: LLVM's expensive passes cost more compile time
 # than they save in run time here (MJX's rollouts compiled in 29 s instead of 39 and ran as
 # fast; the results are the same programs, so every bound holds).
@@ -22,6 +18,7 @@ import pytest  # noqa: E402
 
 _CACHE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".jax_cache")
 jax.config.update("jax_compilation_cache_dir", _CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
 def index(tree, i):
