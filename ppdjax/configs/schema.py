@@ -93,8 +93,7 @@ class TrainConfig:
   """Training (`python -m ppdjax.train`)."""
   seed: int = 0
   batch_size: int = 16  # global, split over all devices
-  # BatchNorm's statistics over several devices: "global" (all-reduced: one device's
-  # math) or "per_device" (each device's share)
+  # BatchNorm's statistics on several devices: "global" (all-reduced) or "per_device"
   batch_norm: str = "global"
   learning_rate: float = 1e-3  # Adam, beta = (0.9, 0.999), as in the appendix
   schedule: str = "constant"  # or "cosine": decay to 0 over all steps
