@@ -182,6 +182,14 @@ def test_top_stickers_add_the_uncovered_top_corners_and_keep_the_sides():
   # under the narrow block (x in [-0.2, 0])
   assert len(top) == 2 and np.allclose(top[:, 0], 0.17)
   assert len(both) == 16 + 2 + 4 and q.shape == (22, 4)
+  # every face: 4 side faces of 4 corners on each block, the tops as above, the wide
+  # block's bottom (on the ground) but not the narrow one's (on the wide block's top)
+  every, q = synthetic.sticker_layout(half, pos, quat, valid, synthetic.STICKER_LAYOUTS["all"])
+  assert len(every) == 2 * 16 + (2 + 4) + (4 + 0) and q.shape == (42, 4)
+  for c, r in zip(every, q):  # each sticker's z axis is the outward normal of its face
+    n = posemod.pose_to_matrix(np.concatenate([c, r]))[:3, 2]
+    out = [(c - p) @ n - np.abs(n) @ h for h, p in zip(half, pos)]
+    assert np.isclose(min(out, key=abs), synthetic.STICKER_THICKNESS / 2), (c, n)
   with pytest.raises(ValueError, match="STICKER_LAYOUTS"):
     synthetic.sticker_layout(half, pos, quat, valid, ((2, -1.0),))
 

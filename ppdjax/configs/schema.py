@@ -218,7 +218,7 @@ class VideoTestConfig:
   frame: tuple = (240, 320)
   noise: float = 3.0  # grey levels
   lighting: float = 0.1  # brightness drift, a fraction
-  stickers: str = "sides"  # video.synthetic.STICKER_LAYOUTS: "sides" or "sides_top"
+  stickers: str = "sides"  # video.synthetic.STICKER_LAYOUTS: "sides", "sides_top", "all"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -5,7 +5,7 @@ blur, sensor noise, lighting change and occlusion.
 The camera looks along the dataset camera's line of sight from DISTANCE_SCALE of its
 distance with its own field of view (FOVY). Stickers are 3 cm red squares, 0.5 mm thick,
 at the four corners of the two side faces of each block that face the camera (the
-"sides" layout; "sides_top" adds the top faces: STICKER_LAYOUTS), a sticker side in from
+"sides" layout; "sides_top" adds the top faces, "all" every face: STICKER_LAYOUTS), a sticker side in from
 each edge, so their centres are known points of the object frame. Motion blur averages
 `shutter_samples` renders spread over the exposure; the other degradations act on the
 blurred frames (`degrade`).
@@ -36,13 +36,18 @@ CORNERS = np.array([[sx, sy] for sx in (-1, 1) for sy in (-1, 1)], np.float64)
 # The faces that carry stickers, as (axis, sign) of the face normal in the block frame:
 # "sides", the two side faces the camera sees (-y and +x; it looks from the front right);
 # "sides_top" adds the top faces, whose stickers a tower falling away from the camera
-# turns towards it while it hides the sides (a sticker another block covers is left off).
+# turns towards it while it hides the sides (a sticker another block covers is left off);
+# "all" puts them on all six faces, for towers that tumble and show any face.
 STICKER_LAYOUTS = {"sides": ((1, -1.0), (0, 1.0)),
-                   "sides_top": ((1, -1.0), (0, 1.0), (2, 1.0))}
+                   "sides_top": ((1, -1.0), (0, 1.0), (2, 1.0)),
+                   "all": ((1, -1.0), (0, 1.0), (2, 1.0), (1, 1.0), (0, -1.0), (2, -1.0))}
 STICKER_FACES = STICKER_LAYOUTS["sides"]
 _FACE_QUATS = {(1, -1.0): (np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0),  # local z -> -y
                (0, 1.0): (np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0),  # local z -> +x
-               (2, 1.0): (1.0, 0.0, 0.0, 0.0)}  # local z -> +z
+               (2, 1.0): (1.0, 0.0, 0.0, 0.0),  # local z -> +z
+               (1, 1.0): (np.sqrt(0.5), -np.sqrt(0.5), 0.0, 0.0),  # local z -> +y
+               (0, -1.0): (np.sqrt(0.5), 0.0, -np.sqrt(0.5), 0.0),  # local z -> -x
+               (2, -1.0): (0.0, 1.0, 0.0, 0.0)}  # local z -> -z
 
 
 def _quat_mul(a, b):
@@ -56,7 +61,8 @@ def sticker_layout(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
                    valid: np.ndarray, faces=STICKER_FACES) -> tuple[np.ndarray, np.ndarray]:
   """(N, 3) sticker centres in the object frame and (N, 4) their orientations: on each
   valid block's `faces` (a `STICKER_LAYOUTS` value), one at each corner of the face,
-  inset by a sticker side; none on a top face where another block covers the spot."""
+  inset by a sticker side; none on a top or bottom face where another block covers the
+  spot (side faces are not checked: in a tower no block lies beside another)."""
   if tuple(faces) not in STICKER_LAYOUTS.values():
     raise ValueError(f"faces must be one of STICKER_LAYOUTS {sorted(STICKER_LAYOUTS)}, got "
                      f"{faces!r}")
@@ -76,7 +82,7 @@ def sticker_layout(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
           local[others[0]] = s1 * (h[others[0]] - 2 * STICKER_HALF)
           local[others[1]] = s2 * (h[others[1]] - 2 * STICKER_HALF)
           centre = rot @ local + p
-          if axis != 2 or not covered(centre, i):  # a top face may lie under a block
+          if axis != 2 or not covered(centre, i):  # a top or bottom face may touch a block
             centres.append(centre)
             quats.append(_quat_mul(q, _FACE_QUATS[(axis, sign)]))
   return np.array(centres).reshape(-1, 3), np.array(quats).reshape(-1, 4)
