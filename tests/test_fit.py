@@ -155,6 +155,7 @@ def test_fit_without_init_is_exact_on_axis_aligned_towers(tower_set, fitted_towe
   np.testing.assert_array_equal(_voxelize(got), vox[:16])
 
 
+@pytest.mark.slow  # a second compiled fit (~20 s on 2 cores): `make test-all`
 def test_exact_readings_skip_the_search_with_the_same_answer(tower_set, fitted_towers):
   """A batch of towers takes the fast path (every exact reading wins); one rotated box
   among them sends the whole batch through the search, which must agree on the towers."""

@@ -170,6 +170,8 @@ def test_faces_across_z_are_bounded_by_heights_above_the_floor():
     assert span[k, 2] == (0.0 if k == bottom else 0.02) and span[k, 5] == 0.02
 
 
+@pytest.mark.slow  # a whole image fit from a shifted start (~25 s on 2 cores); the fit's
+# search and scores stay in the default run
 def test_a_start_a_voxel_too_tall_reaches_the_true_heights():
   """The voxel fit's worst case on a two-block tower (measured on the test split): the
   floor face half a voxel low, the joint as low, the top half a voxel high. A sweep that

@@ -134,6 +134,8 @@ def test_the_cpu_engine_picks_the_candidate_the_jax_engine_picks():
     np.testing.assert_allclose(c.scores, mjx.scores, atol=0.02)  # metres, mean over steps
 
 
+@pytest.mark.slow  # a second decompose program at another horizon (~25 s on 2 cores); the
+# horizon's pick on hand-made distances stays in the default run (test_evaluation)
 def test_a_horizon_simulates_the_candidates_that_far_for_the_same_pick(tower):
   """`whole_scores=False` (decompose without refinement): the candidates are simulated over
   the selection horizon only, the winner over every step: the same pick, score and

@@ -273,6 +273,8 @@ def test_coordinate_channels_reach_the_voxel_feature():
   assert not np.allclose(with_coords, enc(jnp.asarray(vox), train=False))
 
 
+@pytest.mark.slow  # gradients of a second model configuration (~35 s on 2 cores); a model
+# with the branch is still built in the default run (test_bad_files)
 def test_density_branch_keeps_the_losses_apart(rng):
   """model.density_branch: the density loss moves neither the voxel encoder nor the
   geometry's LSTMs and heads; the geometry loss does not move the density branch."""

@@ -305,6 +305,8 @@ def test_time_limit_stops_with_a_checkpoint_and_resumes(straight_run, tiny_datas
   assert key(_rows(workdir)) == key(_rows(straight_run))
 
 
+@pytest.mark.slow  # waits for the tiny run and builds two models (~40 s on 2 cores); the
+# config checks of init_from stay in the default run (test_bad_configs_and_inputs_are_named)
 def test_init_from_copies_what_matches(tiny_run):
   workdir, _ = tiny_run
   source, _ = load(workdir, "latest")
@@ -366,6 +368,7 @@ def _with_train(t):
   return config
 
 
+@pytest.mark.slow  # compiles a train step of its own (~20 s on 2 cores): `make test-all`
 def test_clipping_bounds_the_first_update():
   """With train.clip_norm = 1, Adam's moments see the gradient rescaled to norm 1 (a 1e6
   gradient unclipped would put 1e5 into the first moment); its first step is ±rate."""
