@@ -2,7 +2,7 @@
 --out TRAJ.npz`: a video of a stickered object to its trajectory (paper Sec. 5.3).
 
 Reads the video (any format OpenCV's FFmpeg reader takes; frame rate from the file unless
---fps), tracks the stickers (`ppdjax.video.track_poses`) and writes TRAJ.npz with
+--fps), undoes the lens distortion where CAMERA.json gives one, tracks the stickers (`ppdjax.video.track_poses`) and writes TRAJ.npz with
 "trajectory" (T, 7) float32 at the simulator's dt after the push and "dt". The files'
 formats are in `ppdjax/video/files.py` and docs/video.md.
 
@@ -54,6 +54,9 @@ def main(argv):
   if not fps > 0:
     raise app.UsageError(f"{_VIDEO.value} does not give its frame rate: pass --fps")
   intrinsics, camera_from_world = files.read_camera(_CAMERA.value)
+  distortion = files.read_distortion(_CAMERA.value)
+  if distortion is not None:  # the tracker's PnP is a pinhole camera's
+    frames = files.undistort(frames, intrinsics, distortion)
   stickers, initial_pose = files.read_stickers(_STICKERS.value)
   traj = track_poses(frames, intrinsics, camera_from_world, stickers, initial_pose, fps=fps,
                      push_time=_PUSH_TIME.value, steps=_STEPS.value or None,

@@ -2,7 +2,9 @@
 camera JSON and a stickers JSON; each problem raises a VideoFileError (a ValueError)
 naming the file, a missing file MissingFileError (also a FileNotFoundError).
 
-  camera.json:   {"intrinsics": 3x3, "camera_from_world": 4x4}  (OpenCV camera axes)
+  camera.json:   {"intrinsics": 3x3, "camera_from_world": 4x4}  (OpenCV camera axes),
+                 optionally "distortion": [k1, k2, p1, p2, k3] (OpenCV's lens model;
+                 `python -m ppdjax.calibrate` writes all three)
   stickers.json: {"stickers": Nx3 (object frame, metres), "initial_pose": [px, py, pz,
                   qw, qx, qy, qz] (the pose at rest, world frame)}
 
@@ -55,6 +57,17 @@ def read_video(path: str) -> tuple[np.ndarray, float]:
   return np.stack(frames), fps
 
 
+def read_image(path: str) -> np.ndarray:
+  """(H, W, 3) uint8 RGB from an image file (any format OpenCV reads)."""
+  if not os.path.isfile(path):
+    raise (VideoFileError(f"{path}: a directory, not an image file") if os.path.isdir(path)
+           else MissingFileError(f"{path}: no such image file"))
+  image = cv2.imread(path, cv2.IMREAD_COLOR)
+  if image is None:
+    raise VideoFileError(f"{path}: not a readable image")
+  return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
 def _read_json(path: str, shapes: dict[str, tuple]) -> dict:
   """The arrays named by `shapes` ({key: shape, -1 any length}) from a JSON object."""
   data = read_json(path, error=VideoFileError, missing=MissingFileError)
@@ -80,6 +93,27 @@ def read_camera(path: str) -> tuple[np.ndarray, np.ndarray]:
   JSON object; shapes and finiteness are checked here, the values by track_poses."""
   d = _read_json(path, {"intrinsics": (3, 3), "camera_from_world": (4, 4)})
   return d["intrinsics"], d["camera_from_world"]
+
+
+def read_distortion(path: str) -> np.ndarray | None:
+  """camera.json's (5,) lens distortion (k1, k2, p1, p2, k3), or None where it has none or
+  all zeros (frames then need no undistortion)."""
+  data = read_json(path, error=VideoFileError, missing=MissingFileError)
+  if "distortion" not in data:
+    return None
+  try:
+    dist = np.asarray(data["distortion"], np.float64)
+  except (TypeError, ValueError):
+    raise VideoFileError(f"{path}: distortion must be an array of numbers") from None
+  if dist.shape not in ((4,), (5,)) or not np.all(np.isfinite(dist)):
+    raise VideoFileError(f"{path}: distortion must be 4 or 5 finite numbers (k1, k2, p1, "
+                         f"p2[, k3]), got shape {dist.shape}")
+  return None if not np.any(dist) else dist
+
+
+def undistort(frames: np.ndarray, intrinsics: np.ndarray, distortion: np.ndarray) -> np.ndarray:
+  """(T, H, W, 3) frames as a pinhole camera with the same intrinsics sees them."""
+  return np.stack([cv2.undistort(f, intrinsics, distortion) for f in frames])
 
 
 def read_stickers(path: str) -> tuple[np.ndarray, np.ndarray]:

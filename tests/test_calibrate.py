@@ -1,0 +1,149 @@
+"""Camera calibration from checkerboard photographs (ppdjax.video.calibrate, python -m
+ppdjax.calibrate), on boards drawn by a known camera; lens distortion read by the tracker."""
+
+import json
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from ppdjax.video import calibrate, files
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BOARD, SQUARE = (9, 6), 0.03
+K = np.array([[620.0, 0.0, 322.0], [0.0, 615.0, 236.0], [0.0, 0.0, 1.0]])
+W, H, UP = 640, 480, 4  # drawn at 4x and averaged down: anti-aliased edges
+
+
+def look_at(eye, target):
+  """4x4 camera_from_world of a camera at `eye` looking at `target`, z up in the image's
+  up direction (OpenCV axes: x right, y down, z forward)."""
+  z = np.asarray(target, float) - eye
+  z /= np.linalg.norm(z)
+  x = np.cross(z, [0.0, 0.0, 1.0])
+  x /= np.linalg.norm(x)
+  y = np.cross(z, x)
+  m = np.eye(4)
+  m[:3, :3] = np.stack([x, y, z])
+  m[:3, 3] = -m[:3, :3] @ eye
+  return m
+
+
+def draw_board(camera_from_board):
+  """(H, W, 3) uint8: the board (with a white margin) as the camera K sees it."""
+  big = np.full((H * UP, W * UP), 40, np.uint8)  # a dark room
+  k = K.copy()
+  k[:2] *= UP
+  k[:2, 2] += (UP - 1) / 2  # pixel centres of the large image
+  rvec = cv2.Rodrigues(camera_from_board[:3, :3])[0]
+  tvec = camera_from_board[:3, 3]
+  proj = lambda pts: cv2.projectPoints(np.asarray(pts, float), rvec, tvec, k, None)[0].reshape(
+      -1, 2)
+  cols, rows = BOARD
+  margin = [[-2, -2, 0], [cols + 1, -2, 0], [cols + 1, rows + 1, 0], [-2, rows + 1, 0]]
+  cv2.fillConvexPoly(big, np.round(proj(np.array(margin) * SQUARE) * 16).astype(np.int32),
+                     255, cv2.LINE_AA, 4)
+  for i in range(-1, cols):
+    for j in range(-1, rows):
+      if (i + j) % 2 == 0:
+        sq = np.array([[i, j, 0], [i + 1, j, 0], [i + 1, j + 1, 0], [i, j + 1, 0]]) * SQUARE
+        cv2.fillConvexPoly(big, np.round(proj(sq) * 16).astype(np.int32), 0, cv2.LINE_AA, 4)
+  small = cv2.resize(big, (W, H), interpolation=cv2.INTER_AREA)
+  return np.repeat(small[..., None], 3, -1)
+
+
+def views():
+  """Photographs of the board held at several tilts about 0.6 m from the camera."""
+  out = []
+  for ax, ay, dx in ((0.3, 0.0, 0.0), (-0.3, 0.2, 0.05), (0.1, -0.35, -0.05),
+                     (0.4, 0.3, 0.0), (-0.2, -0.3, 0.03)):
+    m = np.eye(4)
+    m[:3, :3] = cv2.Rodrigues(np.array([ax, ay, 0.05]))[0]
+    centre = np.array([(BOARD[0] - 1) / 2, (BOARD[1] - 1) / 2, 0.0]) * SQUARE
+    m[:3, 3] = np.array([dx, 0.0, 0.6]) - m[:3, :3] @ centre
+    out.append(draw_board(m))
+  return out
+
+
+def test_calibration_recovers_the_camera_and_the_table():
+  """Intrinsics within 1 %; the table's plane: the camera's height within 5 mm, z up; in
+  the plane the origin is a corner of the board's inner grid (which one OpenCV lists
+  first depends on the view), the axes along its rows and columns."""
+  cal = calibrate.calibrate_intrinsics(views(), BOARD, SQUARE)
+  assert len(cal["views"]) == 5 and cal["rms_px"] < 0.5
+  np.testing.assert_allclose(cal["intrinsics"], K, rtol=0.01, atol=2.0)
+  truth = look_at(np.array([0.1, -0.7, 0.5]), [0.12, 0.075, 0.0])
+  ground = draw_board(truth)  # the board's frame is the world's: on the table, z up
+  got = calibrate.camera_from_ground(ground, cal["intrinsics"], cal["distortion"], BOARD,
+                                     SQUARE)
+  eye = lambda m: np.linalg.inv(m)[:3, 3]
+  assert abs(eye(got)[2] - eye(truth)[2]) < 5e-3, (eye(got), eye(truth))
+  np.testing.assert_allclose(got[:3, 2], truth[:3, 2], atol=0.01)  # world z, seen by the camera
+  origin = (np.linalg.inv(truth) @ got)[:3, 3]  # the found origin in the board's frame
+  corners = [np.array([i, j, 0.0]) * SQUARE for i in (0, BOARD[0] - 1) for j in (0, BOARD[1] - 1)]
+  assert min(np.linalg.norm(origin - c) for c in corners) < 5e-3, origin
+
+
+def test_calibrate_command_writes_what_track_reads(tmp_path):
+  for i, image in enumerate(views()):
+    cv2.imwrite(str(tmp_path / f"view{i}.png"), image)
+  truth = look_at(np.array([-0.2, -0.6, 0.45]), [0.1, 0.1, 0.0])
+  cv2.imwrite(str(tmp_path / "table.png"), draw_board(truth))
+  out = tmp_path / "camera.json"
+  run = subprocess.run([sys.executable, "-m", "ppdjax.calibrate",
+                        f"--images={tmp_path}/view*.png", "--board=9x6", f"--square={SQUARE}",
+                        f"--ground={tmp_path}/table.png", f"--out={out}"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "JAX_PLATFORMS": "cpu"})
+  assert run.returncode == 0, run.stderr[-2000:]
+  assert "found in 5 of 5" in run.stdout
+  assert cv2.imread(str(tmp_path / "camera_axes.png")).shape == (H, W, 3)
+  intrinsics, camera_from_world = files.read_camera(str(out))
+  assert files.read_distortion(str(out)) is None or np.all(
+      np.abs(files.read_distortion(str(out))) < 0.05)
+  np.testing.assert_allclose(intrinsics, K, rtol=0.01, atol=2.0)
+  assert abs(np.linalg.inv(camera_from_world)[2, 3] - 0.45) < 5e-3  # height above the table
+
+
+def test_bad_photographs_are_named(tmp_path):
+  blank = np.full((H, W, 3), 128, np.uint8)
+  with pytest.raises(calibrate.CalibrationError, match="found in 1 of 3.*not found: b, c"):
+    calibrate.calibrate_intrinsics([views()[0], blank, blank], BOARD, SQUARE,
+                                   names=["a", "b", "c"])
+  with pytest.raises(calibrate.CalibrationError, match="differ in size"):
+    calibrate.calibrate_intrinsics([blank, blank[:100]], BOARD, SQUARE)
+  with pytest.raises(calibrate.CalibrationError, match="square"):
+    calibrate.calibrate_intrinsics([blank], BOARD, 0.0)
+  with pytest.raises(calibrate.CalibrationError, match="table.png: the 9x6 board"):
+    calibrate.camera_from_ground(blank, K, np.zeros(5), BOARD, SQUARE, name="table.png")
+  with pytest.raises(files.MissingFileError, match="no such image"):
+    files.read_image(str(tmp_path / "none.png"))
+  (tmp_path / "bad.png").write_text("not an image")
+  with pytest.raises(files.VideoFileError, match="not a readable image"):
+    files.read_image(str(tmp_path / "bad.png"))
+  cam = tmp_path / "camera.json"
+  cam.write_text(json.dumps({"intrinsics": K.tolist(), "camera_from_world": np.eye(4).tolist(),
+                             "distortion": [0.1, float("nan"), 0, 0, 0]}))
+  with pytest.raises(files.VideoFileError, match="distortion must be 4 or 5 finite"):
+    files.read_distortion(str(cam))
+
+
+def test_undistorted_frames_are_what_a_pinhole_camera_sees():
+  """A board drawn through a distorting lens, undistorted: its corners where the pinhole
+  camera puts them (within 0.3 px)."""
+  dist = np.array([-0.2, 0.05, 0.0, 0.0, 0.0])
+  m = np.eye(4)
+  m[:3, 3] = [-0.12, -0.075, 0.5]
+  pinhole = draw_board(m)
+  # the distorted image: each output pixel reads the pinhole image where the lens sends it
+  u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+  pts = np.stack([u.ravel(), v.ravel()], -1)[:, None]
+  ideal = cv2.undistortPoints(pts, K, dist, P=K).reshape(H, W, 2)
+  distorted = cv2.remap(pinhole, ideal[..., 0], ideal[..., 1], cv2.INTER_LINEAR)
+  back = files.undistort(distorted[None], K, dist)[0]
+  a, b = calibrate.find_board(pinhole, BOARD), calibrate.find_board(back, BOARD)
+  assert a is not None and b is not None
+  assert np.abs(a - b).max() < 0.3
