@@ -13,7 +13,9 @@ voxels and depth, 512 density samples, with and without refinement: config.eval.
 names the headline) from the tracked trajectory and, to price the tracker, from the true
 one; report: density RMSE over all towers and the
 2-block ones, "which block is heavier" on the 2-block towers (paper Fig. 9), into
-experiments/results/video_towers.{md,json}, video_heavier.png and video.json.
+experiments/results/video_towers.{md,json}, video_heavier.png and video.json; example:
+docs/video.md's worked example, one tower filmed as the test towers are, as a user's
+files in assets/video_example/ (`ppdjax.video.example`).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from ppdjax.training.state import total_steps  # noqa: E402
 config_flags.DEFINE_config_file("config", "ppdjax/configs/video.py", "Video preset.")
 flags.DEFINE_string("root", "out/video", "Dataset, run and observations go here.")
 flags.DEFINE_string("results", "experiments/results", "Where the report goes.")
+flags.DEFINE_string("assets", "assets", "Where the worked example goes (video_example/).")
 flags.DEFINE_integer("step_seconds", 540, "A training call stops after this long.")
 flags.DEFINE_integer("workers", 0, "Processes filming and tracking (0: this one).")
 flags.DEFINE_string("step", "all", "'all' (every step left), 'next', or a step name.")
@@ -50,6 +53,7 @@ flags.DEFINE_string("report_name", "video_towers", "The report's name in --resul
                     "name for a validation set of towers: --config.test.seed=...).")
 FLAGS = flags.FLAGS
 EXTRA_STEPS = 12  # simulated beyond the recorded steps, so the last frame covers them
+EXAMPLE_TRAVEL = 0.3  # m: the worked example's tower moves at least this far when struck
 VARIANTS = ("sample", "refine")  # +Sample, +Sample+Refine; config.eval.refine picks the headline
 
 
@@ -61,6 +65,7 @@ class Pipeline:
     self.data, self.workdir = os.path.join(root, "data"), os.path.join(root, "full")
     self.test_file = os.path.join(root, "test_towers.npz")
     self.eval_files = {v: os.path.join(root, f"decompositions_{v}.npz") for v in VARIANTS}
+    self.example_dir = os.path.join(FLAGS.assets, "video_example")
 
   def steps(self):
     return [("generate", lambda: os.path.exists(os.path.join(self.data, "manifest.json")),
@@ -70,11 +75,13 @@ class Pipeline:
             ("observe", lambda: os.path.exists(self.test_file), self.observe),
             ("evaluate", lambda: all(map(os.path.exists, self.eval_files.values())),
              self.evaluate),
-            ("report", lambda: False, self.report)]
+            ("report", lambda: False, self.report),
+            ("example", lambda: os.path.exists(os.path.join(self.example_dir, "truth.json")),
+             self.example)]
 
   def needs(self, name: str) -> tuple[str, ...]:
     return {"generate": (), "train": ("generate",), "observe": (),
-            "evaluate": ("train", "observe"), "report": ("evaluate",)}[name]
+            "evaluate": ("train", "observe"), "report": ("evaluate",), "example": ()}[name]
 
   def train(self) -> None:
     loop.train_and_evaluate(self.config, self.data, self.workdir,
@@ -116,6 +123,32 @@ class Pipeline:
         tracked_trajectory=tracked, materials=ids, rest=rest, stickers=t.stickers,
         errors=np.asarray([e or "" for e in errors]),
         **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS})
+
+  def example(self) -> None:
+    """docs/video.md's worked example: the first 2-block tower of two materials that the
+    strike moves by EXAMPLE_TRAVEL or more, of a seed after the test towers', struck and
+    filmed as they are (`video.example`), with the stickers docs/video.md advises (every
+    face)."""
+    from ppdjax.video.example import write_example  # pylint: disable=import-outside-toplevel
+    c, t = self.config, self.config.test
+    rng = np.random.default_rng(t.seed + 1)
+    while True:  # two materials, and a strike that moves the tower (heavy ones stay put)
+      p, names = towers.sample_tower(rng, 2, material_set="real")
+      # MuJoCo C, not the training engine: a CPU makes it in seconds (the box-plane
+      # engine compiles there for many minutes), and a user's real tower is no engine's
+      truth = np.asarray(simulate(jax.tree.map(lambda a: np.asarray(a)[None], p),
+                                  generation.pushes_of(c.data), steps=c.data.steps + EXTRA_STEPS,
+                                  backend="mujoco"))[0, 0]
+      if names[0] != names[1] and np.linalg.norm(truth[-1, :2]) > EXAMPLE_TRAVEL:
+        break
+    ids = np.array([materials.ALL_MATERIAL_NAMES.index(n) for n in names]
+                   + [0] * (p.num_slots - 2), np.int32)
+    rest = np.concatenate([np.asarray(scene.rest_position(p)), [1.0, 0.0, 0.0, 0.0]])
+    seeds = rng.integers(0, materials.TEXTURE_VARIANTS, ids.shape)
+    write_example(self.example_dir, jax.tree.map(np.asarray, p), ids, seeds, rest, truth,
+                  fps=t.fps, frame=tuple(t.frame), noise=t.noise, lighting=t.lighting,
+                  stickers="all", seed=t.seed + 1,
+                  material_names=list(materials.ALL_MATERIAL_NAMES))
 
   def evaluate(self) -> None:
     from ppdjax.reproduce import video_report as report  # pylint: disable=import-outside-toplevel
