@@ -2,8 +2,9 @@
 --ground table.jpg --out camera.json`: the camera file `python -m ppdjax.track` reads.
 
 --images: photographs of a printed checkerboard held at several tilts (a glob, or a
-comma-separated list); --board: its inner corners per row x rows; --square: the printed
-side of one square in metres (measure it: printers scale); --ground: one photograph, from
+comma-separated list), at the resolution the camera films at; --board: its inner corners
+per row x rows; --square: the printed side of one square, in the units of stickers.json
+(docs/video.md: metres divided by the object's largest extent); --ground: one photograph, from
 the camera's filming position, of the board lying flat on the table where the object will
 stand (the world frame: `ppdjax.video.calibrate`). Writes intrinsics, distortion and
 camera_from_world, prints the reprojection error, and draws the world's origin and axes
@@ -54,17 +55,21 @@ def main(argv):
   if not _OUT.value.endswith(".json"):
     raise app.UsageError(f"--out must name a .json file, got {_OUT.value!r}")
   images = [files.read_image(p) for p in paths]
-  cal = calibrate.calibrate_intrinsics(images, board, _SQUARE.value, names=paths)
   table = files.read_image(_GROUND.value)
-  ground = calibrate.camera_from_ground(table, cal["intrinsics"],
-                                        cal["distortion"], board, _SQUARE.value,
-                                        name=_GROUND.value)
+  try:
+    cal = calibrate.calibrate_intrinsics(images, board, _SQUARE.value, names=paths)
+    ground = calibrate.camera_from_ground(table, cal["intrinsics"], cal["distortion"], board,
+                                          _SQUARE.value, name=_GROUND.value,
+                                          image_size=cal["image_size"])
+  except calibrate.CalibrationError as e:
+    raise app.UsageError(str(e)) from None
   calibrate.write_camera(_OUT.value, cal["intrinsics"], ground, cal["distortion"],
                          rms_px=cal["rms_px"], image_size=cal["image_size"])
   axes = os.path.splitext(_OUT.value)[0] + "_axes.png"
   drawn = calibrate.draw_world_axes(table, cal["intrinsics"], cal["distortion"], ground,
                                     3 * _SQUARE.value)
-  cv2.imwrite(axes, cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
+  if not cv2.imwrite(axes, cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
+    raise app.UsageError(f"cannot write {axes}")
   height = np.linalg.inv(ground)[2, 3]
   print(f"board found in {len(cal['views'])} of {len(paths)} photographs; reprojection "
         f"error {cal['rms_px']:.2f} px; camera {height:.3f} m above the table -> {_OUT.value}, "

@@ -2,7 +2,8 @@
 --out TRAJ.npz`: a video of a stickered object to its trajectory (paper Sec. 5.3).
 
 Reads the video (any format OpenCV's FFmpeg reader takes; frame rate from the file unless
---fps), undoes the lens distortion where CAMERA.json gives one, tracks the stickers (`ppdjax.video.track_poses`) and writes TRAJ.npz with
+--fps), undoes the lens distortion where CAMERA.json gives one (and checks its
+image_size), tracks the stickers (`ppdjax.video.track_poses`) and writes TRAJ.npz with
 "trajectory" (T, 7) float32 at the simulator's dt after the push and "dt". The files'
 formats are in `ppdjax/video/files.py` and docs/video.md.
 
@@ -54,6 +55,11 @@ def main(argv):
   if not fps > 0:
     raise app.UsageError(f"{_VIDEO.value} does not give its frame rate: pass --fps")
   intrinsics, camera_from_world = files.read_camera(_CAMERA.value)
+  size = files.read_image_size(_CAMERA.value)
+  if size is not None and size != (frames.shape[2], frames.shape[1]):
+    raise files.VideoFileError(
+        f"{_VIDEO.value} is {frames.shape[2]}x{frames.shape[1]} pixels, {_CAMERA.value} was "
+        f"calibrated at {size[0]}x{size[1]}: calibrate at the resolution the camera films at")
   distortion = files.read_distortion(_CAMERA.value)
   if distortion is not None:  # the tracker's PnP is a pinhole camera's
     frames = files.undistort(frames, intrinsics, distortion)

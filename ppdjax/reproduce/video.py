@@ -34,7 +34,8 @@ import numpy as np  # noqa: E402
 
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import primitives  # noqa: E402
-from ppdjax.dataset import camera, depth, generation, materials, render, towers, voxels  # noqa: E402
+from ppdjax.dataset import (camera, depth, generation, materials, render,  # noqa: E402
+                            towers, voxels)
 from ppdjax.sim import scene  # noqa: E402
 from ppdjax.sim.simulate import simulate  # noqa: E402
 from ppdjax.training import loop  # noqa: E402
@@ -54,6 +55,7 @@ flags.DEFINE_string("report_name", "video_towers", "The report's name in --resul
 FLAGS = flags.FLAGS
 EXTRA_STEPS = 12  # simulated beyond the recorded steps, so the last frame covers them
 EXAMPLE_TRAVEL = 0.3  # m: the worked example's tower moves at least this far when struck
+EXAMPLE_TRIES = 100
 VARIANTS = ("sample", "refine")  # +Sample, +Sample+Refine; config.eval.refine picks the headline
 
 
@@ -132,7 +134,7 @@ class Pipeline:
     from ppdjax.video.example import write_example  # pylint: disable=import-outside-toplevel
     c, t = self.config, self.config.test
     rng = np.random.default_rng(t.seed + 1)
-    while True:  # two materials, and a strike that moves the tower (heavy ones stay put)
+    for _ in range(EXAMPLE_TRIES):  # two materials, a strike that moves it (heavy ones stay)
       p, names = towers.sample_tower(rng, 2, material_set="real")
       # MuJoCo C, not the training engine: a CPU makes it in seconds (the box-plane
       # engine compiles there for many minutes), and a user's real tower is no engine's
@@ -141,6 +143,9 @@ class Pipeline:
                                   backend="mujoco"))[0, 0]
       if names[0] != names[1] and np.linalg.norm(truth[-1, :2]) > EXAMPLE_TRAVEL:
         break
+    else:
+      raise RuntimeError(f"none of {EXAMPLE_TRIES} towers of seed {t.seed + 1} moves "
+                         f"{EXAMPLE_TRAVEL} m when struck: lower EXAMPLE_TRAVEL")
     ids = np.array([materials.ALL_MATERIAL_NAMES.index(n) for n in names]
                    + [0] * (p.num_slots - 2), np.int32)
     rest = np.concatenate([np.asarray(scene.rest_position(p)), [1.0, 0.0, 0.0, 0.0]])

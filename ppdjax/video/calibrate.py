@@ -58,7 +58,11 @@ def calibrate_intrinsics(images: list[np.ndarray], board: tuple[int, int], squar
   board was found are listed. CalibrationError if fewer than MIN_VIEWS show it or the
   images differ in size."""
   _check(board, square)
+  if not images:
+    raise CalibrationError("no photographs of the board were given")
   names = names or [f"image {i}" for i in range(len(images))]
+  if len(names) != len(images):
+    raise CalibrationError(f"{len(names)} names for {len(images)} photographs")
   sizes = {im.shape[:2] for im in images}
   if len(sizes) != 1:
     raise CalibrationError(f"the photographs differ in size {sorted(sizes)}: calibrate one "
@@ -82,10 +86,16 @@ def calibrate_intrinsics(images: list[np.ndarray], board: tuple[int, int], squar
 
 
 def camera_from_ground(image: np.ndarray, intrinsics: np.ndarray, distortion: np.ndarray,
-                       board: tuple[int, int], square: float, name: str = "ground") -> np.ndarray:
+                       board: tuple[int, int], square: float, name: str = "ground",
+                       image_size: tuple[int, int] | None = None) -> np.ndarray:
   """(4, 4) camera_from_world (OpenCV camera axes) from a photograph of the board lying
-  flat on the table (the world frame of the module docstring)."""
+  flat on the table (the world frame of the module docstring); `image_size` (width,
+  height) the calibration's, which the photograph must have."""
   _check(board, square)
+  if image_size is not None and tuple(image.shape[1::-1]) != tuple(image_size):
+    raise CalibrationError(f"{name} is {image.shape[1]}x{image.shape[0]} pixels, the "
+                           f"calibration photographs {image_size[0]}x{image_size[1]}: take "
+                           "all of them at the resolution the camera films at")
   corners = find_board(image, board)
   if corners is None:
     raise CalibrationError(f"{name}: the {board[0]}x{board[1]} board is not found")

@@ -57,7 +57,8 @@ def write_example(out: str, prims, material_ids, texture_seeds, rest: np.ndarray
   for f in video:
     writer.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
   writer.release()
-  write_camera(os.path.join(out, "camera.json"), intrinsics, camera_from_world)
+  write_camera(os.path.join(out, "camera.json"), intrinsics, camera_from_world,
+               image_size=[frame[1], frame[0]])
   with open(os.path.join(out, "stickers.json"), "w") as f:
     json.dump({"stickers": points.tolist(), "initial_pose": np.asarray(rest).tolist()}, f,
               indent=1)

@@ -5,7 +5,8 @@ naming the file, a missing file MissingFileError (also a FileNotFoundError).
   camera.json:   {"intrinsics": 3x3, "camera_from_world": 4x4}  (OpenCV camera axes),
                  optionally "distortion": [k1, k2, p1, p2, k3] (OpenCV's lens model;
                  `python -m ppdjax.calibrate` writes all three)
-  stickers.json: {"stickers": Nx3 (object frame, metres), "initial_pose": [px, py, pz,
+  stickers.json: {"stickers": Nx3 (object frame, in the units of camera_from_world: the
+                  normalised object's, docs/video.md), "initial_pose": [px, py, pz,
                   qw, qx, qy, qz] (the pose at rest, world frame)}
 
 and what it writes, which `python -m ppdjax.decompose --trajectory` reads:
@@ -96,8 +97,8 @@ def read_camera(path: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_distortion(path: str) -> np.ndarray | None:
-  """camera.json's (5,) lens distortion (k1, k2, p1, p2, k3), or None where it has none or
-  all zeros (frames then need no undistortion)."""
+  """camera.json's lens distortion ((4,) k1, k2, p1, p2 or (5,) with k3), or None where it
+  has none or all zeros (frames then need no undistortion)."""
   data = read_json(path, error=VideoFileError, missing=MissingFileError)
   if "distortion" not in data:
     return None
@@ -109,6 +110,17 @@ def read_distortion(path: str) -> np.ndarray | None:
     raise VideoFileError(f"{path}: distortion must be 4 or 5 finite numbers (k1, k2, p1, "
                          f"p2[, k3]), got shape {dist.shape}")
   return None if not np.any(dist) else dist
+
+
+def read_image_size(path: str) -> tuple[int, int] | None:
+  """camera.json's (width, height) of the calibration photographs, or None if not given."""
+  size = read_json(path, error=VideoFileError, missing=MissingFileError).get("image_size")
+  if size is None:
+    return None
+  if (not isinstance(size, list) or len(size) != 2
+      or not all(isinstance(v, int) and v > 0 for v in size)):
+    raise VideoFileError(f"{path}: image_size must be [width, height] in pixels, got {size!r}")
+  return size[0], size[1]
 
 
 def undistort(frames: np.ndarray, intrinsics: np.ndarray, distortion: np.ndarray) -> np.ndarray:

@@ -62,7 +62,8 @@ def observe_towers(prims, material_ids, texture_seeds, rest_poses, trajectories,
     raise ValueError(f"trajectories of {np.shape(trajectories)[1]} steps are too short to film "
                      f"{steps} steps at {fps} fps: simulate at least one frame longer")
   degrade = {"noise": noise, "lighting": lighting}
-  jobs = [(jax.tree.map(lambda a, i=i: np.asarray(a)[i], prims), np.asarray(material_ids)[i], np.asarray(texture_seeds)[i], np.asarray(rest_poses)[i],
+  jobs = [(jax.tree.map(lambda a, i=i: np.asarray(a)[i], prims), np.asarray(material_ids)[i],
+           np.asarray(texture_seeds)[i], np.asarray(rest_poses)[i],
            np.asarray(trajectories)[i], float(fps), int(steps), [seed, i], degrade)
           for i in range(b)]
   bar = tqdm(total=b, desc="film and track", unit="clip", disable=not progress)

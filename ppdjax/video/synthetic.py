@@ -5,10 +5,10 @@ blur, sensor noise, lighting change and occlusion.
 The camera looks along the dataset camera's line of sight from DISTANCE_SCALE of its
 distance with its own field of view (FOVY). Stickers are 3 cm red squares, 0.5 mm thick,
 at the four corners of the two side faces of each block that face the camera (the
-"sides" layout; "sides_top" adds the top faces, "all" every face: STICKER_LAYOUTS), a sticker side in from
-each edge, so their centres are known points of the object frame. Motion blur averages
-`shutter_samples` renders spread over the exposure; the other degradations act on the
-blurred frames (`degrade`).
+"sides" layout; "sides_top" adds the top faces, "all" every face: STICKER_LAYOUTS), a
+sticker side in from each edge, so their centres are known points of the object frame.
+Motion blur averages `shutter_samples` renders spread over the exposure; the other
+degradations act on the blurred frames (`degrade`).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""Camera calibration from checkerboard photographs (ppdjax.video.calibrate, python -m
-ppdjax.calibrate), on boards drawn by a known camera; lens distortion read by the tracker."""
+"""A user's video setup (docs/video.md): camera calibration from checkerboard photographs
+(ppdjax.video.calibrate, python -m ppdjax.calibrate) on boards drawn by a known camera,
+lens distortion and image size read by the tracker, and the shipped worked example."""
 
 import json
 import os
@@ -13,6 +14,7 @@ import pytest
 from ppdjax.video import calibrate, files
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+VIDEO_EXAMPLE = os.path.join(ROOT, "assets", "video_example")
 BOARD, SQUARE = (9, 6), 0.03
 K = np.array([[620.0, 0.0, 322.0], [0.0, 615.0, 236.0], [0.0, 0.0, 1.0]])
 W, H, UP = 640, 480, 4  # drawn at 4x and averaged down: anti-aliased edges
@@ -69,22 +71,37 @@ def views():
 
 
 def test_calibration_recovers_the_camera_and_the_table():
-  """Intrinsics within 1 %; the table's plane: the camera's height within 5 mm, z up; in
-  the plane the origin is a corner of the board's inner grid (which one OpenCV lists
-  first depends on the view), the axes along its rows and columns."""
+  """Intrinsics within 1 %; from four sides of the table: the camera's height within 5 mm
+  and z up, the origin a corner of the board's inner grid, x and y along its rows and
+  columns (which corner OpenCV lists first depends on the view; its order puts the board's
+  z into the table seen from above, so y is mirrored to keep z up)."""
   cal = calibrate.calibrate_intrinsics(views(), BOARD, SQUARE)
   assert len(cal["views"]) == 5 and cal["rms_px"] < 0.5
   np.testing.assert_allclose(cal["intrinsics"], K, rtol=0.01, atol=2.0)
-  truth = look_at(np.array([0.1, -0.7, 0.5]), [0.12, 0.075, 0.0])
-  ground = draw_board(truth)  # the board's frame is the world's: on the table, z up
-  got = calibrate.camera_from_ground(ground, cal["intrinsics"], cal["distortion"], BOARD,
-                                     SQUARE)
+  centre = np.array([(BOARD[0] - 1) / 2, (BOARD[1] - 1) / 2, 0.0]) * SQUARE
+  corners = [np.array([i, j, 0.0]) * SQUARE
+             for i in (0, BOARD[0] - 1) for j in (0, BOARD[1] - 1)]
   eye = lambda m: np.linalg.inv(m)[:3, 3]
-  assert abs(eye(got)[2] - eye(truth)[2]) < 5e-3, (eye(got), eye(truth))
-  np.testing.assert_allclose(got[:3, 2], truth[:3, 2], atol=0.01)  # world z, seen by the camera
-  origin = (np.linalg.inv(truth) @ got)[:3, 3]  # the found origin in the board's frame
-  corners = [np.array([i, j, 0.0]) * SQUARE for i in (0, BOARD[0] - 1) for j in (0, BOARD[1] - 1)]
-  assert min(np.linalg.norm(origin - c) for c in corners) < 5e-3, origin
+  mirrored = []  # whether OpenCV's own corner order put z into the table (the mirror branch)
+  for angle in np.deg2rad([-80, 10, 100, 190]):
+    truth = look_at(centre + [0.75 * np.cos(angle), 0.75 * np.sin(angle), 0.5], centre)
+    image = draw_board(truth)
+    got = calibrate.camera_from_ground(image, cal["intrinsics"], cal["distortion"],
+                                       BOARD, SQUARE, image_size=(W, H))
+    raw = calibrate._solve(  # pylint: disable=protected-access
+        calibrate.board_points(BOARD, SQUARE), calibrate.find_board(image, BOARD),
+        cal["intrinsics"], cal["distortion"])
+    mirrored.append(bool(np.linalg.inv(raw)[2, 3] < 0))
+    assert abs(eye(got)[2] - eye(truth)[2]) < 5e-3, (eye(got), eye(truth))
+    board_from_world = np.linalg.inv(truth) @ got  # the found world in the board's frame
+    np.testing.assert_allclose(board_from_world[:3, 2], [0, 0, 1], atol=0.01)  # z up
+    assert min(np.linalg.norm(board_from_world[:3, 3] - c) for c in corners) < 5e-3
+    x_axis = board_from_world[:3, 0]
+    assert np.isclose(np.abs(x_axis).max(), 1.0, atol=0.01)  # along a row or a column
+  assert all(mirrored), mirrored  # the branch that mirrors y ran in every view
+  with pytest.raises(calibrate.CalibrationError, match="640x480 pixels, the calibration"):
+    calibrate.camera_from_ground(draw_board(truth), K, np.zeros(5), BOARD, SQUARE,
+                                 image_size=(1280, 720))
 
 
 def test_calibrate_command_writes_what_track_reads(tmp_path):
@@ -101,6 +118,12 @@ def test_calibrate_command_writes_what_track_reads(tmp_path):
   assert run.returncode == 0, run.stderr[-2000:]
   assert "found in 5 of 5" in run.stdout
   assert cv2.imread(str(tmp_path / "camera_axes.png")).shape == (H, W, 3)
+  run = subprocess.run([sys.executable, "-m", "ppdjax.calibrate",
+                        f"--images={tmp_path}/view0.png", "--board=9x6", f"--square={SQUARE}",
+                        f"--ground={tmp_path}/table.png", f"--out={out}"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "JAX_PLATFORMS": "cpu"})
+  assert run.returncode != 0 and "3 are needed" in run.stderr  # a usage error, named
   intrinsics, camera_from_world = files.read_camera(str(out))
   assert files.read_distortion(str(out)) is None or np.all(
       np.abs(files.read_distortion(str(out))) < 0.05)
@@ -117,6 +140,8 @@ def test_bad_photographs_are_named(tmp_path):
     calibrate.calibrate_intrinsics([blank, blank[:100]], BOARD, SQUARE)
   with pytest.raises(calibrate.CalibrationError, match="square"):
     calibrate.calibrate_intrinsics([blank], BOARD, 0.0)
+  with pytest.raises(calibrate.CalibrationError, match="no photographs"):
+    calibrate.calibrate_intrinsics([], BOARD, SQUARE)
   with pytest.raises(calibrate.CalibrationError, match="table.png: the 9x6 board"):
     calibrate.camera_from_ground(blank, K, np.zeros(5), BOARD, SQUARE, name="table.png")
   with pytest.raises(files.MissingFileError, match="no such image"):
@@ -147,3 +172,38 @@ def test_undistorted_frames_are_what_a_pinhole_camera_sees():
   a, b = calibrate.find_board(pinhole, BOARD), calibrate.find_board(back, BOARD)
   assert a is not None and b is not None
   assert np.abs(a - b).max() < 0.3
+
+
+
+def test_the_shipped_video_example_tracks_back_to_its_truth(tmp_path):
+  """docs/video.md's worked example as a user runs it: `python -m ppdjax.track` on the
+  shipped clip, camera and stickers gives the true trajectory within a few millimetres,
+  and the tower's mesh reads back as its named blocks."""
+  from ppdjax.dataset.mesh_files import load_object  # pylint: disable=import-outside-toplevel
+  with open(os.path.join(VIDEO_EXAMPLE, "truth.json")) as f:
+    truth = json.load(f)
+  out = tmp_path / "traj.npz"
+  run = subprocess.run([sys.executable, "-m", "ppdjax.track",
+                        f"--video={VIDEO_EXAMPLE}/clip.mp4",
+                        f"--camera={VIDEO_EXAMPLE}/camera.json",
+                        f"--stickers={VIDEO_EXAMPLE}/stickers.json", f"--out={out}"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "JAX_PLATFORMS": "cpu"})
+  assert run.returncode == 0, run.stderr[-2000:]
+  tracked = np.load(out)["trajectory"]
+  true = np.asarray(truth["true_trajectory"])[:len(tracked)]
+  error_mm = 1000 * np.linalg.norm(tracked[:, :3] - true[:, :3], axis=-1)
+  assert len(tracked) >= 200 and np.median(error_mm) < 5, np.median(error_mm)
+  tower, _ = load_object(os.path.join(VIDEO_EXAMPLE, "tower.glb"),
+                         dict(zip(truth["blocks"], truth["materials"])))
+  assert tower.names == tuple(truth["blocks"]) and tower.materials == tuple(truth["materials"])
+  # a camera file calibrated at another size is refused, naming both
+  with open(os.path.join(VIDEO_EXAMPLE, "camera.json")) as f:
+    camera = {**json.load(f), "image_size": [1280, 720]}
+  (tmp_path / "camera.json").write_text(json.dumps(camera))
+  run = subprocess.run([sys.executable, "-m", "ppdjax.track",
+                        f"--video={VIDEO_EXAMPLE}/clip.mp4", f"--camera={tmp_path}/camera.json",
+                        f"--stickers={VIDEO_EXAMPLE}/stickers.json", f"--out={out}"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "JAX_PLATFORMS": "cpu"})
+  assert run.returncode != 0 and "640x480 pixels" in run.stderr and "1280x720" in run.stderr
