@@ -402,8 +402,9 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
 def test_saved_batch_records_give_back_the_same_tables(tiny_run, tiny_dataset, tmp_path):
   """A rerun over saved batches computes (and compiles) nothing and reports the same; a
   folder of another evaluation is refused, naming what differs."""
-  e = tiny.get_config().eval  # the evaluate command's settings: its compiled programs
-  kw = dict(samples=e.samples, batch_size=e.batch_size, max_objects=8,  # are on disk
+  e = tiny.get_config().eval  # the evaluate command's settings: its programs are on disk,
+  kw = dict(samples=e.samples, batch_size=e.batch_size, max_objects=8,  # bar the candidates'
+            # simulation, which calls MuJoCo C from the host and so is compiled again
             prior_weight=e.prior_weight, progress=False, partial_dir=str(tmp_path / "partial"))
   first = evaluation.evaluate(tiny_run[0], tiny_dataset, prefetch=False, **kw)
   again = evaluation.evaluate(tiny_run[0], tiny_dataset, max_seconds=1e-9, **kw)
