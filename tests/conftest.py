@@ -105,3 +105,24 @@ def tiny_run(tiny_dataset, tmp_path_factory):
     with open(final_file) as f:
       final = json.load(f)
   return workdir, final
+
+
+def numpy_weights_model(cfg, seed=0):
+  """A PPD of `cfg` whose weights are drawn by NumPy (small normals; BatchNorm's statistics
+  0 and 1): a model's structure without compiling one random draw per weight shape, which
+  is most of an eager build's time on a CPU."""
+  from flax import nnx  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  from ppdjax.nn.model import PPD  # pylint: disable=import-outside-toplevel
+  graphdef, state = nnx.split(nnx.eval_shape(lambda: PPD(cfg, rngs=nnx.Rngs(0))))
+  gen = np.random.default_rng(seed)
+  def fill(path, leaf):
+    name = [getattr(k, "key", None) for k in path if hasattr(k, "key")][-1]
+    if not jnp.issubdtype(leaf.dtype, jnp.floating):
+      return jnp.zeros(leaf.shape, leaf.dtype)
+    if name == "var":
+      return jnp.ones(leaf.shape, leaf.dtype)
+    if name == "mean":
+      return jnp.zeros(leaf.shape, leaf.dtype)
+    return jnp.asarray(gen.normal(0.0, 0.1, leaf.shape), leaf.dtype)
+  return nnx.merge(graphdef, jax.tree_util.tree_map_with_path(fill, state))

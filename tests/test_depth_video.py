@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from conftest import numpy_weights_model
 from ppdjax import primitives
 from ppdjax.configs import tiny
 from ppdjax.conventions import DEPTH_VIDEO, STEPS
@@ -76,10 +77,9 @@ def _rgbd_config():
 
 
 def test_the_rgbd_model_reads_the_motion_and_learns_from_it():
-  from ppdjax.nn.model import PPD
   config = _rgbd_config()
   config.model.use_voxels = config.model.use_image = False  # the video encoder alone
-  net = PPD(config.model, rngs=nnx.Rngs(0))
+  net = numpy_weights_model(config.model)  # no random draw compiled per weight shape
   assert net.video == (4, 16) and net.physics_key == DEPTH_VIDEO
   prims = _one_box((0.3, 0.1, 0.2))
   still = _still(prims, pushes=4)

@@ -13,6 +13,7 @@ from ppdjax.conventions import TIMESTEP
 from ppdjax.nn import losses, model, motion, recurrent
 from ppdjax.nn.resnet import ResNet18, load_torchvision_weights
 from ppdjax.primitives import Primitives
+from conftest import numpy_weights_model
 
 
 def _obs(rng, b=3, t=24, hw=32):
@@ -51,7 +52,7 @@ def test_decoding_stops_at_the_end_token(rng):
   towards a slot: all five boxes; the slot is the box's density."""
   cfg = tiny.get_config().model
   cfg.use_image = cfg.use_voxels = False  # the generator alone decides; the encoders'
-  net = model.PPD(cfg, rngs=nnx.Rngs(1))  # compilation is what makes this test slow
+  net = numpy_weights_model(cfg, seed=1)
   obs = _obs(rng)
   decode = nnx.jit(lambda m, o: m.decode(o))  # compiled once: eager decoding is slower
   net.density_head.bias.value = jnp.zeros(102).at[model.END].set(100.0).at[41].set(50.0)
@@ -63,31 +64,13 @@ def test_decoding_stops_at_the_end_token(rng):
   assert np.all(prims.valid) and np.all(prims.density == 800.0)
 
 
-def _with_numpy_weights(cfg, seed=0):
-  """A PPD of `cfg` whose weights are drawn by NumPy (small normals; BatchNorm's statistics
-  0 and 1): a model's structure without compiling one random draw per weight shape, which
-  is most of an eager build's time on a CPU."""
-  graphdef, state = nnx.split(nnx.eval_shape(lambda: model.PPD(cfg, rngs=nnx.Rngs(0))))
-  gen = np.random.default_rng(seed)
-  def fill(path, leaf):
-    name = [getattr(k, "key", None) for k in path if hasattr(k, "key")][-1]
-    if not jnp.issubdtype(leaf.dtype, jnp.floating):
-      return jnp.zeros(leaf.shape, leaf.dtype)
-    if name == "var":
-      return jnp.ones(leaf.shape, leaf.dtype)
-    if name == "mean":
-      return jnp.zeros(leaf.shape, leaf.dtype)
-    return jnp.asarray(gen.normal(0.0, 0.1, leaf.shape), leaf.dtype)
-  return nnx.merge(graphdef, jax.tree_util.tree_map_with_path(fill, state))
-
-
 def test_ablation_switches_zero_a_feature(rng):
   obs = _obs(rng)
   encode = nnx.jit(lambda m, o: m.encode(o))  # one program per configuration, not op by op
   for switch in ("use_voxels", "use_image", "use_trajectory"):
     cfg = tiny.get_config().model
     cfg[switch] = False
-    net = _with_numpy_weights(cfg)
+    net = numpy_weights_model(cfg)
     f = encode(net, obs)
     assert f.shape == (3, cfg.feature) and np.all(np.isfinite(f)) and np.any(f != 0)
     changed = dict(obs)
