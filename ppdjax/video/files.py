@@ -129,8 +129,8 @@ def undistort(frames: np.ndarray, intrinsics: np.ndarray, distortion: np.ndarray
 
 
 def read_stickers(path: str) -> tuple[np.ndarray, np.ndarray]:
-  """(N, 3) sticker centres (object frame, metres) and the (7,) pose at rest (world frame,
-  quaternion w, x, y, z of unit norm) from a JSON object."""
+  """(N, 3) sticker centres (object frame, in camera_from_world's units) and the (7,) pose
+  at rest (world frame, quaternion w, x, y, z of unit norm) from a JSON object."""
   d = _read_json(path, {"stickers": (-1, 3), "initial_pose": (7,)})
   _check_quaternions(path, "initial_pose", d["initial_pose"][None])
   return d["stickers"], d["initial_pose"]

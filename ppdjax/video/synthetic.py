@@ -61,8 +61,7 @@ def sticker_layout(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
                    valid: np.ndarray, faces=STICKER_FACES) -> tuple[np.ndarray, np.ndarray]:
   """(N, 3) sticker centres in the object frame and (N, 4) their orientations: on each
   valid block's `faces` (a `STICKER_LAYOUTS` value), one at each corner of the face,
-  inset by a sticker side; none on a top or bottom face where another block covers the
-  spot (side faces are not checked: in a tower no block lies beside another)."""
+  inset by a sticker side; none where another block covers the spot."""
   if tuple(faces) not in STICKER_LAYOUTS.values():
     raise ValueError(f"faces must be one of STICKER_LAYOUTS {sorted(STICKER_LAYOUTS)}, got "
                      f"{faces!r}")
@@ -82,7 +81,7 @@ def sticker_layout(half_size: np.ndarray, pos: np.ndarray, quat: np.ndarray,
           local[others[0]] = s1 * (h[others[0]] - 2 * STICKER_HALF)
           local[others[1]] = s2 * (h[others[1]] - 2 * STICKER_HALF)
           centre = rot @ local + p
-          if axis != 2 or not covered(centre, i):  # a top or bottom face may touch a block
+          if not covered(centre, i):
             centres.append(centre)
             quats.append(_quat_mul(q, _FACE_QUATS[(axis, sign)]))
   return np.array(centres).reshape(-1, 3), np.array(quats).reshape(-1, 4)
