@@ -737,3 +737,38 @@ def test_active_pushes_loop_picks_the_push_that_tells_hypotheses_apart():
     assert (np.asarray(out[policy]["answer"]) == slots[3]).all()
     lower, upper = np.asarray(out[policy]["lower"]), np.asarray(out[policy]["upper"])
     assert (lower <= slots[3]).all() and (slots[3] <= upper).all()
+
+
+def test_active_pushes_report_scores_the_refined_loop_and_checks_its_temperature(tmp_path):
+  """The report scores each policy's refined answers (the candidates' intervals kept) beside
+  the +Sample loop's, keeps "active" on the +Sample loop, and refuses records refined at a
+  temperature validation did not choose."""
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from active_pushes import run as study  # pylint: disable=import-outside-toplevel
+
+  towers, k, scales = 12, 3, np.asarray([0.3, 1.0])
+  rng = np.random.default_rng(0)
+  true = rng.integers(10, 60, (towers, k))
+  rec = {"valid": np.ones((towers, k), bool), "true": true, "scales": scales,
+         "prior_model": "m", "samples": 8, "hypotheses": 4, "power": 0.5, "setting": "depth",
+         "refine_scale": 1.0, "all_answer": true + 1}
+  for p in study.POLICIES:
+    answer = np.repeat((true + 2)[:, None, None], 2, 1).repeat(4, 2)  # (towers, S, M, K)
+    width = np.asarray([1, 5])[None, :, None, None]  # validation picks scale 1.0: covers
+    rec.update({f"{p}_answer": answer, f"{p}_lower": answer - width,
+                f"{p}_upper": answer + width,
+                f"{p}_pushes": np.tile(np.arange(4), (towers, 2, 1)),
+                f"{p}_refined_answer": np.repeat(true[:, None], 4, 1),  # exact once refined
+                f"{p}_refined_closer": np.ones((towers, 4), bool)})
+  np.savez(tmp_path / "rec.npz", **rec)
+  out = tmp_path / "posterior.json"
+  study.report(str(tmp_path / "rec.npz"), str(tmp_path / "rec.npz"), str(out))
+  result = json.loads(out.read_text())
+  refined = result["active_by_setting"]["depth"]["refined"]
+  assert refined["active4"]["top1"] == 100.0 and refined["fixed4"]["rmse"] == 0.0
+  assert refined["active4"]["coverage_90"] == 1.0  # the candidates' interval holds the truth
+  assert result["active"]["active4"]["top1"] == 0.0  # +Sample's answers: two slots off
+  assert result["active"]["active4"]["rmse"] == pytest.approx(2.0)
+  np.savez(tmp_path / "rec.npz", **{**rec, "refine_scale": 0.3})
+  with pytest.raises(ValueError, match="--refine_scale=1.0"):
+    study.report(str(tmp_path / "rec.npz"), str(tmp_path / "rec.npz"), str(out))

@@ -48,10 +48,16 @@ from ppdjax.infer.config import DecomposeConfig
 from ppdjax.primitives import bottom_to_top, bottom_to_top_order
 from ppdjax.report.provenance import read_provenance, write_provenance
 from ppdjax.sim.pushes import default_pushes
-from ppdjax.sim.rollout_mjx import simulate
+from ppdjax.sim.rollout_mjx import jax_engine, simulate
+
+try:  # run as a script (its folder on the path) or imported by the tests (as a package)
+  import refine_loop
+except ImportError:
+  from active_pushes import refine_loop
 
 FLAGS = flags.FLAGS
 POLICIES = ("fixed", "random", "active")
+REFINED = "_refined"  # a policy's answers refined after each push (refine_loop)
 MAX_PUSHES = 4
 # The prior's boxes: the paper's inputs (voxels and image), or the depth image
 # (`DecomposeConfig.best()` without its screening and refinement, which read the paper's four
@@ -111,7 +117,7 @@ def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, sc
 
 def record(prior_model: str, setting: str, data: str, split: str, objects: int, batch: int,
            samples: int, hypotheses: int, seed: int, scales: tuple[float, ...],
-           out: str) -> None:
+           refine_scale: float | None, out: str) -> None:
   ds = ppdjax.open_dataset(data, split)
   n = len(ds) if objects <= 0 else min(objects, len(ds))
   config = SETTINGS[setting]()
@@ -120,6 +126,11 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
   paper = jnp.asarray(active.paper_push_indices(pushes, default_pushes()))
   steps = config.select.horizon
   power = config.posterior.prior_power
+  # the depth preset's refinement (LM by forward differences) through the JAX engine
+  refinement, refine_settings = DecomposeConfig.best().refine, jax_engine(decompose.settings)
+  if refine_scale is not None and refine_scale not in scales:
+    raise ValueError(f"--refine_scale {refine_scale} is not among --scales {scales}")
+  traj_steps = ds.take(np.arange(1))["trajectories"].shape[-2]  # the whole trajectories
 
   def one(prims, logits, true, key):
     slots, distinct = sampling.candidate_slots(logits[:, :NUM_DENSITY_SLOTS], prims.valid,
@@ -133,7 +144,18 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
     loops = [closed_loop(sims, distances, slots, distinct, logp, prims.valid,
                          jax.random.fold_in(key, 1), paper=paper, scale=scale, power=power,
                          hypotheses=hypotheses) for scale in scales]
+    refined = {}
+    if refine_scale is not None:  # each policy's answers refined on its pushes made
+      at = loops[scales.index(refine_scale)]
+      whole = simulate(true, pushes, steps=traj_steps, settings=refine_settings)  # (N, T, 7)
+      answers, closer = jax.vmap(lambda a, m: refine_loop.refine_made(
+          prims, a, m, whole, pushes, steps=refinement.steps, jacobian=refinement.jacobian,
+          settings=refine_settings))(jnp.stack([at[p]["answer"] for p in POLICIES]),
+                                     jnp.stack([at[p]["pushes"] for p in POLICIES]))
+      refined = {f"{p}_refined": {"answer": answers[i], "closer": closer[i]}
+                 for i, p in enumerate(POLICIES)}
     loops = jax.tree.map(lambda *x: jnp.stack(x), *loops)  # leading axis: the scales
+    loops.update(refined)
     # the reference no policy of four pushes is expected to pass: the closest candidate
     # over all the candidate pushes
     loops["all"] = {"answer": slots[jnp.argmin(jnp.where(distinct, distances.mean(-1),
@@ -156,8 +178,8 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
     for name, r in rows.items():
       for field in set(r) & {"answer", "lower", "upper"}:
         keep.setdefault(f"{name}_{field}", []).append(take(r[field]))
-      if "pushes" in r:
-        keep.setdefault(f"{name}_pushes", []).append(np.asarray(r["pushes"]))
+      for field in set(r) & {"pushes", "closer"}:
+        keep.setdefault(f"{name}_{field}", []).append(np.asarray(r[field]))
     true = jax.tree.map(np.asarray, bottom_to_top(jax.tree.map(jnp.asarray,
                                                                sample["primitives"])))
     keep["true"].append(np.where(true.valid, density_to_slot(true.density), -1))
@@ -167,7 +189,9 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
   np.savez_compressed(out, seconds=time.time() - start, setting=setting, data=data,
                       split=split,
                       prior_model=prior_model, samples=samples, hypotheses=hypotheses,
-                      scales=np.asarray(scales), power=power, **arrays)
+                      scales=np.asarray(scales), power=power,
+                      refine_scale=np.nan if refine_scale is None else refine_scale,
+                      **arrays)
   print(f"{n} towers in {time.time() - start:.0f} s -> {out}")
 
 
@@ -180,6 +204,9 @@ def scores(rec, policy: str, k: int, scale: int) -> dict:
   same = valid.sum(-1) == (true >= 0).sum(-1)
   if policy == "all":
     a = lo = hi = rec["all_answer"]
+  elif policy.endswith(REFINED):  # the refined answer; the candidates' interval
+    a = rec[f"{policy}_answer"][:, k - 1]
+    lo, hi = (rec[f"{policy[:-len(REFINED)]}_{f}"][:, scale, k - 1] for f in ("lower", "upper"))
   else:
     a, lo, hi = (rec[f"{policy}_{f}"][:, scale, k - 1] for f in ("answer", "lower", "upper"))
   m = valid & same[:, None]
@@ -214,6 +241,19 @@ def paired(first: dict, second: dict, towers: np.ndarray) -> dict:
           for key in ("top1", "rmse")}
 
 
+def policy_rows(curves: dict, towers: np.ndarray) -> dict:
+  """The results file's rows of one way to decompose: fixed four, random four, active two
+  and four, their paired differences, and every policy by pushes made."""
+  c = curves
+  return {"fixed4": summary(c["fixed"][3], towers), "random4": summary(c["random"][3], towers),
+          "active2": summary(c["active"][1], towers), "active4": summary(c["active"][3], towers),
+          "paired": {"active2_minus_fixed4": paired(c["fixed"][3], c["active"][1], towers),
+                     "active2_minus_fixed2": paired(c["fixed"][1], c["active"][1], towers),
+                     "active4_minus_fixed4": paired(c["fixed"][3], c["active"][3], towers),
+                     "active4_minus_random4": paired(c["random"][3], c["active"][3], towers)},
+          "by_pushes": {p: [summary(x, towers) for x in c[p]] for p in POLICIES}}
+
+
 def report(val_records: str, records: str, out: str) -> None:
   """Writes the results file's "active_by_setting"[the records' setting] and "active" (the
   depth setting's where it is measured, else the paper inputs'), and the plot."""
@@ -228,20 +268,19 @@ def report(val_records: str, records: str, out: str) -> None:
   curves = {p: [scores(rec, p, k, chosen) for k in range(1, MAX_PUSHES + 1)]
             for p in POLICIES}
   towers = np.flatnonzero(curves["fixed"][0]["same"])
-  active_result = {
-      "fixed4": summary(curves["fixed"][3], towers),
-      "random4": summary(curves["random"][3], towers),
-      "active2": summary(curves["active"][1], towers),
-      "active4": summary(curves["active"][3], towers),
-      "paired": {"active2_minus_fixed4": paired(curves["fixed"][3], curves["active"][1],
-                                                towers),
-                 "active2_minus_fixed2": paired(curves["fixed"][1], curves["active"][1],
-                                                towers),
-                 "active4_minus_fixed4": paired(curves["fixed"][3], curves["active"][3],
-                                                towers),
-                 "active4_minus_random4": paired(curves["random"][3], curves["active"][3],
-                                                 towers)},
-      "by_pushes": {p: [summary(c, towers) for c in curves[p]] for p in POLICIES},
+  active_result = policy_rows(curves, towers)
+  refined = None
+  if f"fixed{REFINED}_answer" in rec:
+    if not np.isclose(rec["refine_scale"], rec["scales"][chosen]):
+      raise ValueError(f"the records refine the loop at temperature {rec['refine_scale']}; "
+                       f"validation chose {rec['scales'][chosen]}: record again with "
+                       f"--refine_scale={rec['scales'][chosen]}")
+    refined_curves = {p: [scores(rec, p + REFINED, k, chosen)
+                          for k in range(1, MAX_PUSHES + 1)] for p in POLICIES}
+    refined = {**policy_rows(refined_curves, towers),
+               "kept_share": {p: [float(rec[f"{p}{REFINED}_closer"][towers, k].mean())
+                                  for k in range(MAX_PUSHES)] for p in POLICIES}}
+  active_result.update({
       "all_pushes": ({k: v for k, v in summary(scores(rec, "all", 0, 0), towers).items()
                       if k.startswith(("top1", "rmse"))} if "all_answer" in rec else None),
       "setting": setting,
@@ -255,16 +294,20 @@ def report(val_records: str, records: str, out: str) -> None:
       "validation_towers": int(len(val["valid"])),
       "pushes_chosen": {p: np.bincount(rec[f"{p}_pushes"][towers, chosen].ravel(),
                                        minlength=64).tolist() for p in ("active", "random")},
+      "refined": refined,
       "command": ("python experiments/active_pushes/run.py report "
-                  f"--val_records={val_records} --records={records}")}
+                  f"--val_records={val_records} --records={records}")})
   result = {}
   if os.path.exists(out):
     with open(out) as f:
       result = json.load(f)
   result.setdefault("active_by_setting", {})[setting] = active_result
   by_setting = result["active_by_setting"]
+  # the depth setting's +Sample loop (its refined loop is a study: "refined", README)
   result["active"] = by_setting.get("depth", by_setting.get("paper_inputs"))
-  plot(active_result["by_pushes"], f"{os.path.splitext(out)[0]}_active_{setting}.png")
+  plot({**active_result["by_pushes"],
+        **{p + REFINED: rows for p, rows in (refined or {}).get("by_pushes", {}).items()}},
+       f"{os.path.splitext(out)[0]}_active_{setting}.png")
   made_by = [result.get("command")] + [r["command"] for r in by_setting.values()]
   write_provenance(out, command="; ".join(c for c in made_by if c))  # calibration's, each loop's
   active_result["commit"] = read_provenance(out).get("commit")
@@ -283,12 +326,14 @@ def plot(by_pushes: dict, path: str) -> None:
   for ax, key, label in zip(axes, ("top1", "rmse", "width"),
                             ("density top-1 (%)", "density RMSE (slots)",
                              "90 % interval width (slots)")):
-    for i, p in enumerate(POLICIES):
-      rows = by_pushes[p]
+    for i, (p, rows) in enumerate(by_pushes.items()):
+      if key == "width" and p.endswith(REFINED):  # the candidates' intervals: the same
+        continue
       y = [r[key] for r in rows]
       lo, hi = zip(*[r[f"{key}_ci95"] for r in rows])
-      ax.errorbar(x + 0.08 * (i - 1), y, yerr=[np.subtract(y, lo), np.subtract(hi, y)], marker="o",
-                  capsize=3, label=p)
+      ax.errorbar(x + 0.05 * (i - 1), y, yerr=[np.subtract(y, lo), np.subtract(hi, y)],
+                  marker="o", capsize=3, label=p, color=f"C{POLICIES.index(p.split('_')[0])}",
+                  linestyle="--" if p.endswith(REFINED) else "-")
     ax.set(xlabel="pushes made", ylabel=label, xticks=x)
   axes[0].legend(fontsize=8)
   fig.tight_layout()
@@ -309,6 +354,8 @@ def define_flags():
   flags.DEFINE_integer("seed", 0, "record: candidates' and random pushes' key.")
   flags.DEFINE_list("scales", ["0.01", "0.03", "0.1", "0.3", "1", "3"], "record: the posterior's "
                     "temperatures over the closest distance tried (one is chosen on validation).")
+  flags.DEFINE_float("refine_scale", 1.0, "record: the temperature (one of --scales) whose "
+                     "loop is also refined after each push (0: no refinement).")
   flags.DEFINE_string("val_records", "", "report: the validation towers' record file.")
   flags.DEFINE_string("records", "", "report: the test towers' record file.")
   flags.DEFINE_string("out", "", "record: the .npz; report: the results .json (its 'active').")
@@ -319,7 +366,8 @@ def main(argv):
   if mode == "record":
     record(FLAGS.prior_model, FLAGS.setting, FLAGS.data, FLAGS.split, FLAGS.objects,
            FLAGS.batch, FLAGS.samples, FLAGS.hypotheses, FLAGS.seed,
-           tuple(map(float, FLAGS.scales)), FLAGS.out)
+           tuple(map(float, FLAGS.scales)),
+           FLAGS.refine_scale if FLAGS.refine_scale > 0 else None, FLAGS.out)
   else:
     report(FLAGS.val_records, FLAGS.records, FLAGS.out)
 

@@ -1,0 +1,49 @@
+"""Refinement inside the closed loop: after each push, the loop's answer refined on the
+pushes made so far, as the depth preset's `decompose` refines the closest candidate.
+
+The loop's answers are the closest candidates over the pushes made, compared over the
+selection's horizon (`run.closed_loop`); Levenberg-Marquardt (`infer.refine`) then fits
+the densities to the whole trajectories of those pushes and keeps the fit only where it
+comes closer (`refine_if_closer`, the rule `decompose` and the evaluation share).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ppdjax import metrics
+from ppdjax.conventions import density_to_slot_jax, slot_to_density_jax
+from ppdjax.infer.refine import refine_if_closer
+from ppdjax.sim.rollout_mjx import simulate
+
+
+def refine_made(prims, answers, made, observed, pushes, *, steps: int, jacobian: str,
+                settings):
+  """One tower, one policy: each answer refined on the pushes made up to it.
+
+  Args:
+    prims: the prior's boxes (K) (their densities are not read).
+    answers: (M, K) the loop's slots after 1..M pushes.
+    made: (M,) the candidate pushes' indices, in the order made.
+    observed: (N, T, 7) the true tower under every candidate push, whole trajectories.
+    pushes: the N candidate pushes.
+    steps, jacobian, settings: the refinement's (`RefineConfig`, a JAX engine).
+
+  Returns:
+    (M, K) slots: refined where the fit came closer over those pushes, else the answer's;
+    and (M,) whether it did.
+  """
+  slots, closer = [], []
+  for k in range(1, answers.shape[0] + 1):  # static: k pushes make shapes (k, T, 7)
+    sub = jax.tree.map(lambda a, k=k: jnp.asarray(a)[made[:k]], pushes)
+    obs = observed[made[:k]]
+    start = prims.replace(density=slot_to_density_jax(answers[k - 1]))
+    distance = metrics.trajectory_distance(
+        simulate(start, sub, steps=obs.shape[-2], settings=settings), obs)
+    r = refine_if_closer(start, obs, distance, sub, steps=steps, jacobian=jacobian,
+                         settings=settings)
+    slots.append(jnp.where(r.closer, density_to_slot_jax(r.primitives.density),
+                           answers[k - 1]))
+    closer.append(r.closer)
+  return jnp.stack(slots), jnp.stack(closer)
