@@ -219,3 +219,42 @@ def test_tiny_preset_generates(tiny_dataset):
   ds = storage.open_dataset(tiny_dataset, verify=True)
   assert ds[127]["image"].shape == (64, 64, 3)
   assert ds[127]["trajectories"].shape == (4, 256, 7)
+
+
+def test_look_alike_towers_show_one_texture_for_materials_that_differ(monkeypatch):
+  """`data.look`: the renderer receives what each block shows, the labels keep its material;
+  "painted" shows one paint on every block, "alike_metals" steel as aluminium; a bad look is
+  named."""
+  from ppdjax.configs import video  # pylint: disable=import-outside-toplevel
+  from ppdjax.dataset import materials  # pylint: disable=import-outside-toplevel
+
+  ids = np.asarray([[5, 6, 7, 8], [7, 7, -1, -1]])  # pine, aluminium, steel, copper
+  assert (materials.look_ids(ids, "material") == ids).all()
+  paint = materials.LOOK_NAMES.index("paint")
+  assert (materials.look_ids(ids, "painted") == np.where(ids >= 0, paint, -1)).all()
+  assert materials.look_ids(ids, "alike_metals").tolist() == [[5, 6, 6, 8], [6, 6, -1, -1]]
+  with pytest.raises(ValueError, match="data.look"):
+    materials.look_ids(ids, "shiny")
+  a, b = materials.texture("paint", 1), materials.texture("paint", 2)
+  assert np.abs(a.mean((0, 1)) - b.mean((0, 1))).max() < 3  # one colour, another grain
+  assert (materials.texture("steel", 3) == materials.texture("steel", 3)).all()
+
+  shown = []
+
+  class Recorder:  # the renderer's contract, without a GL context
+    def render(self, prims, material_ids, seeds):
+      shown.append(np.asarray(material_ids))
+      n = len(material_ids)
+      return np.zeros((n, 16, 16, 3), np.uint8), None
+
+  cfg = video.get_config("tiny").data
+  cfg.update(num_towers=3, towers_per_shard=3, steps=4, backend="mujoco", image_size=16,
+             look="painted")
+  generation.check_config(cfg)
+  out = generation.generate_shard(cfg, 0, 0, Recorder())
+  valid = out["valid"]
+  assert (shown[0][valid] == paint).all()
+  assert (out["materials"][valid] >= len(materials.MATERIAL_NAMES)).all()  # labels: real ones
+  cfg.look = "glossy"
+  with pytest.raises(ValueError, match="config.data.look"):
+    generation.check_config(cfg)

@@ -54,6 +54,9 @@ class DataConfig:
   tool_materials: str = "category"
   tool_push: str = "fixed"  # or "by_volume": x volume / tool_scene.REFERENCE_VOLUME
   block_counts: tuple = ()  # video towers: block counts drawn uniformly (configs/video.py)
+  # what each block shows (materials.LOOKS): "material" (its own texture), "painted" (one
+  # paint on every block) or "alike_metals" (steel shows aluminium's finish): look-alike towers
+  look: str = "material"
 
 
 @dataclasses.dataclass(frozen=True)

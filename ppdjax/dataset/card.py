@@ -14,6 +14,14 @@ from ppdjax.conventions import TIMESTEP, density_to_slot  # noqa: E402
 from ppdjax.dataset import materials, storage  # noqa: E402
 
 
+def look_note(look: str) -> str:
+  """The card's sentence on what the blocks show (`data.look`), empty for their own."""
+  return {"material": "",
+          "painted": " Look: one paint on every block (the texture tells no material).",
+          "alike_metals": " Look: steel shows aluminium's finish (two materials, one look)."
+          }[look]
+
+
 def write_card(path: str, sheet_samples: int = 8) -> None:
   """Writes card.md, density_histogram.png and contact_sheet.png into dataset `path`."""
   ds = storage.open_dataset(path)
@@ -62,7 +70,8 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
             f"= {m['samples']} samples; splits by tower: ") +
            ", ".join(f"{k} {v}" for k, v in m["splits"].items()) +
            f". Engine: {m['engine']['backend']} ({m['engine']['precision']}), seed "
-           f"{m['seed']}.", "", "| boxes | samples |", "|---|---|"]
+           f"{m['seed']}." + look_note(m['config']['data'].get('look', 'material')), "",
+           "| boxes | samples |", "|---|---|"]
   lines += [f"| {b} | {(blocks == b).sum()} |" for b in range(1, valid.shape[1] + 1)
             if (blocks == b).any()]
   lines += ["", "| material | blocks | density range seen (x100 kg/m³) |", "|---|---|---|"]

@@ -65,7 +65,8 @@ def check_config(cfg) -> None:
              ("towers_per_shard", cfg.towers_per_shard >= 1),
              ("configs_per_tower", cfg.configs_per_tower >= 1),
              ("rotate", 0 <= cfg.rotate <= np.pi), ("size_noise", 0 <= cfg.size_noise < 1),
-             ("backend", cfg.backend in BACKENDS)]
+             ("backend", cfg.backend in BACKENDS),
+             ("look", cfg.get("look", "material") in materials.LOOKS)]
   rules += [("render_workers", 0 <= cfg.render_workers <= 256),
             ("image_size", 16 <= cfg.image_size <= 1024), ("steps", cfg.steps >= 1),
             ("split_fractions", len(cfg.split_fractions) == 3
@@ -128,7 +129,8 @@ def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray
                         for c in range(cfg.configs_per_tower)])
   ids = np.concatenate(ids)
   tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, ids.shape)
-  images, _ = renderer.render(prims, np.maximum(ids, 0), tex_seeds)
+  looks = materials.look_ids(ids, cfg.get("look", "material"))  # what each block shows
+  images, _ = renderer.render(prims, np.maximum(looks, 0), tex_seeds)
   depths = np.asarray(depth.render_depths(prims, camera.camera_dict(cfg.image_size,
                                                                     cfg.image_size)))
   traj = np.asarray(simulate(prims, pushes_of(cfg), steps=cfg.steps, backend=cfg.backend),

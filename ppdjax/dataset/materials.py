@@ -25,6 +25,29 @@ REAL_MATERIAL_NAMES = tuple(REAL_MATERIALS)
 ALL_MATERIAL_NAMES = MATERIAL_NAMES + REAL_MATERIAL_NAMES
 
 
+# What a block shows (`data.look`). "material": its material's texture. The look-alike
+# towers' (the paper's Fig. 5: objects that look alike can differ in physics): "painted",
+# one paint on every block whatever its material, and "alike_metals", steel with
+# aluminium's brushed finish (two materials, one look).
+LOOKS = ("material", "painted", "alike_metals")
+# Texture families by id: the materials' (same ids, same textures), then the paint.
+LOOK_NAMES = ALL_MATERIAL_NAMES + ("paint",)
+
+
+def look_ids(material_ids, look: str) -> np.ndarray:
+  """Texture ids (`LOOK_NAMES`) that blocks of `material_ids` (`ALL_MATERIAL_NAMES` ids,
+  -1 padding, any shape) show under `look` (`LOOKS`); padding stays -1."""
+  if look not in LOOKS:
+    raise ValueError(f"data.look must be one of {LOOKS}, got {look!r}")
+  ids = np.asarray(material_ids)
+  if look == "painted":
+    return np.where(ids >= 0, LOOK_NAMES.index("paint"), -1)
+  if look == "alike_metals":
+    return np.where(ids == ALL_MATERIAL_NAMES.index("steel"),
+                    ALL_MATERIAL_NAMES.index("aluminium"), ids)
+  return ids
+
+
 def material_slots(name: str) -> np.ndarray:
   """0-based density slots a material may take."""
   if name in REAL_MATERIALS:
@@ -106,6 +129,12 @@ def _metal(rng, size, tint=(0.78, 0.80, 0.84)):
   return shine[..., None] * np.asarray(tint) * rng.uniform(0.85, 1.1)
 
 
+def _paint(rng, size):
+  """A matte paint, one colour for every block (the seed varies only its fine grain)."""
+  grain = 0.94 + 0.06 * _value_noise(rng, size, 32)
+  return grain[..., None] * np.asarray([0.25, 0.42, 0.62])
+
+
 def _pine(rng, size):
   return _wood(rng, size) * np.array([1.45, 1.6, 1.9])  # pale yellow softwood
 
@@ -115,15 +144,16 @@ _FAMILIES = {"wood": _wood, "brick": _brick, "stone": _stone, "ceramic": _cerami
              # brushed metals: aluminium light, steel darker and bluish, copper orange
              "aluminium": functools.partial(_metal, tint=(0.86, 0.87, 0.88)),
              "steel": functools.partial(_metal, tint=(0.58, 0.61, 0.66)),
-             "copper": functools.partial(_metal, tint=(0.86, 0.52, 0.32))}
+             "copper": functools.partial(_metal, tint=(0.86, 0.52, 0.32)),
+             "paint": _paint}
 
 
-@functools.lru_cache(maxsize=len(ALL_MATERIAL_NAMES) * TEXTURE_VARIANTS)
+@functools.lru_cache(maxsize=len(LOOK_NAMES) * TEXTURE_VARIANTS)
 def texture(material: str, seed: int, size: int = TEXTURE_SIZE) -> np.ndarray:
-  """(size, size, 3) uint8 procedural texture of `material`, randomised by `seed` (cached;
-  do not modify the returned array)."""
+  """(size, size, 3) uint8 procedural texture of `material` (or another look of
+  `LOOK_NAMES`), randomised by `seed` (cached; do not modify the returned array)."""
   if material not in _FAMILIES:
-    raise ValueError(f"unknown material {material!r}; expected one of {ALL_MATERIAL_NAMES}")
-  rng = np.random.default_rng([ALL_MATERIAL_NAMES.index(material), int(seed)])
+    raise ValueError(f"unknown material {material!r}; expected one of {LOOK_NAMES}")
+  rng = np.random.default_rng([LOOK_NAMES.index(material), int(seed)])
   img = _FAMILIES[material](rng, size)
   return (np.clip(img, 0, 1) * 255).astype(np.uint8)

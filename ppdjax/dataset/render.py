@@ -113,10 +113,11 @@ def write_boxes(model, first_geom: int, prims: Primitives) -> None:
 
 
 def upload_textures(model, renderer, tex_ids, valid, material_ids, texture_seeds) -> None:
-  """Writes each valid slot's material texture and uploads it to the renderer's GL context."""
+  """Writes each valid slot's texture and uploads it to the renderer's GL context;
+  `material_ids` index `materials.LOOK_NAMES` (a material's id is its own texture's)."""
   renderer._gl_context.make_current()  # pylint: disable=protected-access
   for slot in np.flatnonzero(valid):
-    write_texture(model, tex_ids[slot], materials.ALL_MATERIAL_NAMES[int(material_ids[slot])],
+    write_texture(model, tex_ids[slot], materials.LOOK_NAMES[int(material_ids[slot])],
                   int(texture_seeds[slot]))
     mujoco.mjr_uploadTexture(model, renderer._mjr_context, tex_ids[slot])  # pylint: disable=protected-access
 
@@ -170,7 +171,8 @@ class ObjectRenderer(SlotRenderer):
 
     Args:
       prims: one object (K slots).
-      material_ids: (K,) material index per slot (ignored for invalid slots).
+      material_ids: (K,) texture per slot (`materials.LOOK_NAMES`: a material's id shows
+        its own texture; ignored for invalid slots).
       texture_seeds: (K,) texture seed per slot.
     """
     m = self.model

@@ -104,9 +104,10 @@ class Pipeline:
                    + [-1] * (p.num_slots - blocks))
     prims, ids = primitives.stack(prims), np.asarray(ids, np.int32)
     seeds = rng.integers(0, materials.TEXTURE_VARIANTS, ids.shape)
+    looks = np.maximum(materials.look_ids(ids, c.data.get("look", "material")), 0)  # shown
     size = c.data.image_size
     with render.BatchRenderer(size, size, c.data.render_workers, depth=False) as renderer:
-      images, _ = renderer.render(prims, np.maximum(ids, 0), seeds)
+      images, _ = renderer.render(prims, looks, seeds)
     cam = camera.camera_dict(size, size)
     depths = np.asarray(depth.render_depths(prims, cam))
     vox = np.asarray(voxels.voxelize(prims))
@@ -116,7 +117,7 @@ class Pipeline:
     rest = np.concatenate([np.asarray(jax.vmap(scene.rest_position)(prims)),
                            np.tile([1.0, 0.0, 0.0, 0.0], (len(ids), 1))], -1)
     tracked, errors = observe_towers(
-        jax.tree.map(np.asarray, prims), np.maximum(ids, 0), seeds, rest, truth, steps=steps,
+        jax.tree.map(np.asarray, prims), looks, seeds, rest, truth, steps=steps,
         fps=t.fps, frame=tuple(t.frame), noise=t.noise, lighting=t.lighting, seed=t.seed,
         stickers=t.stickers, workers=FLAGS.workers)
     os.makedirs(self.root, exist_ok=True)

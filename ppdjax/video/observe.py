@@ -40,7 +40,8 @@ def observe_towers(prims, material_ids, texture_seeds, rest_poses, trajectories,
 
   Args:
     prims: numpy Primitives (B, K) in the object frame.
-    material_ids, texture_seeds: (B, K) ints (`materials.ALL_MATERIAL_NAMES` ids).
+    material_ids, texture_seeds: (B, K) ints: what each block shows
+      (`materials.LOOK_NAMES` ids; `materials.look_ids` of the materials) and its seed.
     rest_poses: (B, 7) world poses at rest; trajectories: (B, T, 7) world poses after each
       simulator step, a frame or more longer than `steps` (the last frame must lie at or
       beyond step `steps`).
