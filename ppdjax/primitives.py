@@ -22,8 +22,12 @@ class Primitives:
     half_size: (..., K, 3) half extents in metres, in [0, 0.5].
     pos: (..., K, 3) box centres in the object frame, in [-0.5, 0.5].
     quat: (..., K, 4) orientations (w, x, y, z), unit norm.
-    density: (..., K) kg/m^3.
+    density: (..., K) kg/m^3 (a block's mean density where it is not uniform).
     valid: (..., K) bool; padded slots are False and take no part in anything.
+    inertia_scale: None (every box of one material throughout: the model's boxes, the
+      paper's towers), or (..., K) > 0: each box's inertia about its centre over that of a
+      uniform box of its mean density (a hollow shell: above 1; `dataset.hollow`). Only the
+      simulator reads it (`sim.mass.mass_properties`).
   """
 
   half_size: jax.Array
@@ -31,6 +35,7 @@ class Primitives:
   quat: jax.Array
   density: jax.Array
   valid: jax.Array
+  inertia_scale: jax.Array | None = None
 
   @property
   def batch_shape(self) -> tuple[int, ...]:
@@ -50,7 +55,8 @@ class Primitives:
     return self
 
 
-FIELDS = tuple(f.name for f in dataclasses.fields(Primitives))  # half_size ... valid
+# Every object's fields, in the constructor's order (`inertia_scale`, optional, apart).
+FIELDS = tuple(f.name for f in dataclasses.fields(Primitives))[:5]  # half_size ... valid
 
 
 def flatten(prims: Primitives) -> tuple[Primitives, tuple[int, ...]]:
@@ -65,8 +71,14 @@ def unflatten(x, batch: tuple[int, ...]):
 
 
 def stack(prims: list[Primitives]) -> Primitives:
-  """Stacks one-object Primitives (NumPy) on a new leading axis."""
-  return Primitives(*[np.stack([np.asarray(getattr(p, f)) for p in prims]) for f in FIELDS])
+  """Stacks one-object Primitives (NumPy) on a new leading axis (`inertia_scale` where any
+  has one: 1 for the others)."""
+  out = Primitives(*[np.stack([np.asarray(getattr(p, f)) for p in prims]) for f in FIELDS])
+  if all(p.inertia_scale is None for p in prims):
+    return out
+  return out.replace(inertia_scale=np.stack([
+      np.ones(p.num_slots, np.float32) if p.inertia_scale is None
+      else np.asarray(p.inertia_scale, np.float32) for p in prims]))
 
 
 def _fail(field: str, problem: str):
@@ -106,6 +118,15 @@ def validate(prims: Primitives) -> None:
     _fail("quat", f"not unit norm (|q| ranges {norm.min():.4g}..{norm.max():.4g})")
   if np.any(valid & (density <= 0)):
     _fail("density", "a valid box has a non-positive density")
+  if prims.inertia_scale is not None:
+    scale = np.asarray(prims.inertia_scale)
+    if scale.shape != lead:
+      _fail("inertia_scale", f"expected shape {lead} (batch + (K,) from density), got "
+            f"{scale.shape}")
+    if not np.issubdtype(scale.dtype, np.floating) or not np.all(np.isfinite(scale)):
+      _fail("inertia_scale", "expected finite floats")
+    if np.any(valid & (scale <= 0)):
+      _fail("inertia_scale", "a valid box has a non-positive inertia scale")
   if np.any(~valid.any(axis=-1)):
     _fail("valid", "an object has no valid box")
 

@@ -258,3 +258,47 @@ def test_look_alike_towers_show_one_texture_for_materials_that_differ(monkeypatc
   cfg.look = "glossy"
   with pytest.raises(ValueError, match="config.data.look"):
     generation.check_config(cfg)
+
+
+def test_hollow_blocks_keep_their_material_and_carry_their_inertia():
+  """`data.hollow`: blocks become shells around cores; the label is the mean density, the
+  material the shell's, and the dataset keeps each block's inertia scale for the simulator."""
+  from ppdjax.configs import video  # pylint: disable=import-outside-toplevel
+  from ppdjax.dataset import hollow, materials  # pylint: disable=import-outside-toplevel
+
+  class Blank:
+    def render(self, prims, material_ids, seeds):
+      return np.zeros((len(material_ids), 16, 16, 3), np.uint8), None
+
+  cfg = video.get_config("tiny").data
+  cfg.update(num_towers=4, towers_per_shard=4, steps=4, backend="mujoco", image_size=16)
+  solid = generation.generate_shard(cfg, 0, 0, Blank())
+  cfg.hollow = 1.0
+  generation.check_config(cfg)
+  out = generation.generate_shard(cfg, 0, 0, Blank())
+  valid = out["valid"]
+  assert "inertia_scale" not in solid and out["inertia_scale"].shape == valid.shape
+  scale = out["inertia_scale"][valid]
+  assert (np.abs(scale - 1) > 1e-3).mean() > 0.5  # a core of another density, or none
+  real = np.asarray([materials.REAL_MATERIALS[materials.ALL_MATERIAL_NAMES[m]] * 100.0
+                     for m in out["materials"][valid]])
+  empty = scale > 1  # lighter cores: the block weighs less than its shell's material
+  assert (out["density"][valid][empty] < real[empty]).all()
+  assert np.isclose(hollow.inertia_scale(7900.0, 0.0, 0.0), 1.0)
+  cfg.hollow = 1.5
+  with pytest.raises(ValueError, match="config.data.hollow"):
+    generation.check_config(cfg)
+
+
+def test_the_lookalike_video_preset_paints_and_hollows_its_blocks():
+  from ppdjax.configs import schema, video  # pylint: disable=import-outside-toplevel
+  for size in ("lookalike", "lookalike_tiny"):
+    config = video.get_config(size)
+    schema.read(config)
+    generation.check_config(config.data)
+    assert (config.data.look, config.data.hollow, config.data.kind) == ("painted", 0.5,
+                                                                      "pendulum")
+  assert video.get_config("lookalike").train.init_from == "assets/video_model"
+  assert video.get_config("paper").data.look == "material"
+  with pytest.raises(ValueError, match="lookalike"):
+    video.get_config("huge")

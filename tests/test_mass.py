@@ -99,3 +99,67 @@ def test_principal_axes_jvp_finite_and_consistent(rng):
   jac = jax.jacfwd(lambda d: mass.principal_axes(
       mass.mass_properties(cube.replace(density=d)).inertia))(cube.density)
   assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(jac))
+
+
+@pytest.mark.parametrize("core_density", [0.0, 2700.0])
+def test_a_hollow_block_weighs_and_turns_as_its_shell_and_core(rng, core_density):
+  """`inertia_scale` (dataset.hollow): a block of mean density with it has the mass, centre
+  and inertia of its shell (six slabs) and core built box by box."""
+  from ppdjax.dataset import hollow  # pylint: disable=import-outside-toplevel
+  p = _random_object(rng, 2)
+  shell, f = 7900.0, 0.7
+  a, b, c = (np.asarray(p.half_size[0], np.float64))
+  pieces = []  # (half size, centre in the block's frame) of the shell's slabs and the core
+  for axis, (h, lo) in enumerate(zip((a, b, c), (f * a, f * b, f * c))):
+    for sign in (-1, 1):
+      half = [a, b, c]
+      half[axis] = (h - lo) / 2
+      for other in range(axis):  # the slabs of earlier axes hold the corners and edges
+        half[other] = f * (a, b, c)[other]
+      centre = np.zeros(3)
+      centre[axis] = sign * (h + lo) / 2
+      pieces.append((half, centre, shell))
+  pieces.append(([f * a, f * b, f * c], np.zeros(3), core_density))
+  rot = np.asarray(quat_to_mat(jnp.asarray(p.quat[0])))
+  pieces = [x for x in pieces if x[2] > 0]
+  explicit = primitives.make(
+      np.asarray([x[0] for x in pieces] + [p.half_size[1]]),
+      np.asarray([p.pos[0] + rot @ x[1] for x in pieces] + [p.pos[1]]),
+      np.asarray([p.quat[0]] * len(pieces) + [p.quat[1]]),
+      np.asarray([x[2] for x in pieces] + [p.density[1]]), num_slots=len(pieces) + 1)
+  scale = np.ones(p.num_slots, np.float32)
+  scale[0] = hollow.inertia_scale(shell, core_density, f)
+  block = p.replace(density=p.density.copy(), inertia_scale=scale)
+  block.density[0] = hollow.mean_density(shell, core_density, f)
+  ours, ref = mass.mass_properties(block.validate()), mass.mass_properties(explicit)
+  assert _rel(ours.mass, ref.mass) < 1e-5
+  assert np.abs(np.asarray(ours.com) - np.asarray(ref.com)).max() < 1e-6
+  assert _rel(ours.inertia, ref.inertia) < 1e-5
+  assert _rel(ours.inertia, mass.mass_properties(p.replace(density=block.density)).inertia
+              ) > 1e-3  # not what a uniform block of that mean density has
+
+
+def test_a_bad_inertia_scale_is_named(rng):
+  p = _random_object(rng, 2)
+  for bad, what in ((np.ones(3, np.float32), "expected shape"),
+                    (np.full(p.num_slots, np.nan, np.float32), "finite"),
+                    (np.full(p.num_slots, -1.0, np.float32), "non-positive")):
+    with pytest.raises(ValueError, match=f"inertia_scale.*{what}"):
+      p.replace(inertia_scale=bad).validate()
+
+
+def test_the_simulator_reads_the_inertia_scale():
+  """MuJoCo C rolls a tower with a hollow block otherwise than the uniform tower of the same
+  masses, and a scale of one as no scale."""
+  from ppdjax.sim.pushes import pendulum_strike  # pylint: disable=import-outside-toplevel
+  p = primitives.make([[0.06, 0.06, 0.12], [0.06, 0.06, 0.06]],
+                      [[0.0, 0.0, 0.12], [0.0, 0.0, 0.30]], density=[2000.0, 5000.0])
+  run = lambda q: ppdjax.simulate(q, pendulum_strike(), steps=120, backend="mujoco")
+  uniform = run(p)
+  same = run(p.replace(inertia_scale=np.ones(p.num_slots, np.float32)))
+  scale = np.ones(p.num_slots, np.float32)
+  scale[1] = 1.6
+  hollow = run(p.replace(inertia_scale=scale))
+  np.testing.assert_array_equal(uniform, same)
+  assert np.abs(uniform[..., :3] - uniform[..., :1, :3]).max() > 0.01  # the strike moves it
+  assert np.abs(hollow - uniform).max() > 1e-3

@@ -57,6 +57,7 @@ class DataConfig:
   # what each block shows (materials.LOOKS): "material" (its own texture), "painted" (one
   # paint on every block) or "alike_metals" (steel shows aluminium's finish): look-alike towers
   look: str = "material"
+  hollow: float = 0.0  # the chance that a block is a shell around a core (dataset.hollow)
 
 
 @dataclasses.dataclass(frozen=True)

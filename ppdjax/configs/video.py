@@ -19,9 +19,30 @@ import ml_collections
 from ppdjax.configs import paper, tiny
 
 
+SIZES = ("paper", "tiny", "lookalike", "lookalike_tiny")
+
+
 def get_config(size: str = "paper"):
-  if size not in ("paper", "tiny"):
-    raise ValueError(f"the video preset comes in sizes 'paper' and 'tiny', got {size!r}")
+  """`size`: "paper", "tiny" (a CPU's), or "lookalike" / "lookalike_tiny": the look-alike
+  towers (every block painted one colour, half of them hollow: only the motion tells the
+  densities; docs/data.md), fine-tuned from the shipped video model."""
+  if size not in SIZES:
+    raise ValueError(f"the video preset comes in sizes {SIZES}, got {size!r}")
+  lookalike, size = size.startswith("lookalike"), size.replace("lookalike_", "").replace(
+      "lookalike", "paper")
+  config = _video(size)
+  if lookalike:
+    config.name = "video_lookalike" + ("_tiny" if size == "tiny" else "")
+    # (a) one look for every material, the paint; (b) half the blocks shells around cores
+    config.data.look = "painted"
+    config.data.hollow = 0.5
+    if size == "paper":  # the shipped video model reads the same strike: every parameter
+      config.train.init_from = "assets/video_model"
+      config.train.geometry_steps = 0
+  return config
+
+
+def _video(size: str):
   config = paper.get_config() if size == "paper" else tiny.get_config()
   config.name = "video" if size == "paper" else "video_tiny"
   config.data.kind = "pendulum"

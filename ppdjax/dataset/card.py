@@ -14,12 +14,16 @@ from ppdjax.conventions import TIMESTEP, density_to_slot  # noqa: E402
 from ppdjax.dataset import materials, storage  # noqa: E402
 
 
-def look_note(look: str) -> str:
-  """The card's sentence on what the blocks show (`data.look`), empty for their own."""
-  return {"material": "",
+def look_note(data: dict) -> str:
+  """The card's sentences on look-alike blocks (`data.look`, `data.hollow`), empty for
+  blocks that show their own material and are of it throughout."""
+  look = {"material": "",
           "painted": " Look: one paint on every block (the texture tells no material).",
           "alike_metals": " Look: steel shows aluminium's finish (two materials, one look)."
-          }[look]
+          }[data.get("look", "material")]
+  p = data.get("hollow", 0.0)
+  return look + (f" Hollow: each block a shell around a core with probability {p:g} "
+                 "(`dataset.hollow`; densities are the blocks' means)." if p else "")
 
 
 def write_card(path: str, sheet_samples: int = 8) -> None:
@@ -70,7 +74,7 @@ def write_card(path: str, sheet_samples: int = 8) -> None:
             f"= {m['samples']} samples; splits by tower: ") +
            ", ".join(f"{k} {v}" for k, v in m["splits"].items()) +
            f". Engine: {m['engine']['backend']} ({m['engine']['precision']}), seed "
-           f"{m['seed']}." + look_note(m['config']['data'].get('look', 'material')), "",
+           f"{m['seed']}." + look_note(m['config']['data']), "",
            "| boxes | samples |", "|---|---|"]
   lines += [f"| {b} | {(blocks == b).sum()} |" for b in range(1, valid.shape[1] + 1)
             if (blocks == b).any()]

@@ -20,8 +20,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ppdjax import primitives
-from ppdjax.dataset import (camera, card, depth, materials, render, storage, tool_generation,
-                            tool_paper, tool_scene, towers, voxels)
+from ppdjax.dataset import (camera, card, depth, hollow, materials, render, storage,
+                            tool_generation, tool_paper, tool_scene, towers, voxels)
 from ppdjax.sim.pushes import default_pushes, pendulum_strike
 from ppdjax.sim.rollout_mjx import settings_for
 from ppdjax.sim.simulate import BACKENDS, simulate
@@ -66,7 +66,8 @@ def check_config(cfg) -> None:
              ("configs_per_tower", cfg.configs_per_tower >= 1),
              ("rotate", 0 <= cfg.rotate <= np.pi), ("size_noise", 0 <= cfg.size_noise < 1),
              ("backend", cfg.backend in BACKENDS),
-             ("look", cfg.get("look", "material") in materials.LOOKS)]
+             ("look", cfg.get("look", "material") in materials.LOOKS),
+             ("hollow", 0.0 <= cfg.get("hollow", 0.0) <= 1.0)]
   rules += [("render_workers", 0 <= cfg.render_workers <= 256),
             ("image_size", 16 <= cfg.image_size <= 1024), ("steps", cfg.steps >= 1),
             ("split_fractions", len(cfg.split_fractions) == 3
@@ -128,6 +129,10 @@ def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray
   prims = primitives.stack([jax.tree.map(lambda x, c=c: x[c], p) for p in prims
                         for c in range(cfg.configs_per_tower)])
   ids = np.concatenate(ids)
+  scales = {}
+  if cfg.get("hollow", 0.0) > 0:  # shells around cores: mean densities, their inertia
+    prims, _ = hollow.hollow_blocks(rng, prims, ids, cfg.hollow)
+    scales["inertia_scale"] = np.asarray(prims.inertia_scale)
   tex_seeds = rng.integers(0, materials.TEXTURE_VARIANTS, ids.shape)
   looks = materials.look_ids(ids, cfg.get("look", "material"))  # what each block shows
   images, _ = renderer.render(prims, np.maximum(looks, 0), tex_seeds)
@@ -139,7 +144,7 @@ def generate_shard(cfg, seed: int, shard: int, renderer) -> dict[str, np.ndarray
   return {"voxels": np.repeat(vox, cfg.configs_per_tower, 0),
           "image": images, "depth": depths, "trajectories": traj,
           **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS},
-          "materials": ids, "tower_id": tower_id,
+          "materials": ids, "tower_id": tower_id, **scales,
           "split": storage.split_of(tower_id, tuple(cfg.split_fractions))}
 
 

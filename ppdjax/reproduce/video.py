@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import primitives  # noqa: E402
-from ppdjax.dataset import (camera, depth, generation, materials, render,  # noqa: E402
+from ppdjax.dataset import (camera, depth, generation, hollow, materials, render,  # noqa: E402
                             towers, voxels)
 from ppdjax.sim import scene  # noqa: E402
 from ppdjax.sim.simulate import simulate  # noqa: E402
@@ -103,6 +103,10 @@ class Pipeline:
         ids.append([materials.ALL_MATERIAL_NAMES.index(n) for n in names]
                    + [-1] * (p.num_slots - blocks))
     prims, ids = primitives.stack(prims), np.asarray(ids, np.int32)
+    scales = {}
+    if c.data.get("hollow", 0.0) > 0:  # shells around cores, as the training data's
+      prims, _ = hollow.hollow_blocks(rng, prims, ids, c.data.hollow)
+      scales["inertia_scale"] = np.asarray(prims.inertia_scale)
     seeds = rng.integers(0, materials.TEXTURE_VARIANTS, ids.shape)
     looks = np.maximum(materials.look_ids(ids, c.data.get("look", "material")), 0)  # shown
     size = c.data.image_size
@@ -124,7 +128,7 @@ class Pipeline:
     np.savez_compressed(
         self.test_file, voxels=vox, image=images, depth=depths, true_trajectory=truth[:, :steps],
         tracked_trajectory=tracked, materials=ids, rest=rest, stickers=t.stickers,
-        errors=np.asarray([e or "" for e in errors]),
+        errors=np.asarray([e or "" for e in errors]), **scales,
         **{f: np.asarray(getattr(prims, f)) for f in primitives.FIELDS})
 
   def example(self) -> None:

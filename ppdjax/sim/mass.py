@@ -31,7 +31,8 @@ def box_masses(prims: Primitives) -> jax.Array:
 
 
 def mass_properties(prims: Primitives) -> MassProperties:
-  """Mass, centre of mass and inertia about it for boxes of per-box density.
+  """Mass, centre of mass and inertia about it for boxes of per-box density (and, where
+  given, each box's `inertia_scale`: a hollow block's inertia over a uniform one's).
 
   Pure JAX: works under jit, vmap, grad and jacfwd; invalid boxes contribute nothing.
   Matches MuJoCo's compiler for a body of box geoms with a `density` attribute.
@@ -49,6 +50,8 @@ def mass_properties(prims: Primitives) -> MassProperties:
   h2 = prims.half_size ** 2
   diag_k = m_k[:, None] / 3.0 * jnp.stack(
       [h2[:, 1] + h2[:, 2], h2[:, 0] + h2[:, 2], h2[:, 0] + h2[:, 1]], -1)
+  if prims.inertia_scale is not None:  # blocks not uniform (hollow): same mass and centre
+    diag_k = diag_k * prims.inertia_scale[:, None]
   rot = quat_to_mat(prims.quat)
   inertia_k = jnp.einsum("kij,kj,klj->kil", rot, diag_k, rot)
   d = prims.pos - com

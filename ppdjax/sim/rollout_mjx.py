@@ -216,6 +216,8 @@ def simulate(prims: Primitives, pushes: Pushes, *, steps: int = STEPS,
                       pos=flat.pos.astype(jnp.float32), quat=flat.quat.astype(jnp.float32),
                       density=flat.density.astype(jnp.float32),
                       valid=flat.valid.astype(bool))
+  if flat.inertia_scale is not None:
+    flat = flat.replace(inertia_scale=flat.inertia_scale.astype(jnp.float32))
   if isinstance(settings, MujocoSettings):
     out = hold_escapes(rollout_mujoco.simulate_traced(flat, pushes, steps=steps,
                                                       settings=settings))
