@@ -263,7 +263,7 @@ def test_unit_extent_snap_on_turned_boxes_and_draws_keep_an_off_centre_fit():
   assert np.isclose(rot[2, 1], -1.0)  # its second axis points down
   vox = np.zeros((32, 32, 32), np.uint8)
   vox[10:22, 6:26, :] = 1  # a full column along z only
-  snapped = faces.snap_unit_extent(box, jnp.asarray(vox))
+  snapped = jax.jit(faces.snap_unit_extent)(box, jnp.asarray(vox))  # one program, not op by op
   np.testing.assert_allclose(snapped.half_size[0], [0.2, 0.5, 0.3], atol=1e-6)
   np.testing.assert_allclose(snapped.pos[0], 0.0, atol=1e-6)  # both z ends moved out
   # off the origin: a tower whose top face was not snapped (two boxes reach it alike)
@@ -273,7 +273,7 @@ def test_unit_extent_snap_on_turned_boxes_and_draws_keep_an_off_centre_fit():
                                    np.float32))
   centre = np.asarray(faces.bounds_centre(tower))
   assert abs(centre[2]) > 1e-3
-  cands = faces.spread_faces(tower, jax.random.key(0), 16)
+  cands = jax.jit(faces.spread_faces, static_argnums=2)(tower, jax.random.key(0), 16)
   for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[0], cands)), jax.tree.leaves(tower)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
   centres = np.asarray(jax.vmap(faces.bounds_centre)(cands))

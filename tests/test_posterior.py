@@ -98,9 +98,11 @@ def test_information_gain_is_zero_for_one_motion_and_log_two_for_two_apart():
   from ppdjax.sim.rollout_mujoco import MujocoSettings  # pylint: disable=import-outside-toplevel
   tower = jax.tree.map(lambda x: x[0], sample_towers(3, 1, num_blocks=2))
   pushes = active.candidate_pushes(azimuths=2, elevations=(0.0,), strengths=(1.0,))
-  gains = lambda slots, distance: np.asarray(active.push_gains(  # noqa: E731
-      tower, jnp.asarray(slots), jnp.asarray(distance), jnp.zeros(2), pushes,
-      hypotheses=2, scale=1.0, steps=64, settings=MujocoSettings()).gain)
+  gain = jax.jit(lambda slots, distance: active.push_gains(  # one program, not op by op
+      tower, slots, distance, jnp.zeros(2), pushes, hypotheses=2, scale=1.0, steps=64,
+      settings=MujocoSettings()).gain)
+  gains = lambda slots, distance: np.asarray(gain(jnp.asarray(slots),  # noqa: E731
+                                                  jnp.asarray(distance, jnp.float32)))
   same = np.array([[20, 20, 0, 0, 0], [20, 20, 0, 0, 0]])
   np.testing.assert_allclose(gains(same, [0.01, 0.01]), 0.0, atol=1e-3)  # d_ii: 1e-6 m
   apart = np.array([[0, 0, 0, 0, 0], [99, 99, 0, 0, 0]])  # 100 against 10,000 kg/m3
