@@ -399,6 +399,8 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
   assert done.returncode != 0 and "reads only config.eval" in done.stderr
 
 
+@pytest.mark.slow  # two evaluations (~26 s on 2 cores): `make test-all`; the records' round
+# trip and resumption are pinned by the unit tests at the end of this module
 def test_saved_batch_records_give_back_the_same_tables(tiny_run, tiny_dataset, tmp_path):
   """A rerun over saved batches computes (and compiles) nothing and reports the same; a
   folder of another evaluation is refused, naming what differs."""

@@ -275,10 +275,11 @@ def test_coordinate_channels_reach_the_voxel_feature():
   assert kernel.value.shape == (3, 3, 3, 4, 2)
   vox = np.zeros((1, 32, 32, 32), np.uint8)
   vox[0, 4:9, 10:20, 2:6] = 1
-  with_coords = enc(jnp.asarray(vox), train=False)
+  forward = nnx.jit(lambda e, v: e(v, train=False))  # one program for both, not op by op
+  with_coords = forward(enc, jnp.asarray(vox))
   kernel.value = kernel.value.at[:, :, :, 1:].set(0.0)
   assert with_coords.shape == (1, 8)
-  assert not np.allclose(with_coords, enc(jnp.asarray(vox), train=False))
+  assert not np.allclose(with_coords, forward(enc, jnp.asarray(vox)))
 
 
 @pytest.mark.slow  # gradients of a second model configuration (~35 s on 2 cores); a model

@@ -156,6 +156,8 @@ def test_overfits_sixteen_samples(tiny_dataset):
   assert summary["top1"] > 90, summary
 
 
+@pytest.mark.slow  # a second training and its compilation (~55 s on 2 cores): `make test-all`;
+# test_load_returns_the_trained_model resumes a finished run in the default tests
 def test_resume_is_bitwise_equal(straight_run, tiny_dataset, tmp_path, monkeypatch):
   """Interrupted at step 4 (Ctrl-C: it saves), run again: identical losses and weights."""
   workdir = str(tmp_path / "resumed")

@@ -339,3 +339,58 @@ def test_a_struck_real_tower_filmed_and_tracked(tmp_path):
   np.testing.assert_allclose(np.load(tmp_path / "traj.npz")["trajectory"], tracked[0],
                              atol=1e-4)
 
+
+
+def test_the_lookalike_report_reads_the_motion_against_the_look(tmp_path):
+  """video_lookalike.extend_report on made-up towers: two painted 2-block towers of one
+  shape, one heavy on top and one light; the full model reads them right, the
+  appearance-only one reads both alike. Its keys, figure and section follow."""
+  import json  # pylint: disable=import-outside-toplevel
+  from types import SimpleNamespace  # pylint: disable=import-outside-toplevel
+  from ppdjax.configs import video as video_config  # pylint: disable=import-outside-toplevel
+  from ppdjax.reproduce import video_lookalike  # pylint: disable=import-outside-toplevel
+
+  n, k, t = 4, 5, 8
+  valid = np.zeros((n, k), bool)
+  valid[:, :2] = True
+  pos = np.zeros((n, k, 3), np.float32)
+  pos[:, 1, 2] = 0.2
+  half = np.full((n, k, 3), 0.1, np.float32)
+  dens = np.zeros((n, k), np.float32)
+  dens[:, :2] = [[500, 7900], [7900, 500], [2700, 9000], [9000, 2700]]
+  traj = np.zeros((n, t, 7), np.float32)
+  traj[..., 3] = 1.0
+  traj[:, :, 0] = np.linspace(0, 1, t)[None] * np.arange(1, n + 1)[:, None]
+  test = {"valid": valid, "pos": pos, "half_size": half, "density": dens,
+          "materials": np.where(valid, 5, -1), "image": np.zeros((n, 16, 16, 3), np.uint8),
+          "tracked_trajectory": traj, "true_trajectory": traj,
+          "errors": np.asarray([""] * n)}
+  np.savez(tmp_path / "test.npz", **test)
+
+  def decomposition(density):
+    quat = np.zeros((n, k, 4), np.float32)
+    quat[..., 0] = 1
+    fields = {"pos": pos, "half_size": half, "quat": quat, "density": density,
+              "valid": valid, "score": np.zeros(n, np.float32)}
+    return {f"{way}_{f}": v for way in ("tracked", "true") for f, v in fields.items()}
+  np.savez(tmp_path / "full.npz", **decomposition(dens))
+  np.savez(tmp_path / "look.npz", **decomposition(np.where(valid, 3000.0, 0.0)))
+  config = video_config.get_config("lookalike_tiny")
+  pipe = SimpleNamespace(config=config, test_file=str(tmp_path / "test.npz"),
+                         eval_files={"sample": str(tmp_path / "full.npz"),
+                                     "appearance": str(tmp_path / "look.npz")})
+  (tmp_path / "res").mkdir()
+  (tmp_path / "res" / "video_lookalike.md").write_text("# report\n")
+  result = {"density": {"tracked": {"rmse_all": 0.0, "rmse_2_blocks": 0.0}},
+            "heavier": {}, "tracking": {"tracked": n, "clips": n, "position_mm_median": 1.0,
+                                         "rotation_deg_median": 0.1}}
+  keys = video_lookalike.extend_report(pipe, str(tmp_path / "res"), "video_lookalike", result)
+  assert keys["heavier_right"] == 100.0 and keys["pearson_r"] == pytest.approx(1.0)
+  assert keys["heavier_towers"] == n and keys["appearance_only_rmse"] > 20
+  saved = json.loads((tmp_path / "res" / "video_lookalike.json").read_text())
+  for key in ("rmse_all", "rmse_2", "appearance_only_rmse", "heavier_right", "pearson_r",
+              "tracked", "towers", "median_mm", "median_deg"):
+    assert key in saved
+  assert sorted(saved["twins"]) in ([0, 1], [2, 3], [0, 3], [1, 2], [0, 2], [1, 3])
+  assert (tmp_path / "res" / "video_lookalike_twins.png").exists()
+  assert "the motion against the look" in (tmp_path / "res" / "video_lookalike.md").read_text()

@@ -223,6 +223,8 @@ class VideoTestConfig:
   noise: float = 3.0  # grey levels
   lighting: float = 0.1  # brightness drift, a fraction
   stickers: str = "sides"  # video.synthetic.STICKER_LAYOUTS: "sides", "sides_top", "all"
+  # also a model that reads no trajectory, reported beside (the look-alike towers' question)
+  appearance: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

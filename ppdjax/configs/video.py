@@ -36,6 +36,7 @@ def get_config(size: str = "paper"):
     # (a) one look for every material, the paint; (b) half the blocks shells around cores
     config.data.look = "painted"
     config.data.hollow = 0.5
+    config.test.appearance = True  # the appearance-only model, reported beside
     if size == "paper":  # the shipped video model reads the same strike: every parameter
       config.train.init_from = "assets/video_model"
       config.train.geometry_steps = 0

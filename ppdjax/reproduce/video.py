@@ -68,12 +68,25 @@ class Pipeline:
     self.test_file = os.path.join(root, "test_towers.npz")
     self.eval_files = {v: os.path.join(root, f"decompositions_{v}.npz") for v in VARIANTS}
     self.example_dir = os.path.join(FLAGS.assets, "video_example")
+    # the look-alike question: a model that reads no trajectory, beside (test.appearance)
+    self.appearance = bool(config.test.get("appearance", False))
+    self.appearance_dir = os.path.join(root, "appearance")
+    if self.appearance:
+      self.eval_files["appearance"] = os.path.join(root, "decompositions_appearance.npz")
+
+  def appearance_config(self):
+    config = self.config.copy_and_resolve_references()
+    config.model.use_trajectory = False
+    return config
 
   def steps(self):
     return [("generate", lambda: os.path.exists(os.path.join(self.data, "manifest.json")),
              lambda: generation.generate(self.config, self.data)),
             ("train", lambda: loop.trained_steps(self.workdir) >= total_steps(
                 self.config.train), self.train),
+            *([("train_appearance", lambda: loop.trained_steps(self.appearance_dir)
+                >= total_steps(self.config.train), self.train_appearance)]
+              if self.appearance else []),
             ("observe", lambda: os.path.exists(self.test_file), self.observe),
             ("evaluate", lambda: all(map(os.path.exists, self.eval_files.values())),
              self.evaluate),
@@ -82,11 +95,18 @@ class Pipeline:
              self.example)]
 
   def needs(self, name: str) -> tuple[str, ...]:
-    return {"generate": (), "train": ("generate",), "observe": (),
-            "evaluate": ("train", "observe"), "report": ("evaluate",), "example": ()}[name]
+    return {"generate": (), "train": ("generate",), "train_appearance": ("generate",),
+            "observe": (),
+            "evaluate": ("train", "observe") + (("train_appearance",) if self.appearance
+                                                else ()),
+            "report": ("evaluate",), "example": ()}[name]
 
   def train(self) -> None:
     loop.train_and_evaluate(self.config, self.data, self.workdir,
+                            time_limit_s=FLAGS.step_seconds)
+
+  def train_appearance(self) -> None:
+    loop.train_and_evaluate(self.appearance_config(), self.data, self.appearance_dir,
                             time_limit_s=FLAGS.step_seconds)
 
   def observe(self) -> None:
@@ -163,16 +183,22 @@ class Pipeline:
   def evaluate(self) -> None:
     from ppdjax.reproduce import video_report as report  # pylint: disable=import-outside-toplevel
     for variant, path in self.eval_files.items():  # both, to show what refinement does
-      if not os.path.exists(path):
+      if not os.path.exists(path) and variant == "appearance":
+        report.decompose_test(self.appearance_config(), self.appearance_dir, self.test_file,
+                              path, refine=False, network_only=True)
+      elif not os.path.exists(path):
         report.decompose_test(self.config, self.workdir, self.test_file, path,
                               refine=variant == "refine")
 
   def report(self) -> None:
     from ppdjax.reproduce import video_report as report  # pylint: disable=import-outside-toplevel
     args = [a for a in sys.argv[3:] if not a.startswith("--step=")]  # after the pipeline name
-    report.write_report(self, FLAGS.results,
-                        "python -m ppdjax.reproduce video " + " ".join(args),
-                        FLAGS.report_name)
+    result = report.write_report(self, FLAGS.results,
+                                 "python -m ppdjax.reproduce video " + " ".join(args),
+                                 FLAGS.report_name)
+    if self.appearance:
+      from ppdjax.reproduce import video_lookalike  # pylint: disable=import-outside-toplevel
+      video_lookalike.extend_report(self, FLAGS.results, FLAGS.report_name, result)
 
 
 def main(argv):

@@ -12,7 +12,7 @@ from tqdm.auto import tqdm
 from ppdjax.report.provenance import write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import primitives
-from ppdjax.conventions import density_to_slot
+from ppdjax.conventions import density_to_slot, slot_to_density
 from ppdjax.dataset import camera, generation, materials
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import make_decompose_fn
@@ -42,9 +42,10 @@ LOG2_LEVELS = np.arange(-4, 5)  # the paper's answer scale {2^k, k = -4..4}
 
 
 def decompose_test(config, workdir: str, test_file: str, out_file: str,
-                   refine: bool | None = None) -> None:
+                   refine: bool | None = None, network_only: bool = False) -> None:
   """Decomposes every test tower from its tracked and its true trajectory (refinement as
-  config.eval.refine unless `refine` says)."""
+  config.eval.refine unless `refine` says); `network_only`: the network's own densities
+  (its arg-max) on the fitted boxes, no sampling (a model that reads no trajectory)."""
   trained = checkpoints.load(workdir)
   _, cfg = trained
   e, size = config.eval, int(config.data.image_size)
@@ -53,7 +54,7 @@ def decompose_test(config, workdir: str, test_file: str, out_file: str,
   # screen (as measured: the screen is unmeasured on tracking)
   settings = DecomposeConfig.from_eval(e).replace(**{
       "fit.enabled": True, "fit.depth": True, "fit.image": False, "refine.enabled": refine,
-      "select.screen_steps": 0})
+      "select.screen_steps": 0, **({"select.samples": 1} if network_only else {})})
   fn = make_decompose_fn(trained, settings, camera=camera.camera_dict(size, size),
                          pushes=generation.pushes_of(cfg.data))
   d = dict(np.load(test_file))
@@ -75,6 +76,8 @@ def decompose_test(config, workdir: str, test_file: str, out_file: str,
                          fn(obs, jax.random.key(int(chunk[0]))))
       for f in fields:
         fields[f][chunk] = getattr(res.primitives, f)
+      if network_only:  # the network's arg-max, not the one sample's draw
+        fields["density"][chunk] = slot_to_density(np.argmax(res.density_logits, -1))
       valid[chunk], score[chunk] = res.primitives.valid, res.score
     out.update({f"{way}_{f}": v for f, v in fields.items()})
     out.update({f"{way}_valid": valid, f"{way}_score": score})
@@ -194,7 +197,7 @@ def write_report(pipe, results_dir: str, command: str, name: str = "video_towers
   two = np.flatnonzero(blocks == 2)
   headline = "refine" if pipe.config.eval.refine else "sample"
   rows, heavy = {}, {}
-  for variant in (headline,) + tuple(v for v in pipe.eval_files if v != headline):
+  for variant in (headline,) + tuple(v for v in ("sample", "refine") if v != headline):
     ev = dict(np.load(pipe.eval_files[variant]))
     tag = "" if variant == headline else (", +Refine" if variant == "refine"
                                          else ", +Sample only")
@@ -224,7 +227,8 @@ def write_report(pipe, results_dir: str, command: str, name: str = "video_towers
                    config=pipe.config, headlines={
                        f"density RMSE (slots), all towers, {way} trajectory":
                        f"density/{way}/rmse_all" for way in WAYS})
-  key = "real_towers" if name == "video_towers" else "real_towers_validation"
+  key = {"video_towers": "real_towers", "video_lookalike": "lookalike_towers"}.get(
+      name, "real_towers_validation")
   figure = "video_heavier.png" if name == "video_towers" else f"{name}_heavier.png"
   video_json = os.path.join(results_dir, "video.json")  # the issue's results file
   merged = json.load(open(video_json)) if os.path.exists(video_json) else {}
