@@ -741,8 +741,8 @@ def test_active_pushes_loop_picks_the_push_that_tells_hypotheses_apart():
 
 def test_active_pushes_report_scores_the_refined_loop_and_checks_its_temperature(tmp_path):
   """The report scores each policy's refined answers (the candidates' intervals kept) beside
-  the +Sample loop's, keeps "active" on the +Sample loop, and refuses records refined at a
-  temperature validation did not choose."""
+  the +Sample loop's at the prior weight validation chose, keeps "active" on the +Sample
+  loop, and refuses records refined at a temperature validation did not choose."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   from active_pushes import run as study  # pylint: disable=import-outside-toplevel
 
@@ -758,14 +758,19 @@ def test_active_pushes_report_scores_the_refined_loop_and_checks_its_temperature
     rec.update({f"{p}_answer": answer, f"{p}_lower": answer - width,
                 f"{p}_upper": answer + width,
                 f"{p}_pushes": np.tile(np.arange(4), (towers, 2, 1)),
-                f"{p}_refined_answer": np.repeat(true[:, None], 4, 1),  # exact once refined
-                f"{p}_refined_closer": np.ones((towers, 4), bool)})
+                # two prior weights: the first 7 slots off, the second exact once refined
+                f"{p}_refined_answer": np.stack([np.repeat((true + 7)[:, None], 4, 1),
+                                                 np.repeat(true[:, None], 4, 1)], 1),
+                f"{p}_refined_closer": np.ones((towers, 2, 4), bool)})
+  rec["refine_weights"] = np.asarray([0.0, 1e-5])
   np.savez(tmp_path / "rec.npz", **rec)
   out = tmp_path / "posterior.json"
   study.report(str(tmp_path / "rec.npz"), str(tmp_path / "rec.npz"), str(out))
   result = json.loads(out.read_text())
   refined = result["active_by_setting"]["depth"]["refined"]
+  assert refined["prior_weight"] == 1e-5  # validation's lowest RMSE
   assert refined["active4"]["top1"] == 100.0 and refined["fixed4"]["rmse"] == 0.0
+  assert refined["clipped"]["active4"]["top1"] == 100.0  # inside the interval already
   assert refined["active4"]["coverage_90"] == 1.0  # the candidates' interval holds the truth
   assert result["active"]["active4"]["top1"] == 0.0  # +Sample's answers: two slots off
   assert result["active"]["active4"]["rmse"] == pytest.approx(2.0)

@@ -4,7 +4,8 @@ pushes made so far, as the depth preset's `decompose` refines the closest candid
 The loop's answers are the closest candidates over the pushes made, compared over the
 selection's horizon (`run.closed_loop`); Levenberg-Marquardt (`infer.refine`) then fits
 the densities to the whole trajectories of those pushes and keeps the fit only where it
-comes closer (`refine_if_closer`, the rule `decompose` and the evaluation share).
+comes closer (`refine_if_closer`, the rule `decompose` and the evaluation share); with a prior, the
+MAP step under the prior model's density scores, kept where its cost fell.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from ppdjax.sim.rollout_mjx import simulate
 
 
 def refine_made(prims, answers, made, observed, pushes, *, steps: int, jacobian: str,
-                settings):
+                settings, prior=None, prior_weight=0.0):
   """One tower, one policy: each answer refined on the pushes made up to it.
 
   Args:
@@ -29,6 +30,9 @@ def refine_made(prims, answers, made, observed, pushes, *, steps: int, jacobian:
     observed: (N, T, 7) the true tower under every candidate push, whole trajectories.
     pushes: the N candidate pushes.
     steps, jacobian, settings: the refinement's (`RefineConfig`, a JAX engine).
+    prior, prior_weight: None, or the MAP step's Gaussian prior on log densities
+      (`refine.density_prior` of the prior model's scores) and its weight (may be traced):
+      what holds a box the pushes made barely move at what its look says.
 
   Returns:
     (M, K) slots: refined where the fit came closer over those pushes, else the answer's;
@@ -42,7 +46,7 @@ def refine_made(prims, answers, made, observed, pushes, *, steps: int, jacobian:
     distance = metrics.trajectory_distance(
         simulate(start, sub, steps=obs.shape[-2], settings=settings), obs)
     r = refine_if_closer(start, obs, distance, sub, steps=steps, jacobian=jacobian,
-                         settings=settings)
+                         settings=settings, prior=prior, prior_weight=prior_weight)
     slots.append(jnp.where(r.closer, density_to_slot_jax(r.primitives.density),
                            answers[k - 1]))
     closer.append(r.closer)

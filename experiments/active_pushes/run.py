@@ -43,7 +43,7 @@ from tqdm import tqdm
 import ppdjax
 from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, density_to_slot
-from ppdjax.infer import active, posterior, sampling
+from ppdjax.infer import active, posterior, refine, sampling
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.primitives import bottom_to_top, bottom_to_top_order
 from ppdjax.report.provenance import read_provenance, write_provenance
@@ -117,7 +117,7 @@ def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, sc
 
 def record(prior_model: str, setting: str, data: str, split: str, objects: int, batch: int,
            samples: int, hypotheses: int, seed: int, scales: tuple[float, ...],
-           refine_scale: float | None, out: str) -> None:
+           refine_scale: float | None, refine_weights: tuple[float, ...], out: str) -> None:
   ds = ppdjax.open_dataset(data, split)
   n = len(ds) if objects <= 0 else min(objects, len(ds))
   config = SETTINGS[setting]()
@@ -148,12 +148,18 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
     if refine_scale is not None:  # each policy's answers refined on its pushes made
       at = loops[scales.index(refine_scale)]
       whole = simulate(true, pushes, steps=traj_steps, settings=refine_settings)  # (N, T, 7)
-      answers, closer = jax.vmap(lambda a, m: refine_loop.refine_made(
-          prims, a, m, whole, pushes, steps=refinement.steps, jacobian=refinement.jacobian,
-          settings=refine_settings))(jnp.stack([at[p]["answer"] for p in POLICIES]),
-                                     jnp.stack([at[p]["pushes"] for p in POLICIES]))
-      refined = {f"{p}_refined": {"answer": answers[i], "closer": closer[i]}
-                 for i, p in enumerate(POLICIES)}
+      prior = (refine.density_prior(logits[:, :NUM_DENSITY_SLOTS])
+               if max(refine_weights) > 0 else None)  # the look's densities (MAP)
+
+      def at_weight(w):  # (P, M, K) answers, (P, M) kept, one prior weight
+        return jax.vmap(lambda a, m: refine_loop.refine_made(
+            prims, a, m, whole, pushes, steps=refinement.steps, jacobian=refinement.jacobian,
+            settings=refine_settings, prior=prior, prior_weight=w))(
+                jnp.stack([at[p]["answer"] for p in POLICIES]),
+                jnp.stack([at[p]["pushes"] for p in POLICIES]))
+      answers, closer = jax.vmap(at_weight)(jnp.asarray(refine_weights, jnp.float32))
+      refined = {f"{p}_refined": {"answer": answers[:, i], "closer": closer[:, i]}
+                 for i, p in enumerate(POLICIES)}  # (W, M, K) and (W, M) per tower
     loops = jax.tree.map(lambda *x: jnp.stack(x), *loops)  # leading axis: the scales
     loops.update(refined)
     # the reference no policy of four pushes is expected to pass: the closest candidate
@@ -191,22 +197,32 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
                       prior_model=prior_model, samples=samples, hypotheses=hypotheses,
                       scales=np.asarray(scales), power=power,
                       refine_scale=np.nan if refine_scale is None else refine_scale,
+                      refine_weights=np.asarray(refine_weights),
                       **arrays)
   print(f"{n} towers in {time.time() - start:.0f} s -> {out}")
 
 
-def scores(rec, policy: str, k: int, scale: int) -> dict:
+def by_weight(rec, key: str) -> np.ndarray:
+  """A refined field with its prior-weight axis (towers, W, ...): records refined at one
+  weight (before the axis was recorded) have W = 1."""
+  a = rec[key]
+  return a[:, None] if "refine_weights" not in rec else a
+
+
+def scores(rec, policy: str, k: int, scale: int, weight: int = 0, clip: bool = False) -> dict:
   """Per tower (towers whose box count is the truth's): exact boxes, squared slot errors,
   interval widths and coverage after k pushes (1-based), the posterior at the scale of
   index `scale` (its choices of push too). Policy "all": the closest over every candidate
-  push (no interval: its width is one slot)."""
+  push (no interval: its width is one slot). A refined policy: its answers at the prior
+  weight of index `weight`, with `clip` held inside the candidates' 90 % interval."""
   valid, true = rec["valid"], rec["true"]
   same = valid.sum(-1) == (true >= 0).sum(-1)
   if policy == "all":
     a = lo = hi = rec["all_answer"]
   elif policy.endswith(REFINED):  # the refined answer; the candidates' interval
-    a = rec[f"{policy}_answer"][:, k - 1]
+    a = by_weight(rec, f"{policy}_answer")[:, weight, k - 1]
     lo, hi = (rec[f"{policy[:-len(REFINED)]}_{f}"][:, scale, k - 1] for f in ("lower", "upper"))
+    a = np.clip(a, lo, hi) if clip else a
   else:
     a, lo, hi = (rec[f"{policy}_{f}"][:, scale, k - 1] for f in ("answer", "lower", "upper"))
   m = valid & same[:, None]
@@ -275,11 +291,25 @@ def report(val_records: str, records: str, out: str) -> None:
       raise ValueError(f"the records refine the loop at temperature {rec['refine_scale']}; "
                        f"validation chose {rec['scales'][chosen]}: record again with "
                        f"--refine_scale={rec['scales'][chosen]}")
-    refined_curves = {p: [scores(rec, p + REFINED, k, chosen)
-                          for k in range(1, MAX_PUSHES + 1)] for p in POLICIES}
-    refined = {**policy_rows(refined_curves, towers),
-               "kept_share": {p: [float(rec[f"{p}{REFINED}_closer"][towers, k].mean())
-                                  for k in range(MAX_PUSHES)] for p in POLICIES}}
+    # the prior weight whose refined fixed four read the lowest RMSE on validation
+    weights = np.asarray(rec["refine_weights"] if "refine_weights" in rec else [0.0])
+    val_rmse = []
+    for w in range(len(weights)):
+      c = scores(val, "fixed" + REFINED, MAX_PUSHES, chosen, w)
+      val_rmse.append(float(np.sqrt(c["sq"][c["same"]].sum() / c["boxes"][c["same"]].sum())))
+    w = int(np.argmin(val_rmse))
+    curves_at = lambda clip: {p: [scores(rec, p + REFINED, k, chosen, w, clip)  # noqa: E731
+                                  for k in range(1, MAX_PUSHES + 1)] for p in POLICIES}
+    refined = {**policy_rows(curves_at(False), towers),
+               "kept_share": {p: [float(by_weight(rec, f"{p}{REFINED}_closer")[towers, w,
+                                                                              k].mean())
+                                  for k in range(MAX_PUSHES)] for p in POLICIES},
+               "prior_weight": float(weights[w]),
+               "validation_fixed4_rmse_by_weight": dict(zip(map(str, weights.tolist()),
+                                                            val_rmse)),
+               # held inside the candidates' 90 % interval (a rule read off the first refined
+               # run's records, validation and test, and so measured on fresh towers since)
+               "clipped": policy_rows(curves_at(True), towers)}
   active_result.update({
       "all_pushes": ({k: v for k, v in summary(scores(rec, "all", 0, 0), towers).items()
                       if k.startswith(("top1", "rmse"))} if "all_answer" in rec else None),
@@ -356,6 +386,8 @@ def define_flags():
                     "temperatures over the closest distance tried (one is chosen on validation).")
   flags.DEFINE_float("refine_scale", 1.0, "record: the temperature (one of --scales) whose "
                      "loop is also refined after each push (0: no refinement).")
+  flags.DEFINE_list("refine_prior_weights", ["0"], "record: the MAP step's prior weights "
+                    "tried (0 alone: least squares; one is chosen on validation).")
   flags.DEFINE_string("val_records", "", "report: the validation towers' record file.")
   flags.DEFINE_string("records", "", "report: the test towers' record file.")
   flags.DEFINE_string("out", "", "record: the .npz; report: the results .json (its 'active').")
@@ -367,7 +399,8 @@ def main(argv):
     record(FLAGS.prior_model, FLAGS.setting, FLAGS.data, FLAGS.split, FLAGS.objects,
            FLAGS.batch, FLAGS.samples, FLAGS.hypotheses, FLAGS.seed,
            tuple(map(float, FLAGS.scales)),
-           FLAGS.refine_scale if FLAGS.refine_scale > 0 else None, FLAGS.out)
+           FLAGS.refine_scale if FLAGS.refine_scale > 0 else None,
+           tuple(map(float, FLAGS.refine_prior_weights)), FLAGS.out)
   else:
     report(FLAGS.val_records, FLAGS.records, FLAGS.out)
 
