@@ -2,8 +2,12 @@
 decomposed into physical primitives.
 
 Reads the mesh (`ppdjax.load_object`: parts are the file's groups or connected
-components), observes it as the tools dataset does (`tool_scene.observe`: exact voxels, a
-textured image, MuJoCo C trajectories of the parts under the tools' four pushes), runs
+components), observes it as the model's data were: a tools' model as the tools dataset
+does (`tool_scene.observe`: exact voxels, a textured image, MuJoCo C trajectories of the
+parts under the tools' four pushes); a towers' model (the blocks', the video's) upright as
+the towers are (`mesh_towers.observe_tower`: the file's z up, its parts' boxes voxelized
+and rendered from the towers' camera, simulated under the model's own pushes or read from
+`--trajectory`); runs
 `make_decompose_fn` with a trained model and its own settings
 (`--config.eval.<key>=<value>` overrides one), and writes OUT/decomposition.png (the input
 image, the recovered boxes coloured by density, the truth's boxes from the mesh) and
@@ -118,37 +122,57 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
   from ppdjax.infer.config import DecomposeConfig
   from ppdjax.infer.decompose import model_camera
 
-  tool, transform = load_object(mesh, part_materials=materials, part_densities=densities)
   trained = load(model)
   _, config = trained
+  # a towers' model (the blocks', the video's) reads a tower as the towers are observed:
+  # upright, from the towers' camera (`mesh_towers`); a tools' model, as the tools are
+  towers = config.data.get("kind", "towers") in ("towers", "pendulum")
+  tool, transform = load_object(mesh, part_materials=materials, part_densities=densities,
+                                upright=towers)
   print(f"{mesh}: {len(tool.parts)} parts "
         + ", ".join(f"{n} ({m}, {d:.0f} kg/m^3)" for n, m, d in
                     zip(tool.names, tool.materials, tool.densities)))
-  # the pushes the model's data had for a tool of this volume (`tool_generation.tool_pushes`)
-  pushes = tool_generation.tool_pushes(config.data, list(tool.parts))
-  print(f"pushes of {float(pushes.magnitudes[0]):.4g} N ({tool_generation.push_mode(config.data)})")
-  protocol = tool_generation.protocol(config.data)
-  print(f"model {model}: " + (
-      "tools under the paper's protocol (the mesh's boxes are the body, each of the material "
-      "of the part it covers most)" if protocol == "paper" else
-      "realistic tools (the mesh's parts are the body)"))
-  if protocol == "paper":
-    # the boxes on the model's engine where JAX has an accelerator, else MuJoCo C
-    backend = config.data.backend if jax.default_backend() != "cpu" else "mujoco"
-    obs, truth = tool_paper.observe(
-        list(tool.parts), tool.materials, tool.densities, seed,
-        image_size=int(config.data.image_size), steps=int(config.data.steps), pushes=pushes,
-        backend=backend)
+  if towers:
+    from ppdjax.dataset.generation import pushes_of
+    from ppdjax.dataset.mesh_towers import observe_tower
+    from ppdjax.sim import scene
+    from ppdjax.sim.simulate import simulate
+    protocol, pushes = "towers", pushes_of(config.data)
+    print(f"model {model}: towers ({config.data.kind}), observed upright as its data were")
+    obs, truth = observe_tower(tool.parts, tool.materials, tool.densities, seed, config.data)
+    rest = float(np.asarray(scene.rest_position(truth))[2])
+    if not trajectory:  # the model's own pushes; MuJoCo C where JAX has no accelerator
+      backend = config.data.backend if jax.default_backend() != "cpu" else "mujoco"
+      obs["trajectories"] = np.asarray(simulate(truth, pushes, steps=int(config.data.steps),
+                                                backend=backend), np.float32)
   else:
-    obs = tool_scene.observe(list(tool.parts), tool.materials, tool.densities,
-                             [seed] * len(tool.parts), image_size=int(config.data.image_size),
-                             steps=int(config.data.steps), pushes=pushes,
-                             trajectories=not trajectory)
-    truth, _ = boxes_of_parts(list(tool.parts), tool.densities)
+    # the pushes the model's data had for a tool of this volume (`tool_generation.tool_pushes`)
+    pushes = tool_generation.tool_pushes(config.data, list(tool.parts))
+    print(f"pushes of {float(pushes.magnitudes[0]):.4g} N "
+          f"({tool_generation.push_mode(config.data)})")
+    protocol = tool_generation.protocol(config.data)
+    print(f"model {model}: " + (
+        "tools under the paper's protocol (the mesh's boxes are the body, each of the "
+        "material of the part it covers most)" if protocol == "paper" else
+        "realistic tools (the mesh's parts are the body)"))
+    rest = tool_scene.rest_height(list(tool.parts))
+    if protocol == "paper":
+      # the boxes on the model's engine where JAX has an accelerator, else MuJoCo C
+      backend = config.data.backend if jax.default_backend() != "cpu" else "mujoco"
+      obs, truth = tool_paper.observe(
+          list(tool.parts), tool.materials, tool.densities, seed,
+          image_size=int(config.data.image_size), steps=int(config.data.steps),
+          pushes=pushes, backend=backend)
+    else:
+      obs = tool_scene.observe(list(tool.parts), tool.materials, tool.densities,
+                               [seed] * len(tool.parts),
+                               image_size=int(config.data.image_size),
+                               steps=int(config.data.steps), pushes=pushes,
+                               trajectories=not trajectory)
+      truth, _ = boxes_of_parts(list(tool.parts), tool.densities)
   if trajectory:
     from ppdjax.video.files import tracked_observation
-    obs["trajectories"] = tracked_observation(trajectory, config, tool_scene.rest_height(
-        list(tool.parts)))
+    obs["trajectories"] = tracked_observation(trajectory, config, rest)
   # simulated here under the tools' pushes; a tracked trajectory under the model's own
   settings = DecomposeConfig.from_eval({**config.eval, **(overrides or {})})
   if settings.fit.depth and "depth" not in obs:

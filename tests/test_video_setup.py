@@ -207,3 +207,54 @@ def test_the_shipped_video_example_tracks_back_to_its_truth(tmp_path):
                        cwd=ROOT, capture_output=True, text=True, timeout=300,
                        env={**os.environ, "JAX_PLATFORMS": "cpu"})
   assert run.returncode != 0 and "640x480 pixels" in run.stderr and "1280x720" in run.stderr
+
+
+def test_a_tower_mesh_is_read_upright_from_the_towers_camera():
+  """The shipped example's tower.glb read for a towers' model (`mesh_towers`): upright (the
+  file's axes, pine below copper, 1 m largest extent), observed at the model's image size;
+  read as a tool it is turned onto its principal axes."""
+  from ppdjax import load_object  # pylint: disable=import-outside-toplevel
+  from ppdjax.configs import video  # pylint: disable=import-outside-toplevel
+  from ppdjax.dataset.mesh_towers import observe_tower  # pylint: disable=import-outside-toplevel
+  import trimesh  # pylint: disable=import-outside-toplevel
+
+  path = os.path.join(ROOT, "assets", "video_example", "tower.glb")
+  materials = {"block0": "pine", "block1": "copper"}
+  tool, transform = load_object(path, part_materials=materials, upright=True)
+  np.testing.assert_allclose(transform[:3, :3], np.eye(3), atol=1e-6)  # the file's frame
+  data = video.get_config("tiny").data
+  obs, truth = observe_tower(tool.parts, tool.materials, tool.densities, 0, data)
+  valid = np.asarray(truth.valid)
+  assert valid.sum() == 2 and np.asarray(truth.density)[valid].tolist() == [500.0, 9000.0]
+  z = np.asarray(truth.pos)[valid, 2]
+  assert z[0] < z[1]  # bottom to top: pine, then copper on it
+  file_span = np.ptp(trimesh.load(path, force="mesh").vertices, 0)
+  span = np.ptp(np.concatenate([p.vertices for p in tool.parts]), 0)
+  np.testing.assert_allclose(span, file_span / file_span.max(), atol=1e-6)  # 1 m, upright
+  size = int(data.image_size)
+  assert obs["voxels"].shape == (32, 32, 32) and obs["voxels"].any()
+  assert obs["image"].shape == (size, size, 3) and obs["depth"].shape == (size, size)
+  _, turned = load_object(path, part_materials=materials)  # the tools' frame: turned
+  assert np.abs(turned[:3, :3] / np.linalg.norm(turned[:3, 0]) - np.eye(3)).max() > 0.5
+
+
+@pytest.mark.slow  # the video model decomposes on a CPU (~80 s): `make test-all`
+def test_the_worked_example_decomposes_to_its_blocks(tmp_path):
+  """docs/video.md's last step: `decompose --mesh tower.glb --trajectory` with the shipped
+  video model reads the example's blocks upright and their densities (pine, copper)."""
+  from ppdjax import decompose  # pylint: disable=import-outside-toplevel
+  with open(os.path.join(VIDEO_EXAMPLE, "truth.json")) as f:
+    truth = json.load(f)
+  traj = tmp_path / "traj.npz"
+  subprocess.run([sys.executable, "-m", "ppdjax.track", f"--video={VIDEO_EXAMPLE}/clip.mp4",
+                  f"--camera={VIDEO_EXAMPLE}/camera.json",
+                  f"--stickers={VIDEO_EXAMPLE}/stickers.json", f"--out={traj}"],
+                 cwd=ROOT, check=True, capture_output=True, timeout=300,
+                 env={**os.environ, "JAX_PLATFORMS": "cpu"})
+  record = decompose.run(os.path.join(VIDEO_EXAMPLE, "tower.glb"),
+                         dict(zip(truth["blocks"], truth["materials"])), None,
+                         os.path.join(ROOT, "assets", "video_model"), str(tmp_path / "out"),
+                         trajectory=str(traj))
+  assert record["protocol"] == "towers"
+  assert [round(b["density"], -2) for b in record["boxes"]] == truth["densities"]
+  assert record["trajectory_distance_m"] < 0.01

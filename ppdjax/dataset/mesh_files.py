@@ -71,7 +71,7 @@ def typical_slot(material: str) -> int:
   return int(slots[len(slots) // 2])
 
 
-def load_object(path: str, part_materials=None, part_densities=None
+def load_object(path: str, part_materials=None, part_densities=None, upright: bool = False
                 ) -> tuple[Tool, np.ndarray]:
   """(the object, 4x4 transform from the file's coordinates to the normalised frame).
 
@@ -84,6 +84,8 @@ def load_object(path: str, part_materials=None, part_densities=None
     part_densities: kg/m^3 per part, the same forms; overrides the materials' typical
       densities (rounded to the 100 kg/m^3 density slots). With neither, every part is
       wood (with a warning).
+    upright: the file's z axis stays up (a tower, normalised as the block towers are);
+      else the object is turned onto its principal axes (the tools' frame).
 
   Returns:
     a `tools.Tool` (category "user") whose parts are in the normalised object frame, and
@@ -122,7 +124,7 @@ def load_object(path: str, part_materials=None, part_densities=None
                        f"kg/m^3; got {densities[bad].tolist()} for "
                        f"{[n for n, b in zip(names, bad) if b]}")
     slots = [int(s) for s in density_to_slot(densities)]
-  normalised, transform = normalize(parts)
+  normalised, transform = normalize(parts, upright=upright)
   normalised = check_solid(normalised, names, repr(path))  # inward shells turned outward
   return Tool("user", tuple(normalised), tuple(names), tuple(str(m) for m in materials),
               tuple(slots)), transform

@@ -93,26 +93,21 @@ def surface_samples(parts, count: int, seed: int = 0):
   return np.asarray(points), owner[faces]
 
 
-def normalize(mesh) -> tuple[list[trimesh.Trimesh], np.ndarray]:
+def normalize(mesh, upright: bool = False) -> tuple[list[trimesh.Trimesh], np.ndarray]:
   """(parts in the normalised object frame, the 4x4 transform from the mesh's frame).
 
   Args:
     mesh: a trimesh.Trimesh (parts: its connected components) or a sequence of parts.
+    upright: keep the mesh's own axes (its z up: a tower standing as it stands) and only
+      centre and scale it, as the block towers are; else turn it onto its principal axes,
+      the longest along x (the tools' convention).
   """
   parts = parts_of(mesh)
   if sum(p.area for p in parts) <= 0:
     raise ValueError("the mesh has no surface")
-  centre, cov = _surface_moments(parts)
-  spreads, axes = np.linalg.eigh(cov)
-  spreads, axes = spreads[::-1], axes[:, ::-1]  # largest spread first: x, y, z
-  axes = _face_axes_where_tied(parts, spreads, axes)
-  points, _ = surface_samples(parts, 50_000)
-  skew = (((points - centre) @ axes) ** 3).mean(0)
-  axes = axes * np.where(skew < 0, -1.0, 1.0)
-  axes[:, 2] = np.cross(axes[:, 0], axes[:, 1])  # right-handed
   rotate = np.eye(4)
-  rotate[:3, :3] = axes.T
-  rotate[:3, 3] = -axes.T @ centre
+  if not upright:
+    rotate = _principal_frame(parts)
   turned = trimesh.util.concatenate(parts).copy()
   turned.apply_transform(rotate)
   lo, hi = turned.bounds
@@ -129,6 +124,23 @@ def normalize(mesh) -> tuple[list[trimesh.Trimesh], np.ndarray]:
     q.apply_transform(transform)
     out.append(q)
   return out, transform
+
+
+def _principal_frame(parts) -> np.ndarray:
+  """The 4x4 transform onto the surface's principal axes about its centroid, the largest
+  spread along x, each axis towards the surface's heavier tail, right-handed."""
+  centre, cov = _surface_moments(parts)
+  spreads, axes = np.linalg.eigh(cov)
+  spreads, axes = spreads[::-1], axes[:, ::-1]  # largest spread first: x, y, z
+  axes = _face_axes_where_tied(parts, spreads, axes)
+  points, _ = surface_samples(parts, 50_000)
+  skew = (((points - centre) @ axes) ** 3).mean(0)
+  axes = axes * np.where(skew < 0, -1.0, 1.0)
+  axes[:, 2] = np.cross(axes[:, 0], axes[:, 1])  # right-handed
+  rotate = np.eye(4)
+  rotate[:3, :3] = axes.T
+  rotate[:3, 3] = -axes.T @ centre
+  return rotate
 
 
 def _surface_moments(parts) -> tuple[np.ndarray, np.ndarray]:
