@@ -182,6 +182,7 @@ def test_the_example_keeps_its_depth_and_camera(tmp_path):
 ESTIMATOR = os.path.join(ROOT, "assets", "density_estimator")
 
 
+@pytest.mark.slow  # ~23 s on 2 cores (the optional estimator): `make test-all`
 def test_shipped_estimator_loads_and_reads_the_example():
   """The shipped density estimator (experiments/results/estimator.md) is within the size
   limits, loads (sha256 checked) and scores the example's true boxes from its motion."""

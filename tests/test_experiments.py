@@ -234,6 +234,7 @@ def test_a_call_that_raises_is_logged_unfinished(tmp_path):
   assert pipeline_steps.read_log(str(tmp_path))["steps"]["train:x"]["calls"] == 1
 
 
+@pytest.mark.slow  # a finished study's script (~18 s on 2 cores): `make test-all`
 def test_the_whole_split_joins_blocks_json_and_the_targets_read_it(tmp_path):
   """blocks_whole_split.py on the committed run's files: the targets then read the whole
   split's rows; an evaluation of a few objects is refused."""
@@ -267,6 +268,7 @@ def test_the_whole_split_joins_blocks_json_and_the_targets_read_it(tmp_path):
   assert refused.returncode != 0 and "not the whole test split" in refused.stderr
 
 
+@pytest.mark.slow  # a finished study's script (~22 s on 2 cores): `make test-all`
 def test_tool_shape_errors_find_the_attribute_that_misses():
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   import numpy as np
@@ -293,6 +295,7 @@ def test_tool_shape_errors_find_the_attribute_that_misses():
   assert out["by_thinnest_side"]["2-4 voxels"]["matched"] == 50.0  # the bars (2.6 voxels)
 
 
+@pytest.mark.slow  # a finished study's script (~15 s on 2 cores): `make test-all`
 def test_tools_rerun_replaces_the_full_models_rows_and_keeps_the_ablations(tmp_path):
   """experiments/tools_rerun/run.py on the committed results (the shipped run's own evaluation
   of the full model, marked): the full model's rows and the τ sweep come from the new

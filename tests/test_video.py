@@ -280,6 +280,8 @@ def test_track_files_name_their_problems(tmp_path):
     files.read_stickers(str(tmp_path / "st.json"))
 
 
+@pytest.mark.slow  # ~28 s on 2 cores: `make test-all`; the shipped example's clip is
+# tracked in the default tests (test_video_setup)
 def test_a_struck_real_tower_filmed_and_tracked(tmp_path):
   """The real towers' setup end to end on a short clip: a pine and copper tower struck by
   the pendulum (MuJoCo C), rendered with its stickers and degraded
