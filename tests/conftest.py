@@ -112,15 +112,9 @@ def numpy_weights_model(cfg, seed=0):
   0 and 1): a model's structure without compiling one random draw per weight shape, which
   is most of an eager build's time on a CPU."""
   from flax import nnx  # pylint: disable=import-outside-toplevel
-  from ppdjax.nn.model import PPD  # pylint: disable=import-outside-toplevel
-  return numpy_weights(lambda: PPD(cfg, rngs=nnx.Rngs(0)), seed)
-
-
-def numpy_weights(build, seed=0):
-  """The module `build()` makes, with weights drawn by NumPy (`numpy_weights_model`)."""
-  from flax import nnx  # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
-  graphdef, state = nnx.split(nnx.eval_shape(build))
+  from ppdjax.nn.model import PPD  # pylint: disable=import-outside-toplevel
+  graphdef, state = nnx.split(nnx.eval_shape(lambda: PPD(cfg, rngs=nnx.Rngs(0))))
   gen = np.random.default_rng(seed)
   def fill(path, leaf):
     name = [getattr(k, "key", None) for k in path if hasattr(k, "key")][-1]

@@ -13,7 +13,7 @@ from ppdjax.conventions import TIMESTEP
 from ppdjax.nn import losses, model, motion, recurrent
 from ppdjax.nn.resnet import ResNet18, load_torchvision_weights
 from ppdjax.primitives import Primitives
-from conftest import numpy_weights, numpy_weights_model
+from conftest import numpy_weights_model
 
 
 def _obs(rng, b=3, t=24, hw=32):
@@ -270,7 +270,7 @@ def test_torchvision_weights_load_by_name(tmp_path, rng):
 def test_coordinate_channels_reach_the_voxel_feature():
   """With `coords`, the first convolution reads occupancy + 3 coordinate channels, and those
   channels change the feature of the same grid."""
-  enc = numpy_weights(lambda: model.VoxelEncoder(8, coords=True, rngs=nnx.Rngs(params=0)))
+  enc = model.VoxelEncoder(8, coords=True, rngs=nnx.Rngs(params=0))
   kernel = enc.convs[0].kernel
   assert kernel.value.shape == (3, 3, 3, 4, 2)
   vox = np.zeros((1, 32, 32, 32), np.uint8)
