@@ -127,19 +127,3 @@ def numpy_weights_model(cfg, seed=0):
     return jnp.asarray(gen.normal(0.0, 0.1, leaf.shape), leaf.dtype)
   return nnx.merge(graphdef, jax.tree_util.tree_map_with_path(fill, state))
 
-
-# The modules that read the trained tiny run (`tiny_run`), bar the one that makes it.
-_READ_THE_RUN = {"test_demo.py", "test_estimator.py", "test_inference.py",
-                 "test_one_pipeline.py", "test_tool_paper.py", "test_tool_scene.py",
-                 "test_train.py"}
-
-
-def pytest_collection_modifyitems(session, config, items):
-  """Module order, which the two workers take their modules in: test_evaluation (it makes
-  the tiny run, minutes of training) first, the modules that need no trained run next (the
-  other worker takes them meanwhile instead of waiting for the run), the other readers of
-  the run last. Within a module, the file's order."""
-  del session, config
-  rank = lambda item: (0 if item.path.name == "test_evaluation.py"  # noqa: E731
-                       else 2 if item.path.name in _READ_THE_RUN else 1)
-  items.sort(key=rank)  # stable
