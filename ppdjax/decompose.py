@@ -173,7 +173,7 @@ def run(mesh: str, materials, densities, model: str, out: str, overrides: dict |
   if trajectory:
     from ppdjax.video.files import tracked_observation
     obs["trajectories"] = tracked_observation(trajectory, config, rest)
-  # simulated here under the tools' pushes; a tracked trajectory under the model's own
+  # simulated here under the pushes the model's data had; a tracked one under its own
   settings = DecomposeConfig.from_eval({**config.eval, **(overrides or {})})
   if settings.fit.depth and "depth" not in obs:
     print("the model's settings fit the boxes to a depth image, which this observation "

@@ -89,6 +89,7 @@ def validate(prims: Primitives) -> None:
   """Raises ValueError (naming the field) unless `prims` is a well-formed batch of boxes."""
   try:
     arrays = {k: np.asarray(getattr(prims, k)) for k in FIELDS}
+    scale = None if prims.inertia_scale is None else np.asarray(prims.inertia_scale)
   except jax.errors.TracerArrayConversionError as e:
     raise ValueError("Primitives.validate() needs concrete arrays; call it outside jit") from e
   density = arrays["density"]
@@ -118,8 +119,7 @@ def validate(prims: Primitives) -> None:
     _fail("quat", f"not unit norm (|q| ranges {norm.min():.4g}..{norm.max():.4g})")
   if np.any(valid & (density <= 0)):
     _fail("density", "a valid box has a non-positive density")
-  if prims.inertia_scale is not None:
-    scale = np.asarray(prims.inertia_scale)
+  if scale is not None:
     if scale.shape != lead:
       _fail("inertia_scale", f"expected shape {lead} (batch + (K,) from density), got "
             f"{scale.shape}")

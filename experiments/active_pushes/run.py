@@ -287,17 +287,26 @@ def report(val_records: str, records: str, out: str) -> None:
   active_result = policy_rows(curves, towers)
   refined = None
   if f"fixed{REFINED}_answer" in rec:
-    if not np.isclose(rec["refine_scale"], rec["scales"][chosen]):
-      raise ValueError(f"the records refine the loop at temperature {rec['refine_scale']}; "
-                       f"validation chose {rec['scales'][chosen]}: record again with "
-                       f"--refine_scale={rec['scales'][chosen]}")
+    for name, r in (("test", rec), ("validation", val)):
+      if f"fixed{REFINED}_answer" not in r:
+        raise ValueError(f"the {name} records are not refined: record both with refinement")
+      if not np.isclose(r["refine_scale"], val["scales"][chosen]):
+        raise ValueError(f"the {name} records refine the loop at temperature "
+                         f"{r['refine_scale']}; validation chose {val['scales'][chosen]}: "
+                         f"record again with --refine_scale={val['scales'][chosen]}")
     # the prior weight whose refined fixed four read the lowest RMSE on validation
-    weights = np.asarray(rec["refine_weights"] if "refine_weights" in rec else [0.0])
+    val_weights = np.asarray(val["refine_weights"] if "refine_weights" in val else [0.0])
     val_rmse = []
-    for w in range(len(weights)):
+    for w in range(len(val_weights)):
       c = scores(val, "fixed" + REFINED, MAX_PUSHES, chosen, w)
       val_rmse.append(float(np.sqrt(c["sq"][c["same"]].sum() / c["boxes"][c["same"]].sum())))
-    w = int(np.argmin(val_rmse))
+    weights = np.asarray(rec["refine_weights"] if "refine_weights" in rec else [0.0])
+    at = np.flatnonzero(np.isclose(weights, val_weights[int(np.argmin(val_rmse))]))
+    if len(at) == 0:
+      raise ValueError(f"validation chose the prior weight "
+                       f"{val_weights[int(np.argmin(val_rmse))]}, which the test records "
+                       f"({weights.tolist()}) were not refined at")
+    w = int(at[0])
     curves_at = lambda clip: {p: [scores(rec, p + REFINED, k, chosen, w, clip)  # noqa: E731
                                   for k in range(1, MAX_PUSHES + 1)] for p in POLICIES}
     refined = {**policy_rows(curves_at(False), towers),
@@ -305,7 +314,7 @@ def report(val_records: str, records: str, out: str) -> None:
                                                                               k].mean())
                                   for k in range(MAX_PUSHES)] for p in POLICIES},
                "prior_weight": float(weights[w]),
-               "validation_fixed4_rmse_by_weight": dict(zip(map(str, weights.tolist()),
+               "validation_fixed4_rmse_by_weight": dict(zip(map(str, val_weights.tolist()),
                                                             val_rmse)),
                # held inside the candidates' 90 % interval (a rule read off the first refined
                # run's records, validation and test, and so measured on fresh towers since)
@@ -387,7 +396,9 @@ def define_flags():
   flags.DEFINE_float("refine_scale", 1.0, "record: the temperature (one of --scales) whose "
                      "loop is also refined after each push (0: no refinement).")
   flags.DEFINE_list("refine_prior_weights", ["0"], "record: the MAP step's prior weights "
-                    "tried (0 alone: least squares; one is chosen on validation).")
+                    "tried (0 alone: least squares, kept where closer; with any weight above "
+                    "0 every step is kept where its cost fell, weight 0's too); one is chosen "
+                    "on validation.")
   flags.DEFINE_string("val_records", "", "report: the validation towers' record file.")
   flags.DEFINE_string("records", "", "report: the test towers' record file.")
   flags.DEFINE_string("out", "", "record: the .npz; report: the results .json (its 'active').")

@@ -161,6 +161,13 @@ def extend_report(pipe, results_dir: str, name: str, result: dict) -> dict:
     result["twins"] = list(twins)
   with open(os.path.join(results_dir, f"{name}.json"), "w") as f:
     json.dump(result, f, indent=1)
+  video_json = os.path.join(results_dir, "video.json")  # its entry, with the keys above
+  if os.path.exists(video_json):
+    with open(video_json) as f:
+      merged = json.load(f)
+    merged.setdefault("lookalike_towers", {}).update(keys)
+    with open(video_json, "w") as f:
+      json.dump(merged, f, indent=1)
   with open(os.path.join(results_dir, f"{name}.md"), "a") as f:
     f.write(report_md(keys, appearance, heavy_app, figure))
   return keys
