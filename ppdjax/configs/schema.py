@@ -39,9 +39,7 @@ class DataConfig:
   num_blocks: int = 0  # blocks per tower: 0 draws 2..5; 2 for the tools' pretraining
   rotate: float = 0.0  # radians; > 0 adds the paper's rotation noise (tools pretraining)
   size_noise: float = 0.0
-  # the engine that simulates the data, and that decomposition then uses: "mjx", or
-  # "box_plane" (faster on a GPU, closer to MuJoCo C); "mujoco" makes a C variant
-  backend: str = "mjx"
+  backend: str = "mjx"  # the data's and decompose's engine: "mjx", "box_plane" or "mujoco"
   split_fractions: tuple = (0.8, 0.1, 0.1)
   render_workers: int = 0  # processes rendering in parallel (0: this process)
   num_tools: int = 0  # tools (configs/tools.py)
@@ -49,14 +47,10 @@ class DataConfig:
   configs_per_tool: int = 1
   tool_push_force: float = 1e3
   tool_protocol: str = "realistic"  # or "paper": the tool's boxes are its body (tools_paper.py)
-  # realistic tools' labels: "category" (by category, per part; data before the key) or
-  # "plausible" (per physical piece, from plausible sets: tools.PLAUSIBLE_MATERIALS)
-  tool_materials: str = "category"
+  tool_materials: str = "category"  # or "plausible" (tools.PLAUSIBLE_MATERIALS, per piece)
   tool_push: str = "fixed"  # or "by_volume": x volume / tool_scene.REFERENCE_VOLUME
   block_counts: tuple = ()  # video towers: block counts drawn uniformly (configs/video.py)
-  # what each block shows (materials.LOOKS): "material" (its own texture), "painted" (one
-  # paint on every block) or "alike_metals" (steel shows aluminium's finish): look-alike towers
-  look: str = "material"
+  look: str = "material"  # what each block shows (materials.LOOKS): look-alike towers
   hollow: float = 0.0  # the chance that a block is a shell around a core (dataset.hollow)
 
 
@@ -223,8 +217,7 @@ class VideoTestConfig:
   noise: float = 3.0  # grey levels
   lighting: float = 0.1  # brightness drift, a fraction
   stickers: str = "sides"  # video.synthetic.STICKER_LAYOUTS: "sides", "sides_top", "all"
-  # also a model that reads no trajectory, reported beside (the look-alike towers' question)
-  appearance: bool = False
+  appearance: bool = False  # also a model that reads no trajectory, reported beside
 
 
 @dataclasses.dataclass(frozen=True)

@@ -45,10 +45,8 @@ FORMAT_VERSION = 1
 # One .npy file per field: the observations, depth, the Primitives fields, and labels.
 FIELDS = OBS_KEYS + ("depth",) + primitives.FIELDS + ("materials", "tower_id", "split")
 SAMPLE_KEYS = OBS_KEYS + ("depth", "primitives", "materials", "tower_id")  # what a sample holds
-# Fields some datasets add, in every shard or none (the realistic tools, `tool_generation`):
-# per-object push magnitudes (P,) N, each box's part's thinnest side (K,) m, the category;
-# hollow blocks' `Primitives.inertia_scale` (K,) (`data.hollow`; a sample's own key: the
-# evaluation's true boxes stay uniform, their densities the blocks' means).
+# Fields some datasets add, in every shard or none: push magnitudes (P,) N, parts' thinnest
+# sides (K,) m, category (tools); hollow blocks' `Primitives.inertia_scale` (K,).
 OPTIONAL_FIELDS = (PUSH_MAGNITUDES, "thickness", "category", "inertia_scale")
 SPLITS = {"train": 0, "val": 1, "test": 2}
 
