@@ -221,11 +221,31 @@ def test_tiny_preset_generates(tiny_dataset):
   assert ds[127]["trajectories"].shape == (4, 256, 7)
 
 
+class _BlankRenderer:
+  """The towers renderer's contract without a GL context; keeps the looks it was given."""
+
+  def __init__(self):
+    self.shown = []
+
+  def render(self, prims, material_ids, seeds):
+    self.shown.append(np.asarray(material_ids))
+    return np.zeros((len(material_ids), 16, 16, 3), np.uint8), None
+
+
+def _pendulum_data(**changes):
+  """The tiny video preset's data section, four towers, a few MuJoCo C steps (both look-alike
+  tests share these shapes, so their compiled programs)."""
+  from ppdjax.configs import video  # pylint: disable=import-outside-toplevel
+  cfg = video.get_config("tiny").data
+  cfg.update(num_towers=4, towers_per_shard=4, steps=4, backend="mujoco", image_size=16,
+             **changes)
+  return cfg
+
+
 def test_look_alike_towers_show_one_texture_for_materials_that_differ(monkeypatch):
   """`data.look`: the renderer receives what each block shows, the labels keep its material;
   "painted" shows one paint on every block, "alike_metals" steel as aluminium; a bad look is
   named."""
-  from ppdjax.configs import video  # pylint: disable=import-outside-toplevel
   from ppdjax.dataset import materials  # pylint: disable=import-outside-toplevel
 
   ids = np.asarray([[5, 6, 7, 8], [7, 7, -1, -1]])  # pine, aluminium, steel, copper
@@ -239,21 +259,12 @@ def test_look_alike_towers_show_one_texture_for_materials_that_differ(monkeypatc
   assert np.abs(a.mean((0, 1)) - b.mean((0, 1))).max() < 3  # one colour, another grain
   assert (materials.texture("steel", 3) == materials.texture("steel", 3)).all()
 
-  shown = []
-
-  class Recorder:  # the renderer's contract, without a GL context
-    def render(self, prims, material_ids, seeds):
-      shown.append(np.asarray(material_ids))
-      n = len(material_ids)
-      return np.zeros((n, 16, 16, 3), np.uint8), None
-
-  cfg = video.get_config("tiny").data
-  cfg.update(num_towers=4, towers_per_shard=4, steps=4, backend="mujoco", image_size=16,
-             look="painted")  # the hollow test's shapes: its programs are these
+  cfg = _pendulum_data(look="painted")
   generation.check_config(cfg)
-  out = generation.generate_shard(cfg, 0, 0, Recorder())
+  renderer = _BlankRenderer()
+  out = generation.generate_shard(cfg, 0, 0, renderer)
   valid = out["valid"]
-  assert (shown[0][valid] == paint).all() and "inertia_scale" not in out  # solid blocks
+  assert (renderer.shown[0][valid] == paint).all() and "inertia_scale" not in out  # solid
   assert (out["materials"][valid] >= len(materials.MATERIAL_NAMES)).all()  # labels: real ones
   cfg.look = "glossy"
   with pytest.raises(ValueError, match="config.data.look"):
@@ -263,18 +274,11 @@ def test_look_alike_towers_show_one_texture_for_materials_that_differ(monkeypatc
 def test_hollow_blocks_keep_their_material_and_carry_their_inertia():
   """`data.hollow`: blocks become shells around cores; the label is the mean density, the
   material the shell's, and the dataset keeps each block's inertia scale for the simulator."""
-  from ppdjax.configs import video  # pylint: disable=import-outside-toplevel
   from ppdjax.dataset import hollow, materials  # pylint: disable=import-outside-toplevel
 
-  class Blank:
-    def render(self, prims, material_ids, seeds):
-      return np.zeros((len(material_ids), 16, 16, 3), np.uint8), None
-
-  cfg = video.get_config("tiny").data
-  cfg.update(num_towers=4, towers_per_shard=4, steps=4, backend="mujoco", image_size=16,
-             hollow=1.0)
+  cfg = _pendulum_data(hollow=1.0)
   generation.check_config(cfg)
-  out = generation.generate_shard(cfg, 0, 0, Blank())
+  out = generation.generate_shard(cfg, 0, 0, _BlankRenderer())
   valid = out["valid"]
   assert out["inertia_scale"].shape == valid.shape
   scale = out["inertia_scale"][valid]

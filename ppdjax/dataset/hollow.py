@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY
+from ppdjax.conventions import MAX_DENSITY, MIN_DENSITY, slot_to_density
 from ppdjax.dataset import materials
 from ppdjax.primitives import Primitives
 
@@ -59,9 +59,9 @@ def hollow_blocks(rng: np.random.Generator, prims: Primitives, material_ids,
   shell = np.where(valid, np.asarray(prims.density, np.float64), 1.0)  # padding: any
   hollow = valid & (rng.random(ids.shape) < probability)
   fraction = np.where(hollow, rng.uniform(*CORE_FRACTION, ids.shape), 0.0)
-  names = materials.REAL_MATERIAL_NAMES
-  real = np.asarray([materials.REAL_MATERIALS[n] * 100.0 for n in names])  # kg/m^3
-  other = rng.integers(0, len(names), ids.shape)
+  real = slot_to_density([materials.material_slots(n)[0]  # kg/m^3
+                          for n in materials.REAL_MATERIAL_NAMES])
+  other = rng.integers(0, len(real), ids.shape)
   core = np.where(rng.random(ids.shape) < EMPTY_CORE, 0.0, real[other])
   core = np.where(hollow, core, 0.0)
   mean = np.where(hollow, mean_density(shell, core, fraction), shell)
