@@ -32,6 +32,7 @@ jax.config.update("jax_compilation_cache_dir",
 
 import numpy as np  # noqa: E402
 
+from ppdjax.reproduce import blocks_common
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import primitives  # noqa: E402
 from ppdjax.dataset import (camera, depth, generation, hollow, materials, render,  # noqa: E402
@@ -75,9 +76,7 @@ class Pipeline:
       self.eval_files["appearance"] = os.path.join(root, "decompositions_appearance.npz")
 
   def appearance_config(self):
-    config = self.config.copy_and_resolve_references()
-    config.model.use_trajectory = False
-    return config
+    return blocks_common.variant_config(self.config, "no_trajectory")  # Table 2's ablation
 
   def steps(self):
     return [("generate", lambda: os.path.exists(os.path.join(self.data, "manifest.json")),
