@@ -137,10 +137,12 @@ def test_bad_input_is_named(change, message):
     track_poses(**args, fps=FPS, steps=steps)
 
 
-def test_rendered_tower_stickers_give_its_rest_pose():
+@pytest.mark.parametrize("frame, fovy", [((480, 640), 30.0), ((960, 1280), 42.0)])
+def test_rendered_tower_stickers_give_its_rest_pose(frame, fovy):
   """ppdjax.video.synthetic: a 3-block stone tower at rest, rendered with its stickers by
-  the video camera: the stickers found in the frame, matched at the true pose, give that
-  pose back to a few millimetres (the camera model matches the renderer's pixels)."""
+  the video camera (the default view and the video preset's wider, larger one): the
+  stickers found in the frame, matched at the true pose, give that pose back to a few
+  millimetres (the camera model matches the renderer's pixels)."""
   import jax
   import jax.numpy as jnp
   from ppdjax.dataset import towers
@@ -150,7 +152,7 @@ def test_rendered_tower_stickers_give_its_rest_pose():
   tower = jax.tree.map(lambda a: np.asarray(a[0]), towers.sample_towers(21, 1))
   rest = np.concatenate([np.asarray(scene.rest_position(jax.tree.map(jnp.asarray, tower))),
                          [1.0, 0.0, 0.0, 0.0]])
-  with synthetic.VideoRenderer(480, 640) as r:
+  with synthetic.VideoRenderer(*frame, fovy=fovy) as r:
     points = r.set_object(tower, [MATERIAL_NAMES.index("stone")] * 5, np.zeros(5, int))
     frame = r.render(rest)
     truth = r.camera_from_world @ posemod.pose_to_matrix(rest)
@@ -163,6 +165,16 @@ def test_rendered_tower_stickers_give_its_rest_pose():
     solved = solve_pnp(points[ok], det[which[ok]], r.intrinsics, truth)
   world = np.linalg.inv(r.camera_from_world) @ solved
   assert np.linalg.norm(world[:3, 3] - rest[:3]) < 3e-3
+
+
+def test_the_video_camera_names_a_bad_view_or_frame():
+  """VideoRenderer: a field of view outside (0, 180) degrees, or a frame larger than the
+  scene's offscreen buffer, is named, not rendered wrong."""
+  from ppdjax.video import synthetic
+  with pytest.raises(ValueError, match="fovy"):
+    synthetic.VideoRenderer(240, 320, fovy=180.0)
+  with pytest.raises(ValueError, match="image size"):
+    synthetic.VideoRenderer(960, 1600)
 
 
 def test_top_stickers_add_the_uncovered_top_corners_and_keep_the_sides():

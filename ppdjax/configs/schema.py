@@ -217,6 +217,7 @@ class VideoTestConfig:
   noise: float = 3.0  # grey levels
   lighting: float = 0.1  # brightness drift, a fraction
   stickers: str = "sides"  # video.synthetic.STICKER_LAYOUTS: "sides", "sides_top", "all"
+  fovy: float = 30.0  # degrees: the video camera's vertical field of view (synthetic.FOVY)
   appearance: bool = False  # also a model that reads no trajectory, reported beside
 
 

@@ -127,9 +127,12 @@ class SlotRenderer:
   context manager. Subclasses say what the scene holds and how it is drawn."""
 
   def __init__(self, xml: str, height: int, width: int, num_slots: int):
-    if not (16 <= height <= 1024 and 16 <= width <= 1024):
-      raise ValueError(f"image size must be within 16..1024 pixels, got {height}x{width}")
     self.model = mujoco.MjModel.from_xml_string(xml)
+    # the offscreen buffer the scene declares bounds the frame
+    high, wide = self.model.vis.global_.offheight, self.model.vis.global_.offwidth
+    if not (16 <= height <= high and 16 <= width <= wide):
+      raise ValueError(f"image size must be within 16..{high} x 16..{wide} pixels, got "
+                       f"{height}x{width}")
     self.data = mujoco.MjData(self.model)
     self._renderer = open_renderer(self.model, height, width)
     self._first_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "box0")

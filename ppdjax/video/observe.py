@@ -15,9 +15,9 @@ from ppdjax.video.track import TrackingError, track_poses
 _RENDERER = None  # one VideoRenderer per worker process
 
 
-def _init(height: int, width: int, stickers: str) -> None:
+def _init(height: int, width: int, stickers: str, fovy: float) -> None:
   global _RENDERER
-  _RENDERER = synthetic.VideoRenderer(height, width, stickers=stickers)
+  _RENDERER = synthetic.VideoRenderer(height, width, fovy=fovy, stickers=stickers)
 
 
 def _observe_one(job) -> tuple[np.ndarray | None, str | None]:
@@ -35,7 +35,8 @@ def _observe_one(job) -> tuple[np.ndarray | None, str | None]:
 def observe_towers(prims, material_ids, texture_seeds, rest_poses, trajectories, *,
                    steps: int, fps: float = 60.0, frame: tuple[int, int] = (480, 640),
                    noise: float = 3.0, lighting: float = 0.1, seed: int = 0,
-                   stickers: str = "sides", workers: int = 0, progress: bool = True):
+                   stickers: str = "sides", fovy: float = synthetic.FOVY, workers: int = 0,
+                   progress: bool = True):
   """Films each object along its true trajectory and tracks it back.
 
   Args:
@@ -49,6 +50,7 @@ def observe_towers(prims, material_ids, texture_seeds, rest_poses, trajectories,
     fps, frame: the camera's rate and (height, width); noise, lighting: `synthetic.degrade`.
     seed: clip i is degraded with the generator of (seed, i).
     stickers: the faces that carry stickers (`synthetic.STICKER_LAYOUTS`).
+    fovy: the camera's vertical field of view, degrees (it looks from where it does).
     workers: processes (each with its own GL context); 0: this process.
 
   Returns:
@@ -69,13 +71,13 @@ def observe_towers(prims, material_ids, texture_seeds, rest_poses, trajectories,
           for i in range(b)]
   bar = tqdm(total=b, desc="film and track", unit="clip", disable=not progress)
   if workers > 0:
-    with render.cpu_process_pool(workers, _init, (*frame, stickers)) as pool:
+    with render.cpu_process_pool(workers, _init, (*frame, stickers, fovy)) as pool:
       results = []
       for r in pool.imap(_observe_one, jobs):
         results.append(r)
         bar.update()
   else:
-    _init(*frame, stickers)
+    _init(*frame, stickers, fovy)
     try:
       results = []
       for job in jobs:

@@ -102,6 +102,8 @@ class VideoRenderer(render.SlotRenderer):
                stickers: str = "sides"):
     if stickers not in STICKER_LAYOUTS:
       raise ValueError(f"stickers must be one of {sorted(STICKER_LAYOUTS)}, got {stickers!r}")
+    if not 0 < fovy < 180:
+      raise ValueError(f"fovy must lie in (0, 180) degrees, got {fovy!r}")
     self.faces = STICKER_LAYOUTS[stickers]
     self.PER_BLOCK = 4 * len(self.faces)  # pylint: disable=invalid-name
     boxes = render.box_geoms(num_slots)
