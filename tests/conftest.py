@@ -19,7 +19,7 @@ import pytest  # noqa: E402
 _CACHE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".jax_cache")
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 # every program, however quick to compile: the two workers and the modules compile many of
-# the same small ones (a cold-cache run: 1.7 CPU-minutes less than with a 1 s floor)
+# the same small ones
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 

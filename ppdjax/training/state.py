@@ -40,9 +40,8 @@ class TrainState(nnx.Module):
     self.optimizer = optimizer
 
 
-# The initial draw is compiled without LLVM's optimisations: it runs once, and compiles
-# about four times faster on a CPU (the same draws; a few float transforms round
-# differently, within 2e-7).
+# The initial draw is compiled without LLVM's optimisations: it runs once, so its compile
+# time is all it costs (the same draws; a few float transforms round differently).
 INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
