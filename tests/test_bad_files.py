@@ -362,11 +362,13 @@ def test_decompose_checks_its_files_first(tmp_path):
                           str(tmp_path / "t.npz"))
 
 
-def test_track_refuses_a_negative_frame_rate(tmp_path):
+@pytest.mark.parametrize("flag, message", [("--fps=-5", "--fps must be positive"),
+                                           ("--exposure=2", "--exposure must be in [0, 1]")])
+def test_track_refuses_a_bad_frame_rate_or_shutter(flag, message):
   """A subprocess: ppdjax.track's flags would clash with ppdjax.decompose's in this one."""
   run = subprocess.run([sys.executable, "-m", "ppdjax.track", "--video=v.mp4",
-                        "--camera=c.json", "--stickers=s.json", "--fps=-5"], cwd=ROOT,
+                        "--camera=c.json", "--stickers=s.json", flag], cwd=ROOT,
                        capture_output=True, text=True, timeout=120,
                        env={**os.environ, "JAX_PLATFORMS": "cpu"})
   assert run.returncode != 0
-  assert "--fps must be positive" in run.stderr and "got -5" in run.stderr, run.stderr[-2000:]
+  assert message in run.stderr and "got " + flag.split("=")[1] in run.stderr, run.stderr[-2000:]

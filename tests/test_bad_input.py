@@ -223,6 +223,7 @@ def test_boxes_and_towers_are_checked_where_they_enter(call, error, message):
     ({"steps": 2.5}, "steps must be None or an int"),
     ({"gate_px": float("nan")}, "gate_px must be None or finite"),
     ({"smoothing": -1.0}, "smoothing must be finite and >= 0"),
+    ({"exposure": 1.5}, r"exposure must be a fraction of the frame period in \[0, 1\]"),
 ])
 def test_track_poses_names_a_bad_option(option, message):
   from ppdjax.video import track_poses

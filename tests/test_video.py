@@ -347,6 +347,7 @@ def test_a_struck_real_tower_filmed_and_tracked(tmp_path):
   run = subprocess.run([sys.executable, "-m", "ppdjax.track", f"--video={video}",
                         f"--camera={tmp_path / 'camera.json'}",
                         f"--stickers={tmp_path / 'stickers.json'}", f"--steps={steps}",
+                        f"--exposure={synthetic.EXPOSURE}",
                         f"--out={tmp_path / 'traj.npz'}"], cwd=root, capture_output=True,
                        text=True, timeout=300, env={**os.environ, "JAX_PLATFORMS": "cpu"})
   assert run.returncode == 0, run.stderr[-2000:]

@@ -1,7 +1,7 @@
 """The worked example of docs/video.md: one struck tower filmed as the video test towers
 are (`observe.py`'s camera, stickers and degradation), written as a user's files:
 
-  clip.mp4       the video (MPEG-4 at the test towers' frame rate and size)
+  clip.mp4       the video (MPEG-4, 640 x 480 at the test towers' frame rate)
   camera.json    intrinsics and camera_from_world (`python -m ppdjax.track --camera`)
   stickers.json  sticker centres in the object frame and the pose at rest (--stickers)
   tower.glb      the blocks, one group each, bottom to top (`decompose --mesh`)
@@ -69,6 +69,7 @@ def write_example(out: str, prims, material_ids, texture_seeds, rest: np.ndarray
   truth = {"blocks": blocks,
            "materials": [material_names[int(np.asarray(material_ids)[i])] for i in valid],
            "densities": np.asarray(prims.density)[valid].tolist(), "fps": fps,
+           "exposure": synthetic.EXPOSURE,  # the shutter it was filmed with (track --exposure)
            "frames": len(video), "true_trajectory": np.asarray(trajectory).tolist(),
            "dt": TIMESTEP}
   with open(os.path.join(out, "truth.json"), "w") as f:

@@ -27,7 +27,7 @@ def _observe_one(job) -> tuple[np.ndarray | None, str | None]:
   video = synthetic.degrade(frames, np.random.default_rng(seed), **degrade)
   try:
     return track_poses(video, _RENDERER.intrinsics, _RENDERER.camera_from_world, points, rest,
-                       fps=fps, steps=steps), None
+                       fps=fps, steps=steps, exposure=synthetic.EXPOSURE), None
   except TrackingError as e:
     return None, str(e)
 

@@ -30,6 +30,8 @@ STICKER_THICKNESS = 0.0005  # m: thin, so its sides hardly show
 # its distance to the target, with a field of view of FOVY degrees.
 DISTANCE_SCALE = 1.0
 FOVY = 30.0
+# the shutter stays open for half of each frame period, ending at the frame's time
+EXPOSURE = 0.5
 CORNERS = np.array([[sx, sy] for sx in (-1, 1) for sy in (-1, 1)], np.float64)
 
 
@@ -151,16 +153,19 @@ class VideoRenderer(render.SlotRenderer):
 
 
 def film(renderer: VideoRenderer, rest_pose: np.ndarray, trajectory: np.ndarray, dt: float,
-         fps: float, shutter_samples: int = 3, exposure: float = 0.5) -> np.ndarray:
+         fps: float, shutter_samples: int = 3, exposure: float = EXPOSURE) -> np.ndarray:
   """(F, H, W, 3) uint8 frames at i / fps, i < F, of an object at rest until time 0 and
   then along `trajectory` ((T, 7), step k at (k + 1) dt): each frame averages
-  `shutter_samples` renders spread over `exposure` / fps seconds before it."""
+  `shutter_samples` renders at the middles of equal parts of the `exposure` / fps seconds
+  before it (so that, as with a real shutter, it shows the object on average
+  `exposure` / (2 fps) before the frame's time: `track_poses(exposure=...)`)."""
   times = np.concatenate([[0.0], dt * np.arange(1, len(trajectory) + 1)])
   poses = np.concatenate([rest_pose[None], trajectory])
   count = int(np.floor(times[-1] * fps + 1e-9)) + 1
+  parts = (np.arange(shutter_samples) + 0.5) / shutter_samples
   frames = []
   for i in range(count):
-    t = i / fps - exposure / fps * np.linspace(0, 1, shutter_samples, endpoint=False)[::-1]
+    t = i / fps - exposure / fps * parts[::-1]
     at = posemod.resample(times, poses, np.clip(t, 0.0, times[-1]))
     frames.append(np.mean([renderer.render(p) for p in at], 0))
   return np.round(np.stack(frames)).astype(np.uint8)

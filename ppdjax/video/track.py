@@ -57,7 +57,8 @@ def _check(frames, intrinsics, camera_from_world, stickers, initial_pose, fps):
   return k, c, s, p
 
 
-def _check_options(n_frames, fps, push_time, dt, steps, gate_px, max_gap_s, smoothing):
+def _check_options(n_frames, fps, push_time, dt, steps, gate_px, max_gap_s, smoothing,
+                   exposure):
   """ValueError naming the first option out of its range (`track_poses`'s Args)."""
   finite = lambda x: isinstance(x, (int, float, np.number)) and np.isfinite(x)
   if not (finite(push_time) and 0 <= push_time < (n_frames - 1) / fps):
@@ -73,14 +74,17 @@ def _check_options(n_frames, fps, push_time, dt, steps, gate_px, max_gap_s, smoo
   for name, value in (("max_gap_s", max_gap_s), ("smoothing", smoothing)):
     if not (finite(value) and value >= 0):
       raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+  if not (finite(exposure) and 0 <= exposure <= 1):
+    raise ValueError(f"exposure must be a fraction of the frame period in [0, 1], got "
+                     f"{exposure!r}")
 
 
 def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: np.ndarray,
                 stickers: np.ndarray, initial_pose: np.ndarray, *, fps: float = 60.0,
                 push_time: float = 0.0, dt: float = TIMESTEP, steps: int | None = None,
                 gate_px: float | None = None, max_gap_s: float = 0.1,
-                smoothing: float = 0.0, detector: dict | None = None,
-                progress: bool = False) -> np.ndarray:
+                smoothing: float = 0.0, exposure: float = 0.0,
+                detector: dict | None = None, progress: bool = False) -> np.ndarray:
   """(steps, 7) float32 trajectory of the object frame in world coordinates, one pose
   per simulator step after the push: step k at push_time + (k + 1) dt.
 
@@ -97,12 +101,17 @@ def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: n
       (default 5 % of the frame's larger side).
     max_gap_s: longest run of frames with fewer than 4 stickers that is interpolated.
     smoothing: Gaussian smoothing of the poses over time, in frames (0: none).
+    exposure: the shutter's open time as a fraction of the frame period (shutter time x
+      fps), the exposure ending at each frame's time i / fps: a blurred frame shows the
+      object where it was in the middle of its exposure, exposure / (2 fps) earlier (0:
+      an instantaneous shutter). Unaccounted, it delays the whole trajectory.
     detector: keyword arguments of `detect_stickers` (min_area, max_area, min_saturation).
   """
   k, cam_world, pts, p0 = _check(frames, intrinsics, camera_from_world, stickers,
                                  initial_pose, fps)
   n_frames, height, width = frames.shape[:3]
-  _check_options(n_frames, fps, push_time, dt, steps, gate_px, max_gap_s, smoothing)
+  _check_options(n_frames, fps, push_time, dt, steps, gate_px, max_gap_s, smoothing,
+                 exposure)
   gate = gate_px if gate_px is not None else 0.05 * max(height, width)
   world_cam = np.linalg.inv(cam_world)
   cam_obj = [None] * n_frames
@@ -133,11 +142,12 @@ def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: n
       track = [(t, solved)] if t == 0 else [track[-1], (t, solved)]
   seen = np.array([m is not None for m in cam_obj])
   _check_gaps(seen, fps, max_gap_s)
-  times = np.arange(n_frames) / fps
+  # when each frame shows the object: the middle of its exposure
+  times = np.arange(n_frames) / fps - exposure / (2 * fps)
   tracked = np.stack([posemod.matrix_to_pose(world_cam @ m) for m in cam_obj if m is not None])
   if not seen[0]:  # before the first sighting the object is still at rest
     tracked, seen_times = np.concatenate([p0[None], tracked]), np.concatenate(
-        [[0.0], times[seen]])
+        [[times[0]], times[seen]])
   else:
     seen_times = times[seen]
   poses = posemod.resample(seen_times, tracked, np.clip(times, seen_times[0], seen_times[-1]))
