@@ -303,7 +303,7 @@ def test_the_lookalike_video_preset_paints_and_hollows_its_blocks():
                                                                       "pendulum")
   assert video.get_config("lookalike").train.init_from == "assets/video_model"
   assert video.get_config("paper").data.look == "material"
-  # every clip tracked: stickers on every face, a wider view in more pixels (issue 64)
+  # stickers on every face, a wider view in more pixels
   test = video.get_config("paper").test
   assert (test.stickers, test.fovy, tuple(test.frame)) == ("all", 42.0, (960, 1280))
   with pytest.raises(ValueError, match="lookalike"):

@@ -154,10 +154,10 @@ def test_rendered_tower_stickers_give_its_rest_pose(frame, fovy):
                          [1.0, 0.0, 0.0, 0.0]])
   with synthetic.VideoRenderer(*frame, fovy=fovy) as r:
     points = r.set_object(tower, [MATERIAL_NAMES.index("stone")] * 5, np.zeros(5, int))
-    frame = r.render(rest)
+    image = r.render(rest)
     truth = r.camera_from_world @ posemod.pose_to_matrix(rest)
     uv, _ = posemod.project(points, truth, r.intrinsics)
-    det = detect_stickers(frame)
+    det = detect_stickers(image)
     which = posemod.match(det, uv, np.ones(len(points), bool), 2.0)
     ok = which >= 0
     assert ok.sum() >= 4
@@ -175,6 +175,10 @@ def test_the_video_camera_names_a_bad_view_or_frame():
     synthetic.VideoRenderer(240, 320, fovy=180.0)
   with pytest.raises(ValueError, match="image size"):
     synthetic.VideoRenderer(960, 1600)
+  from ppdjax.video.observe import observe_towers  # pylint: disable=import-outside-toplevel
+  with pytest.raises(ValueError, match="fovy"):  # before the workers start: no hung pool
+    observe_towers(None, None, None, np.zeros((1, 7)), np.zeros((1, 300, 7)), steps=10,
+                   fovy=0.0, workers=2)
 
 
 def test_top_stickers_add_the_uncovered_top_corners_and_keep_the_sides():

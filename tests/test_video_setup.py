@@ -179,8 +179,7 @@ def test_the_shipped_video_example_tracks_back_to_its_truth(tmp_path):
   """docs/video.md's worked example as a user runs it: `python -m ppdjax.track` on the
   shipped clip, camera and stickers, told the shutter it was filmed with, gives the true
   trajectory within a few millimetres (ignoring the shutter delays every pose by a
-  quarter of a frame: twice the error), and the tower's mesh reads back as its named
-  blocks."""
+  quarter of a frame), and the tower's mesh reads back as its named blocks."""
   from ppdjax.dataset.mesh_files import load_object  # pylint: disable=import-outside-toplevel
   with open(os.path.join(VIDEO_EXAMPLE, "truth.json")) as f:
     truth = json.load(f)

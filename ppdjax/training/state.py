@@ -40,9 +40,9 @@ class TrainState(nnx.Module):
     self.optimizer = optimizer
 
 
-# The initial draw is compiled without LLVM's optimisations: it runs once, so its compile
-# time is all it costs (the same draws; a few float transforms round differently).
-INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+# On a CPU the initial draw is compiled without LLVM's optimisations: it runs once, so its
+# compile time is all it costs (the same draws; a few float transforms round differently).
+CPU_INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
 def init_model(config) -> PPD:
@@ -50,7 +50,8 @@ def init_model(config) -> PPD:
   (eagerly, each parameter's shape would compile its own random draw)."""
   make = lambda: PPD(config.model, rngs=nnx.Rngs(params=config.train.seed))  # noqa: E731
   graphdef = nnx.graphdef(nnx.eval_shape(make))
-  state = jax.jit(lambda: nnx.state(make())).lower().compile(INIT_COMPILER_OPTIONS)()
+  options = CPU_INIT_COMPILER_OPTIONS if jax.default_backend() == "cpu" else None
+  state = jax.jit(lambda: nnx.state(make())).lower().compile(options)()
   return nnx.merge(graphdef, state)
 
 

@@ -60,7 +60,10 @@ def observe_towers(prims, material_ids, texture_seeds, rest_poses, trajectories,
   b = len(rest_poses)
   if np.shape(trajectories)[:1] != (b,) or np.shape(trajectories)[2:] != (7,):
     raise ValueError(f"trajectories: expected shape ({b}, T, 7), got {np.shape(trajectories)}")
-  last_frame = np.floor(np.shape(trajectories)[1] * TIMESTEP * fps + 1e-9) / fps
+  synthetic.check_view(*frame, fovy, stickers)  # here, not in the pool's workers' start
+  # the last frame shows the object half an exposure before its time
+  last_frame = (np.floor(np.shape(trajectories)[1] * TIMESTEP * fps + 1e-9)
+                - synthetic.EXPOSURE / 2) / fps
   if np.floor(last_frame / TIMESTEP + 1e-9) < steps:
     raise ValueError(f"trajectories of {np.shape(trajectories)[1]} steps are too short to film "
                      f"{steps} steps at {fps} fps: simulate at least one frame longer")

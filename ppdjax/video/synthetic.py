@@ -96,16 +96,28 @@ def intrinsics(height: int, width: int, fovy: float = FOVY) -> np.ndarray:
   return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
 
 
+MAX_FRAME = 1280  # pixels: the video scene's offscreen buffer, each side
+
+
+def check_view(height: int, width: int, fovy: float, stickers: str) -> None:
+  """ValueError naming a frame, field of view or sticker layout `VideoRenderer` cannot
+  film (checked where it is asked for: a worker process failing to start hangs a pool)."""
+  if stickers not in STICKER_LAYOUTS:
+    raise ValueError(f"stickers must be one of {sorted(STICKER_LAYOUTS)}, got {stickers!r}")
+  if not (isinstance(fovy, (int, float)) and 0 < fovy < 180):
+    raise ValueError(f"fovy must lie in (0, 180) degrees, got {fovy!r}")
+  if not (16 <= height <= MAX_FRAME and 16 <= width <= MAX_FRAME):
+    raise ValueError(f"image size must be within 16..{MAX_FRAME} pixels a side, got "
+                     f"{height}x{width}")
+
+
 class VideoRenderer(render.SlotRenderer):
   """Renders a K-slot object at given poses, with its stickers, from the video camera."""
 
   def __init__(self, height: int = 480, width: int = 640, num_slots: int = NUM_SLOTS,
                fovy: float = FOVY, distance_scale: float = DISTANCE_SCALE,
                stickers: str = "sides"):
-    if stickers not in STICKER_LAYOUTS:
-      raise ValueError(f"stickers must be one of {sorted(STICKER_LAYOUTS)}, got {stickers!r}")
-    if not 0 < fovy < 180:
-      raise ValueError(f"fovy must lie in (0, 180) degrees, got {fovy!r}")
+    check_view(height, width, fovy, stickers)
     self.faces = STICKER_LAYOUTS[stickers]
     self.PER_BLOCK = 4 * len(self.faces)  # pylint: disable=invalid-name
     boxes = render.box_geoms(num_slots)
@@ -117,7 +129,8 @@ class VideoRenderer(render.SlotRenderer):
                      'emission="0.3"/>')
     xml = render.stage_xml(render.material_assets(num_slots), boxes + "\n" + sticker_xml,
                            sticker_asset)
-    xml = xml.replace('offwidth="1024" offheight="1024"', 'offwidth="1280" offheight="1280"')
+    xml = xml.replace('offwidth="1024" offheight="1024"',
+                      f'offwidth="{MAX_FRAME}" offheight="{MAX_FRAME}"')
     eye = camera.CAMERA_TARGET + distance_scale * (camera.CAMERA_POS - camera.CAMERA_TARGET)
     xml = xml.replace(f'fovy="{camera.FOVY}"', f'fovy="{fovy}"').replace(
         'pos="' + " ".join(f"{v}" for v in camera.CAMERA_POS) + '"',

@@ -61,9 +61,13 @@ def _check_options(n_frames, fps, push_time, dt, steps, gate_px, max_gap_s, smoo
                    exposure):
   """ValueError naming the first option out of its range (`track_poses`'s Args)."""
   finite = lambda x: isinstance(x, (int, float, np.number)) and np.isfinite(x)
-  if not (finite(push_time) and 0 <= push_time < (n_frames - 1) / fps):
-    raise ValueError(f"push_time must be in [0, {(n_frames - 1) / fps:.4g}) s, inside the "
-                     f"video ({n_frames} frames at {fps:g} fps), got {push_time!r}")
+  if not (finite(exposure) and 0 <= exposure <= 1):
+    raise ValueError(f"exposure must be a fraction of the frame period in [0, 1], got "
+                     f"{exposure!r}")
+  last = (n_frames - 1 - exposure / 2) / fps  # what the last frame shows, dated
+  if not (finite(push_time) and 0 <= push_time < last):
+    raise ValueError(f"push_time must be in [0, {last:.4g}) s, inside the video ({n_frames} "
+                     f"frames at {fps:g} fps), got {push_time!r}")
   if not (finite(dt) and dt > 0):
     raise ValueError(f"dt must be finite and > 0 s, got {dt!r}")
   if steps is not None and (isinstance(steps, bool) or not isinstance(steps, (int, np.integer))
@@ -74,9 +78,6 @@ def _check_options(n_frames, fps, push_time, dt, steps, gate_px, max_gap_s, smoo
   for name, value in (("max_gap_s", max_gap_s), ("smoothing", smoothing)):
     if not (finite(value) and value >= 0):
       raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
-  if not (finite(exposure) and 0 <= exposure <= 1):
-    raise ValueError(f"exposure must be a fraction of the frame period in [0, 1], got "
-                     f"{exposure!r}")
 
 
 def track_poses(frames: np.ndarray, intrinsics: np.ndarray, camera_from_world: np.ndarray,
