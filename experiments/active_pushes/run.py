@@ -202,6 +202,11 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
   print(f"{n} towers in {time.time() - start:.0f} s -> {out}")
 
 
+def refine_weights_of(rec) -> np.ndarray:
+  """The prior weights a record was refined at ([0] before they were recorded)."""
+  return np.asarray(rec["refine_weights"] if "refine_weights" in rec else [0.0])
+
+
 def by_weight(rec, key: str) -> np.ndarray:
   """A refined field with its prior-weight axis (towers, W, ...): records refined at one
   weight (before the axis was recorded) have W = 1."""
@@ -295,12 +300,12 @@ def report(val_records: str, records: str, out: str) -> None:
                          f"{r['refine_scale']}; validation chose {val['scales'][chosen]}: "
                          f"record again with --refine_scale={val['scales'][chosen]}")
     # the prior weight whose refined fixed four read the lowest RMSE on validation
-    val_weights = np.asarray(val["refine_weights"] if "refine_weights" in val else [0.0])
+    val_weights = refine_weights_of(val)
     val_rmse = []
     for w in range(len(val_weights)):
       c = scores(val, "fixed" + REFINED, MAX_PUSHES, chosen, w)
       val_rmse.append(float(np.sqrt(c["sq"][c["same"]].sum() / c["boxes"][c["same"]].sum())))
-    weights = np.asarray(rec["refine_weights"] if "refine_weights" in rec else [0.0])
+    weights = refine_weights_of(rec)
     at = np.flatnonzero(np.isclose(weights, val_weights[int(np.argmin(val_rmse))]))
     if len(at) == 0:
       raise ValueError(f"validation chose the prior weight "

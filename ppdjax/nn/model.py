@@ -316,3 +316,18 @@ class PPD(nnx.Module):
     prims = Primitives(pred.half_size[:, :k], pred.pos[:, :k], pred.quat[:, :k],
                        slot_to_density_jax(slots), valid)
     return prims, pred
+
+
+# On a CPU the initial draw is compiled without LLVM's optimisations: it runs once, so its
+# compile time is all it costs (the same draws; a few float transforms round differently).
+CPU_INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+
+
+def init_ppd(config: ml_collections.ConfigDict, seed: int = 0) -> PPD:
+  """A PPD of `config` (the model section), its parameters drawn from `seed` in one
+  compiled program (eagerly, each parameter's shape would compile its own random draw)."""
+  make = lambda: PPD(config, rngs=nnx.Rngs(params=seed))  # noqa: E731
+  graphdef = nnx.graphdef(nnx.eval_shape(make))
+  options = CPU_INIT_COMPILER_OPTIONS if jax.default_backend() == "cpu" else None
+  state = jax.jit(lambda: nnx.state(make())).lower().compile(options)()
+  return nnx.merge(graphdef, state)

@@ -37,7 +37,6 @@ import sys
 
 import jax
 from absl import app, flags, logging
-from flax import nnx
 from ml_collections import config_flags
 
 jax.config.update("jax_compilation_cache_dir",
@@ -49,7 +48,7 @@ from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax.dataset import generation  # noqa: E402
 from ppdjax.eval import evaluation, partial  # noqa: E402
 from ppdjax.report import markdown
-from ppdjax.nn.model import PPD  # noqa: E402
+from ppdjax.nn.model import init_ppd  # noqa: E402
 from ppdjax.training import checkpoints, loop  # noqa: E402
 from ppdjax.training.state import total_steps  # noqa: E402
 
@@ -206,7 +205,7 @@ class Pipeline:
     programs take the weights as arguments): evaluate:full then loads them instead of
     spending 90 s compiling while the accelerator waits."""
     config = self.train_config("full")
-    model = PPD(config.model, rngs=nnx.Rngs(0))
+    model = init_ppd(config.model)
     try:
       r = evaluation.evaluate((model, config), self.data, ahead=True, progress=False,
                               **self.evaluation_args("full"))

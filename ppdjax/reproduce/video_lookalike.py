@@ -76,13 +76,13 @@ def plot_twins(test: dict, full: dict, appearance: dict, twins, path: str) -> No
   import matplotlib  # pylint: disable=import-outside-toplevel
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+  full_d, _ = report.matched(test, full, "tracked")
+  app_d, _ = report.matched(test, appearance, "true")
   fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
   for ax, i in zip(axes[:2], twins):
     valid = test["valid"][i]
     order = np.argsort(np.where(valid, test["pos"][i, :, 2], np.inf))[:valid.sum()]
     slots = lambda dens, order=order: density_to_slot(np.nan_to_num(dens[order], nan=100.0))
-    full_d, _ = report.matched(test, full, "tracked")
-    app_d, _ = report.matched(test, appearance, "true")
     ax.imshow(test["image"][i])
     ax.set_title(f"tower {i}: truth {slots(test['density'][i]).tolist()}\n"
                  f"motion + look {slots(full_d[i]).tolist()}, look alone "

@@ -14,7 +14,7 @@ from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS
 from ppdjax.dataset import batching, depth_video, storage, stream
 from ppdjax.nn import losses
-from ppdjax.nn.model import PPD
+from ppdjax.nn.model import PPD, init_ppd
 from ppdjax.nn.resnet import load_torchvision_weights
 from ppdjax.training import checkpoints, sharding, streams
 from ppdjax.training.loader import BATCH_KEYS, model_inputs
@@ -40,24 +40,9 @@ class TrainState(nnx.Module):
     self.optimizer = optimizer
 
 
-# On a CPU the initial draw is compiled without LLVM's optimisations: it runs once, so its
-# compile time is all it costs (the same draws; a few float transforms round differently).
-CPU_INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
-
-
-def init_model(config) -> PPD:
-  """The model of `config`, its parameters drawn from train.seed in one compiled program
-  (eagerly, each parameter's shape would compile its own random draw)."""
-  make = lambda: PPD(config.model, rngs=nnx.Rngs(params=config.train.seed))  # noqa: E731
-  graphdef = nnx.graphdef(nnx.eval_shape(make))
-  options = CPU_INIT_COMPILER_OPTIONS if jax.default_backend() == "cpu" else None
-  state = jax.jit(lambda: nnx.state(make())).lower().compile(options)()
-  return nnx.merge(graphdef, state)
-
-
 def build(config) -> TrainState:
   """A freshly initialised model (seeded by train.seed) and its Adam optimiser."""
-  model = init_model(config)
+  model = init_ppd(config.model, config.train.seed)
   if config.model.image_weights:
     if not config.model.use_image:
       raise ValueError("config.model.image_weights is set but use_image is False")
