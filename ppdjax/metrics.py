@@ -30,10 +30,16 @@ def rotation_vector(q: jax.Array) -> jax.Array:
   return v * scale[..., None]
 
 
+def relative_rotation(q_a: jax.Array, q_b: jax.Array) -> jax.Array:
+  """(..., 3) rotvec(q_a ⊗ q_b⁻¹) in radians; its norm is the angle between the two
+  orientations, exact for small angles (where the arccos of their float32 dot product
+  rounds to zero below about 0.03°)."""
+  return rotation_vector(quat_mul(q_a, q_b * jnp.array([1.0, -1.0, -1.0, -1.0])))
+
+
 def pose_residual(sim_PTx7: jax.Array, obs_PTx7: jax.Array) -> jax.Array:
   """(..., 6) per-step residual [Δp; L · rotvec(q_sim ⊗ q_obs⁻¹)] in metres."""
-  conj = obs_PTx7[..., 3:] * jnp.array([1.0, -1.0, -1.0, -1.0])
-  rot = rotation_vector(quat_mul(sim_PTx7[..., 3:], conj))
+  rot = relative_rotation(sim_PTx7[..., 3:], obs_PTx7[..., 3:])
   return jnp.concatenate([sim_PTx7[..., :3] - obs_PTx7[..., :3], ROTATION_LENGTH * rot], -1)
 
 

@@ -6,6 +6,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ppdjax.conventions import TIMESTEP
+from ppdjax.metrics import relative_rotation
 from ppdjax.video import TrackingError, detect_stickers, solve_pnp, track_poses
 from ppdjax.video import pose as posemod
 
@@ -57,8 +58,7 @@ def errors(traj, start=0.0):
   times = start + TIMESTEP * np.arange(1, len(traj) + 1)
   true = np.stack([true_pose(t - start) for t in times])
   pos_mm = 1e3 * np.linalg.norm(traj[:, :3] - true[:, :3], axis=-1)
-  dots = np.abs(np.sum(traj[:, 3:] * true[:, 3:], -1)).clip(max=1.0)
-  return pos_mm, np.degrees(2 * np.arccos(dots))
+  return pos_mm, np.degrees(np.linalg.norm(relative_rotation(traj[:, 3:], true[:, 3:]), axis=-1))
 
 
 def test_detection_finds_each_sticker_to_a_tenth_of_a_pixel():

@@ -13,6 +13,7 @@ from ppdjax.report.provenance import write_provenance
 from ppdjax.reproduce import steps as pipeline_steps
 from ppdjax import primitives
 from ppdjax.conventions import density_to_slot, slot_to_density
+from ppdjax.metrics import relative_rotation
 from ppdjax.dataset import camera, generation, materials
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.infer.decompose import make_decompose_fn
@@ -156,8 +157,7 @@ def tracking_errors(test) -> dict:
   tr, tt = test["tracked_trajectory"], test["true_trajectory"]
   ok = np.isfinite(tr).all((1, 2))
   pos = 1e3 * np.linalg.norm(tr[ok, :, :3] - tt[ok, :, :3], axis=-1)
-  dots = np.abs(np.sum(tr[ok, :, 3:] * tt[ok, :, 3:], -1)).clip(max=1.0)
-  rot = np.degrees(2 * np.arccos(dots))
+  rot = np.degrees(np.linalg.norm(relative_rotation(tr[ok, :, 3:], tt[ok, :, 3:]), axis=-1))
   return {"clips": int(len(ok)), "tracked": int(ok.sum()),
           "position_mm_median": float(np.median(np.median(pos, 1))),
           "position_mm_p90_of_clip_medians": float(np.percentile(np.median(pos, 1), 90)),
