@@ -24,7 +24,7 @@ def _obs(rng, b=3, t=24, hw=32):
 
 @pytest.fixture(scope="module")
 def net():
-  return model.PPD(tiny.get_config().model, rngs=nnx.Rngs(0))
+  return model.init_module(lambda: model.PPD(tiny.get_config().model, rngs=nnx.Rngs(0)))
 
 
 def _random_boxes(rng, b=4, k=5):
@@ -104,7 +104,7 @@ def test_trajectory_features_are_relative_and_compressed():
 
 
 def test_conv_matches_xla_convolution(rng):
-  conv = model.Conv3x3x3(2, 3, rngs=nnx.Rngs(0))
+  conv = model.init_module(lambda: model.Conv3x3x3(2, 3, rngs=nnx.Rngs(0)))
   x = jnp.asarray(rng.normal(size=(2, 8, 8, 8, 2)), jnp.float32)
   ref = jax.lax.conv_general_dilated(x, conv.kernel.value, (1, 1, 1), "SAME",
                                      dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
@@ -240,7 +240,7 @@ def test_shape_f1_and_density_metrics(rng):
 
 def test_torchvision_weights_load_by_name(tmp_path, rng):
   """A state dict with torchvision's names and OIHW layouts (made here: no download)."""
-  net = ResNet18(64, 64, rngs=nnx.Rngs(0))
+  net = model.init_module(lambda: ResNet18(64, 64, rngs=nnx.Rngs(0)))
   sd = {}
   for path, v in nnx.to_flat_state(nnx.state(net)):
     names = [str(p) for p in path]
@@ -270,7 +270,8 @@ def test_torchvision_weights_load_by_name(tmp_path, rng):
 def test_coordinate_channels_reach_the_voxel_feature():
   """With `coords`, the first convolution reads occupancy + 3 coordinate channels, and those
   channels change the feature of the same grid."""
-  enc = model.VoxelEncoder(8, coords=True, rngs=nnx.Rngs(params=0))
+  enc = model.init_module(
+      lambda: model.VoxelEncoder(8, coords=True, rngs=nnx.Rngs(params=0)))
   kernel = enc.convs[0].kernel
   assert kernel.value.shape == (3, 3, 3, 4, 2)
   vox = np.zeros((1, 32, 32, 32), np.uint8)

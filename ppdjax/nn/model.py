@@ -7,6 +7,8 @@ The generator emits S = max_primitives + 1 steps; each step is a primitive or th
 
 from __future__ import annotations
 
+from typing import Callable
+
 import jax
 import jax.numpy as jnp
 import ml_collections
@@ -323,11 +325,15 @@ class PPD(nnx.Module):
 CPU_INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
-def init_ppd(config: ml_collections.ConfigDict, seed: int = 0) -> PPD:
-  """A PPD of `config` (the model section), its parameters drawn from `seed` in one
-  compiled program (eagerly, each parameter's shape would compile its own random draw)."""
-  make = lambda: PPD(config, rngs=nnx.Rngs(params=seed))  # noqa: E731
+def init_module(make: Callable[[], nnx.Module]) -> nnx.Module:
+  """`make()`, its parameters drawn in one compiled program (eagerly, each parameter's
+  shape would compile its own random draw: seconds per module on a CPU)."""
   graphdef = nnx.graphdef(nnx.eval_shape(make))
   options = CPU_INIT_COMPILER_OPTIONS if jax.default_backend() == "cpu" else None
   state = jax.jit(lambda: nnx.state(make())).lower().compile(options)()
   return nnx.merge(graphdef, state)
+
+
+def init_ppd(config: ml_collections.ConfigDict, seed: int = 0) -> PPD:
+  """A PPD of `config` (the model section), its parameters drawn from `seed`."""
+  return init_module(lambda: PPD(config, rngs=nnx.Rngs(params=seed)))

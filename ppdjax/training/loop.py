@@ -130,6 +130,8 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
                        f"train.batch_size={t.batch_size}")
   _check_resume(workdir, config)
   checkpoints.save_config(workdir, config, train_ds.camera if train_ds is not None else None)
+  if trained_steps(workdir) >= total_steps(t):  # finished: no model to build, no step left
+    return _last_validation(os.path.join(workdir, "metrics.jsonl"))
 
   trainer = Trainer(config, workdir)
   start = trainer.restore_latest()
@@ -181,13 +183,20 @@ def train_and_evaluate(config, data_dir: str, workdir: str, progress: bool = Tru
       loader.close()
     trainer.close()
     log.close()
-  if last_val is None:  # nothing left to train: report the run's last validation
-    with open(log.path) as f:
-      rows = [json.loads(line) for line in f if '"val"' in line]
-    last_val = {k: v for k, v in rows[-1].items() if k not in ("step", "split")} if rows else {}
+  if last_val is None:  # stopped before a validation: report the run's last one
+    last_val = _last_validation(log.path)
   if jax.process_index() == 0:
     plot_learning_curve(log.path, os.path.join(workdir, "learning_curve.png"))
   return last_val
+
+
+def _last_validation(metrics_path: str) -> dict:
+  """The last validation row of a run's metrics.jsonl, without its step and split."""
+  rows = []
+  if os.path.exists(metrics_path):
+    with open(metrics_path) as f:
+      rows = [json.loads(line) for line in f if '"val"' in line]
+  return {k: v for k, v in rows[-1].items() if k not in ("step", "split")} if rows else {}
 
 
 def trained_steps(workdir: str) -> int:
