@@ -194,7 +194,12 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   zeros_r, zeros_sim = jnp.zeros((p, n, 6)), jnp.zeros((p, n, 7))
   init = (u0, u0, zeros_r, jnp.zeros((p, n, 6, k)), zeros_sim, jnp.float32(jnp.inf), 0,
           zeros_r, zeros_sim)
-  (_, u, r, _, sim, _, accepted, r0, sim0), _ = jax.lax.scan(iterate, init, horizons)
+  # Full float32 products: GPUs default to TF32 (10-bit mantissas) for float32 matmuls,
+  # and whether XLA takes that path depends on the batch's shapes. The normal equations
+  # and differences then read noise, and the fit depended on what else shared the call
+  # (experiments/active_pushes/README.md, "TF32").
+  with jax.default_matmul_precision("highest"):
+    (_, u, r, _, sim, _, accepted, r0, sim0), _ = jax.lax.scan(iterate, init, horizons)
   # The warm-up passes fit a shorter horizon and may raise the full-trajectory cost:
   # never return something worse than the start.
   c0, c1 = cost(r0, t, u0), cost(r, t, u)
