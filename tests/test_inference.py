@@ -312,6 +312,32 @@ def test_difference_jacobian_keeps_jacfwd_contract():
   np.testing.assert_array_equal(aux["u"], aux_want["u"])
 
 
+def test_refinement_multiplies_in_full_float32(monkeypatch):
+  """Every product of the LM iterations asks for full precision: GPUs otherwise multiply
+  float32 in TF32, by the batch's shapes (docs/inference.md, Refinement). A stand-in
+  simulator keeps the trace short; the real ones trace inside the same context."""
+  def dots(jaxpr):
+    for eqn in jaxpr.eqns:
+      if eqn.primitive.name == "dot_general":
+        yield str(eqn.params["precision"])
+      for p in eqn.params.values():
+        for sub in (p if isinstance(p, (list, tuple)) else [p]):
+          if isinstance(sub, jax.extend.core.ClosedJaxpr):
+            yield from dots(sub.jaxpr)
+  def fake_simulate(prims, pushes, *, steps, settings):  # (P, T, 7), smooth in the densities
+    del settings
+    pos = (prims.density[:, None, None] * jnp.ones((steps, 3)) @ jnp.ones((3, 3))).sum(0) * 1e-6
+    quat = jnp.broadcast_to(jnp.array([1.0, 0, 0, 0]), (steps, 4))
+    return jnp.broadcast_to(jnp.concatenate([pos, quat], -1), (pushes.num, steps, 7))
+  monkeypatch.setattr(refine, "simulate", fake_simulate)
+  one = jax.tree.map(lambda x: jnp.asarray(x[0]), towers.sample_towers(0, 1))
+  for jacobian in ("forward", "differences"):
+    jaxpr = jax.make_jaxpr(lambda p, o, j=jacobian: refine.refine_densities(
+        p, o, steps=2, horizons=[8, 16, 16], jacobian=j))(one, jnp.zeros((4, 16, 7)))
+    found = list(dots(jaxpr.jaxpr))
+    assert found and set(found) == {"(Precision.HIGHEST, Precision.HIGHEST)"}, set(found)
+
+
 def test_refine_jacobian_names_the_choices():
   assert refine.check_jacobian("differences") == "differences"
   with pytest.raises(ValueError, match="jacobian must be one of"):
