@@ -197,7 +197,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   # Full float32 products: GPUs default to TF32 (10-bit mantissas) for float32 matmuls,
   # and whether XLA takes that path depends on the batch's shapes. The normal equations
   # and differences then read noise, and the fit depended on what else shared the call
-  # (experiments/active_pushes/README.md, "TF32").
+  # (experiments/active_pushes/README.md, "Fourth look").
   with jax.default_matmul_precision("highest"):
     (_, u, r, _, sim, _, accepted, r0, sim0), _ = jax.lax.scan(iterate, init, horizons)
   # The warm-up passes fit a shorter horizon and may raise the full-trajectory cost:
