@@ -18,7 +18,7 @@ demo: $(VENV)/.installed
 
 # two pytest workers, each taking whole test modules (a module's fixtures are made once;
 # the tiny dataset and run once per test run, shared through a file lock): on 2 cores
-# 9-10 minutes from a fresh clone with empty caches (README; compilation is
+# 10-12 minutes from a fresh clone with empty caches (README; compilation is
 # single-threaded)
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 --dist loadscope
