@@ -27,6 +27,7 @@ from ppdjax import metrics, primitives
 from ppdjax.report.provenance import write_provenance
 from ppdjax.configs import video
 from ppdjax.dataset import generation
+from ppdjax.infer.refine import difference_jacobian
 from ppdjax.sim.rollout_mjx import settings_for, simulate
 
 FLAGS = flags.FLAGS
@@ -34,22 +35,31 @@ STEP = 1e-2  # central differences' step in log density (1 %)
 BATCH = 16  # towers per call (one compilation)
 
 
-def tower_jacobians(prims, pushes, steps: int, settings):
-  """(N, T, 6, K) d pose residual / d log density of N towers, by central differences,
-  and the (N, T, 7) trajectories at the truth."""
-  k = prims.density.shape[-1]
-  shifts = jnp.concatenate([jnp.zeros((1, k)), STEP * jnp.eye(k), -STEP * jnp.eye(k)])
+def tower_jacobians(prims, observed, pushes, steps: int, settings):
+  """(N, T, 6, K) d pose residual / d log density of N towers, by central differences
+  (`refine.difference_jacobian`), and the (N, T, 7) trajectories at the truth."""
+  def one(p, obs):
+    def residual(u):  # the pose residual against the observed truth, and the rollout
+      dens = jnp.where(p.valid, jnp.exp(u), p.density)
+      sim = simulate(p.replace(density=dens), pushes, steps=steps, settings=settings)[0]
+      return metrics.pose_residual(sim, obs), sim
+    u0 = jnp.log(jnp.where(p.valid, p.density, 1000.0))
+    return difference_jacobian(residual, u0, STEP, central=True)
 
-  def one(p):
-    u = jnp.log(jnp.where(p.valid, p.density, 1000.0))
-    dens = jnp.where(p.valid, jnp.exp(u[None] + shifts), p.density)  # (2K + 1, K)
-    sims = jax.vmap(lambda d: simulate(p.replace(density=d), pushes, steps=steps,
-                                       settings=settings)[0])(dens)  # (2K + 1, T, 7)
-    res = jax.vmap(lambda s: metrics.pose_residual(s, sims[0]))(sims)  # (2K + 1, T, 6)
-    jac = (res[1:k + 1] - res[k + 1:]) / (2 * STEP)  # (K, T, 6)
-    return jnp.moveaxis(jac, 0, -1), sims[0]
+  return jax.jit(jax.vmap(one))(prims, observed)
 
-  return jax.jit(jax.vmap(one))(prims)
+
+def in_batches(fn, prims, n: int, *args):
+  """fn(prims of BATCH towers, *args of them) over the first n towers, the last batch
+  padded (one compilation); the outputs, as NumPy, concatenated."""
+  outs = []
+  for lo in range(0, n, BATCH):
+    idx = np.arange(lo, min(lo + BATCH, n))
+    pad = np.concatenate([idx, np.full(BATCH - len(idx), idx[-1])])
+    out = fn(jax.tree.map(lambda x: x[pad], prims), *[a[pad] for a in args])
+    outs.append(jax.tree.map(lambda x: np.asarray(x)[:len(idx)], out))
+    print(f"{idx[-1] + 1} / {n} towers", flush=True)
+  return jax.tree.map(lambda *x: np.concatenate(x), *outs)
 
 
 def bound(jac_TxSxK, valid_K, density_K, sigma: float) -> np.ndarray:
@@ -70,13 +80,8 @@ def solid_mismatch(prims, d, n, pushes, steps, settings) -> dict:
   """How far the true towers, simulated with every block solid at its true mean density
   (what a decomposition's boxes are), move from their true trajectories: the model error
   no density can remove, beside the tracking noise."""
-  sims = []
-  for lo in range(0, n, BATCH):
-    idx = np.arange(lo, min(lo + BATCH, n))
-    pad = np.concatenate([idx, np.full(BATCH - len(idx), idx[-1])])
-    solid = jax.tree.map(lambda x: x[pad], prims).replace(inertia_scale=None)
-    sims.append(np.asarray(simulate(solid, pushes, steps=steps, settings=settings))[:len(idx), 0])
-  sim = np.concatenate(sims)
+  sim = in_batches(lambda p: simulate(p.replace(inertia_scale=None), pushes, steps=steps,
+                                      settings=settings)[:, 0], prims, n)
   mm = 1e3 * np.linalg.norm(sim[..., :3] - d["true_trajectory"][:n, :, :3], axis=-1).mean(-1)
   hollow = (np.abs(d["inertia_scale"][:n] - 1) > 1e-6).any(-1) & (d["valid"][:n].any(-1))
   blocks = d["valid"][:n].sum(1)
@@ -107,15 +112,9 @@ def main(argv):
               "seconds": round(time.time() - start, 1)}
     _merge(FLAGS.out, result)
     return
-  jacs, truths = [], []
-  for lo in range(0, n, BATCH):
-    idx = np.arange(lo, min(lo + BATCH, n))
-    pad = np.concatenate([idx, np.full(BATCH - len(idx), idx[-1])])
-    j, t = tower_jacobians(jax.tree.map(lambda x: x[pad], prims), pushes, steps, settings)
-    jacs.append(np.asarray(j)[:len(idx)])
-    truths.append(np.asarray(t)[:len(idx)])
-    print(f"{idx[-1] + 1} / {n} towers, {time.time() - start:.0f} s", flush=True)
-  jac, truth = np.concatenate(jacs), np.concatenate(truths)
+  jac, truth = in_batches(
+      lambda p, obs: tower_jacobians(p, jnp.asarray(obs), pushes, steps, settings), prims, n,
+      d["true_trajectory"])
   # the engine here against the data's true trajectory: the same physics?
   engine_mm = 1e3 * np.linalg.norm(truth[..., :3] - d["true_trajectory"][:n, :, :3], axis=-1)
   tracked = d["tracked_trajectory"][:n]
