@@ -338,6 +338,41 @@ def test_refinement_multiplies_in_full_float32(monkeypatch):
     assert found and set(found) == {"(Precision.HIGHEST, Precision.HIGHEST)"}, set(found)
 
 
+def test_refinement_fits_inertia_scales_within_their_range(monkeypatch):
+  """With `inertia`, each valid box's inertia scale is an unknown beside its density: a
+  stand-in simulator whose motion reads both (smoothly, as a hollow block's does) is
+  matched where densities alone cannot match it, the scales stay within
+  INERTIA_SCALE_RANGE, and boxes given without scales (the candidates') come back with them."""
+  def fake_simulate(prims, pushes, *, steps, settings):  # x reads the densities, y the scales
+    del settings
+    t = jnp.arange(steps)[:, None] * (jnp.arange(prims.valid.shape[0]) + 1.0)
+    live = jnp.where(prims.valid, 1.0, 0.0)
+    x = 1e-3 * (jnp.sin(0.05 * t) * jnp.log(jnp.where(prims.valid, prims.density, 1e3) / 1e3)).sum(-1)
+    scale = 1.0 if prims.inertia_scale is None else prims.inertia_scale
+    y = 1e-2 * (jnp.cos(0.07 * t) * (scale - 1.0) * live).sum(-1)
+    pose = jnp.concatenate([jnp.stack([x, y, 0 * x], -1), jnp.tile(jnp.array(
+        [1.0, 0, 0, 0]), (steps, 1))], -1)
+    return jnp.broadcast_to(pose, (pushes.num, steps, 7))
+  monkeypatch.setattr(refine, "simulate", fake_simulate)
+  truth = jax.tree.map(lambda x: jnp.asarray(x[0]), towers.sample_towers(1, 1, num_blocks=3))
+  lo, hi = refine.INERTIA_SCALE_RANGE
+  scale = jnp.where(truth.valid, jnp.array([1.4, 0.75, 2.3, 1.0, 1.0]), 1.0)  # 2.3: beyond
+  observed = fake_simulate(truth.replace(inertia_scale=scale), PUSHES, steps=32, settings=None)
+  start = truth.replace(density=truth.density * 1.3)  # uniform boxes, 30 % heavy
+  run = lambda inertia: jax.jit(lambda p, o: refine.refine_if_closer(
+      p, o, jnp.float32(1.0), PUSHES, steps=8, inertia=inertia, jacobian="differences"))(
+          start, observed)
+  with_scales, densities_only = run(True), run(False)
+  got = np.asarray(with_scales.primitives.inertia_scale)
+  v = np.asarray(truth.valid)
+  np.testing.assert_allclose(got[v], np.clip(np.asarray(scale)[v], lo, hi), rtol=0.03)
+  np.testing.assert_allclose(np.asarray(with_scales.primitives.density)[v],
+                             np.asarray(truth.density)[v], rtol=0.02)
+  assert np.all(got[~v] == 1.0)
+  assert densities_only.primitives.inertia_scale is None
+  assert float(with_scales.cost) < 0.2 * float(densities_only.cost)
+
+
 def test_refine_jacobian_names_the_choices():
   assert refine.check_jacobian("differences") == "differences"
   with pytest.raises(ValueError, match="jacobian must be one of"):

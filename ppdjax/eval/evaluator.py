@@ -131,7 +131,8 @@ class Evaluator:
     # fit, the fitted boxes, as a MAP step when refine_prior > 0 (the presets: 0)
     self._refine = per_device(functools.partial(
         refine_batch, steps=refine.steps, prior_weight=refine.prior_weight,
-        pushes=pushes, settings=jax_settings, jacobian=refine.jacobian))
+        pushes=pushes, settings=jax_settings, jacobian=refine.jacobian,
+        inertia=refine.inertia))
     # +Joint vectorised over 64 objects at once on an accelerator (a batch of 64 in 4.1 s
     # on an H100, 20.6 s 8 at once: benchmarks.md), 8 on a CPU
     self._joint = per_device(functools.partial(

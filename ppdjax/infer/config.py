@@ -95,11 +95,15 @@ class RefineConfig:
     steps: LM iterations.
     prior_weight: > 0 makes it a MAP step under the density scores (0: least squares).
     jacobian: "forward" (forward mode), "differences" or "central" (`refine.JACOBIANS`).
+    inertia: also fit each box's inertia scale (a hollow or filled block: the mass
+      distribution within the box; `refine.INERTIA_SCALE_RANGE`); the answer's boxes
+      then carry `inertia_scale`.
   """
   enabled: bool = False
   steps: int = 12
   prior_weight: float = 0.0
   jacobian: str = "forward"
+  inertia: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,7 +258,8 @@ class DecomposeConfig:
                             network_prior_weight=(None if e.network_prior_weight < 0
                                                   else e.network_prior_weight)),
         refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
-                            prior_weight=e.refine_prior, jacobian=e.refine_jacobian),
+                            prior_weight=e.refine_prior, jacobian=e.refine_jacobian,
+                            inertia=e.refine_inertia),
         estimator=EstimatorConfig(path=e.estimator, weight=e.estimator_weight),
         posterior=PosteriorConfig(scale=tuple(e.posterior_scale), level=e.posterior_level,
                                   identified_width=e.identified_width,
@@ -271,7 +276,7 @@ class DecomposeConfig:
             "selection_horizon": s.horizon, "mass_match": s.mass_match,
             "screen_steps": s.screen_steps, "screen_keep": s.screen_keep,
             "refine": r.enabled, "refine_steps": r.steps, "refine_prior": r.prior_weight,
-            "refine_jacobian": r.jacobian, "estimator": e.path,
+            "refine_jacobian": r.jacobian, "refine_inertia": r.inertia, "estimator": e.path,
             "estimator_weight": e.weight, "posterior_scale": q.scale,
             "posterior_level": q.level, "identified_width": q.identified_width,
             "posterior_prior_power": q.prior_power,

@@ -14,7 +14,7 @@ from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.image_fit import check_image
 from ppdjax.infer.config import DecomposeConfig, FitConfig
 from ppdjax.infer.fit import fit_boxes
-from ppdjax.infer.refine import density_prior, refine_if_closer
+from ppdjax.infer.refine import density_prior, refine_if_closer, with_inertia_scale
 from ppdjax.infer import posterior as posterior_module
 from ppdjax.infer import sampling
 from ppdjax.nn.estimator import combine_logits
@@ -270,8 +270,10 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
       ref = jax.vmap(lambda p, lg, o, d, m: refine_if_closer(
           p, o, d, pushes.replace(magnitudes=m), steps=refine.steps,
           prior=density_prior(lg) if refine.prior_weight > 0 else None,
-          prior_weight=refine.prior_weight, jacobian=refine.jacobian,
+          prior_weight=refine.prior_weight, jacobian=refine.jacobian, inertia=refine.inertia,
           settings=refine_settings))(start, logits, traj, sel.scores.min(-1), mags)
+      if refine.inertia:  # the +Sample answer's boxes uniform where refinement is not kept
+        prims = with_inertia_scale(prims)
       # kept where it is closer than every candidate; else the +Sample answer stays
       prims = jax.tree.map(
           lambda r, p: jnp.where(ref.closer.reshape((-1,) + (1,) * (p.ndim - 1)), r, p),

@@ -22,6 +22,10 @@ from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
 
 JACOBIANS = ("forward", "differences", "central")
 DIFFERENCE_STEP = 1e-3  # the differences' step in log density (0.1 % of a density)
+# With `inertia`, each box's inertia scale (its inertia over a uniform box's of the same
+# mass) is fitted within these bounds: a shell around an empty core reaches about 1.45 and
+# a heavy core in a light shell about 0.75 (`dataset.hollow`), with room beyond either.
+INERTIA_SCALE_RANGE = (0.5, 2.0)
 
 
 def check_jacobian(jacobian: str) -> str:
@@ -86,7 +90,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
                      steps: int = 12, warmup_steps: int = 8, damping: float = 1e-3,
                      prior: tuple | None = None, prior_weight: float = 0.0,
                      horizons=None, jacobian: str = "forward",
-                     difference_step: float = DIFFERENCE_STEP,
+                     difference_step: float = DIFFERENCE_STEP, inertia: bool = False,
                      settings: Settings = DEFAULT_SETTINGS) -> tuple[Primitives, dict]:
   """Fits the densities of valid boxes to the observed trajectories (Levenberg–Marquardt).
 
@@ -117,6 +121,10 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     jacobian: "forward" (`jax.jacfwd`), "differences" or "central" (forward or central
       `difference_jacobian`; the fast choice where the rollouts run as the GPU kernel).
     difference_step: the differences' step in log density.
+    inertia: also fit each valid box's inertia scale (`Primitives.inertia_scale`, a
+      hollow or filled block's mass distribution; 2K unknowns, the scales' logarithms
+      within INERTIA_SCALE_RANGE and under no prior), starting from the given scales (1
+      where None); the returned boxes then carry them.
     settings: the engine's settings (MjxSettings or BoxPlaneSettings).
 
   Returns:
@@ -128,21 +136,33 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   pushes = default_pushes() if pushes is None else pushes
   method = check_jacobian(jacobian)
   t = observed.shape[-2]
-  lo, hi = jnp.log(MIN_DENSITY), jnp.log(MAX_DENSITY)
-  valid = prims.valid
+  k = prims.valid.shape[0]
+  # the unknowns u: K log densities, then (inertia) K log inertia scales
+  start_scale = jnp.ones(k) if prims.inertia_scale is None else prims.inertia_scale
+  box_bounds = [(MIN_DENSITY, MAX_DENSITY)] + ([INERTIA_SCALE_RANGE] if inertia else [])
+  lo, hi = (jnp.repeat(jnp.log(jnp.asarray(b, jnp.float32)), k) for b in zip(*box_bounds))
+  valid = jnp.tile(prims.valid, len(box_bounds))
+
+  def with_unknowns(u):
+    dens = jnp.exp(u[:k])
+    if not inertia:
+      return prims.replace(density=dens)
+    return prims.replace(density=dens, inertia_scale=jnp.where(prims.valid, jnp.exp(u[k:]), 1.0))
 
   def residual(u):  # (P, T, 6) and, as aux, the same and the rollout
-    sim = simulate(prims.replace(density=jnp.exp(u)), pushes, steps=t, settings=settings)
+    sim = simulate(with_unknowns(u), pushes, steps=t, settings=settings)
     r = metrics.pose_residual(sim, observed)
     return r, (r, sim)
 
-  mean, std = (jnp.zeros(valid.shape), jnp.ones(valid.shape)) if prior is None else prior
+  mean, std = (jnp.zeros(k), jnp.ones(k)) if prior is None else prior
   weight_per_entry = 0.0 if prior is None else prior_weight
+  if inertia:  # the prior is on the densities alone
+    mean, std = jnp.concatenate([mean, jnp.zeros(k)]), jnp.concatenate([std, jnp.ones(k)])
   entries_per_step = observed.shape[0] * 6  # P pushes x 6 residual components
 
   def prior_terms(u, horizon):  # (weight w, z): cost 0.5·w·Σ z², gradient w·z/std
     w = weight_per_entry * entries_per_step * jnp.minimum(horizon, t)
-    return w, jnp.where(valid, (u - mean) / std, 0.0)
+    return w, jnp.where(valid & (jnp.arange(len(u)) < k), (u - mean) / std, 0.0)
 
   def cost(r, horizon, u):
     w, z = prior_terms(u, horizon)
@@ -189,10 +209,11 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     raise ValueError(f"horizons must give each of the {steps + 1} passes a horizon, got "
                      f"shape {horizon.shape}")
   horizons = (jnp.concatenate([horizon[:1], horizon[:-1]]), horizon)
-  u0 = jnp.log(jnp.clip(prims.density, MIN_DENSITY, MAX_DENSITY))
-  p, n, k = pushes.num, t, valid.shape[0]
+  u0 = jnp.clip(jnp.log(jnp.concatenate(
+      [prims.density] + ([start_scale] if inertia else [])).astype(jnp.float32)), lo, hi)
+  p, n = pushes.num, t
   zeros_r, zeros_sim = jnp.zeros((p, n, 6)), jnp.zeros((p, n, 7))
-  init = (u0, u0, zeros_r, jnp.zeros((p, n, 6, k)), zeros_sim, jnp.float32(jnp.inf), 0,
+  init = (u0, u0, zeros_r, jnp.zeros((p, n, 6, len(u0))), zeros_sim, jnp.float32(jnp.inf), 0,
           zeros_r, zeros_sim)
   # Full float32 products: GPUs default to TF32 (10-bit mantissas) for float32 matmuls,
   # and whether XLA takes that path depends on the batch's shapes. The normal equations
@@ -205,7 +226,8 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   c0, c1 = cost(r0, t, u0), cost(r, t, u)
   better = c1 < c0
   u = jnp.where(better, u, u0)
-  out = prims.replace(density=jnp.where(valid, jnp.exp(u), prims.density))
+  out = with_unknowns(u)
+  out = out.replace(density=jnp.where(prims.valid, out.density, prims.density))
   return out, {"cost_start": c0, "cost": jnp.minimum(c1, c0), "accepted": accepted,
                "trajectories": jnp.where(better, sim, sim0)}
 
@@ -233,7 +255,7 @@ class Refinement:
 def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array,
                      pushes: Pushes | None = None, *, steps: int = 12,
                      prior: tuple | None = None, prior_weight: float = 0.0,
-                     jacobian: str = "forward",
+                     jacobian: str = "forward", inertia: bool = False,
                      settings: Settings = DEFAULT_SETTINGS) -> Refinement:
   """Refines one object's densities; keeps them only if the trajectory distance drops.
 
@@ -247,12 +269,16 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
     prims: one object with the starting densities (the closest sample's).
     observed: (P, T, 7).
     distance: the start's trajectory distance (metres), as +Sample computed it.
-    pushes, steps, prior, prior_weight, jacobian, settings: as `refine_densities`.
+    pushes, steps, prior, prior_weight, jacobian, inertia, settings: as
+      `refine_densities` (with `inertia`, the answer carries inertia scales, 1 where the
+      start is kept and had none).
   """
   pushes = default_pushes() if pushes is None else pushes
+  if inertia:
+    prims = with_inertia_scale(prims)
   refined, info = refine_densities(prims, observed, pushes, steps=steps, prior=prior,
                                    prior_weight=prior_weight, jacobian=jacobian,
-                                   settings=settings)
+                                   inertia=inertia, settings=settings)
   sim = info["trajectories"]
   new = metrics.trajectory_distance(sim, observed)
   closer = new < distance
@@ -263,11 +289,19 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
                     info["cost"])
 
 
+def with_inertia_scale(prims: Primitives) -> Primitives:
+  """`prims` with inertia scales (1, a uniform box, where it has none)."""
+  if prims.inertia_scale is not None:
+    return prims
+  return prims.replace(inertia_scale=jnp.ones(jnp.shape(prims.density), jnp.float32))
+
+
 def refine_batch(prims, logits, obs_traj, sample_dist, sample_mae, mags, *, steps, prior_weight,
-                 pushes, settings, jacobian="forward"):
+                 pushes, settings, jacobian="forward", inertia=False):
   """`refine_if_closer` over a batch (B, K), as the evaluation runs it: refined densities
   where kept, a MAP step under each object's slot logits when prior_weight > 0; returns
-  the densities, costs, distance and trajectory MAE (mm; the sample's where not kept).
+  the densities (with `inertia`, the inertia scales too), costs, distance and trajectory
+  MAE (mm; the sample's where not kept).
   `mags` (B, P): each object's push magnitudes (`pushes.object_magnitudes`).
   `prior_weight` may also be (B,), one per object: then every object takes the MAP step
   (even at weight 0, accepted by its cost), and many weights share one compiled call."""
@@ -276,9 +310,10 @@ def refine_batch(prims, logits, obs_traj, sample_dist, sample_mae, mags, *, step
 
   def one(p, lg, traj, d0, m0, w, m):
     prior = density_prior(lg) if use_prior else None
-    r = refine_if_closer(p, traj, d0, pushes.replace(magnitudes=m), steps=steps, prior=prior, prior_weight=w,
-                         jacobian=jacobian, settings=settings)
+    r = refine_if_closer(p, traj, d0, pushes.replace(magnitudes=m), steps=steps, prior=prior,
+                         prior_weight=w, jacobian=jacobian, inertia=inertia, settings=settings)
     mae = jnp.where(r.closer, metrics.trajectory_mae(r.trajectories, traj), m0)
     return {"density": r.primitives.density, "cost_start": r.cost_start, "cost": r.cost,
-            "dist": r.distance, "mae": mae, "closer": r.closer}
+            "dist": r.distance, "mae": mae, "closer": r.closer,
+            **({"inertia_scale": r.primitives.inertia_scale} if inertia else {})}
   return jax.vmap(one)(prims, logits, obs_traj, sample_dist, sample_mae, weights, mags)

@@ -230,7 +230,7 @@ def write_report(pipe, results_dir: str, command: str, name: str = "video_towers
                        f"density RMSE (slots), all towers, {way} trajectory":
                        f"density/{way}/rmse_all" for way in WAYS})
   key = {"video_towers": "real_towers", "video_lookalike": "lookalike_towers"}.get(
-      name, "real_towers_validation")
+      name, "lookalike_towers_validation" if "lookalike" in name else "real_towers_validation")
   figure = "video_heavier.png" if name == "video_towers" else f"{name}_heavier.png"
   video_json = os.path.join(results_dir, "video.json")  # the issue's results file
   merged = json.load(open(video_json)) if os.path.exists(video_json) else {}
