@@ -20,23 +20,27 @@ from ppdjax.infer.decompose import make_decompose_fn
 from ppdjax.training import checkpoints
 
 WAYS = ("tracked", "true")  # which trajectory the model reads
-VALIDATION_NAME = "video_towers_val"  # the report of the towers the headline was chosen on
+VALIDATION_SUFFIX = "_val"  # report NAME's headline was chosen on report NAME_val's towers
 
 
 def validation_summary(results_dir: str, name: str):
-  """How config.eval.refine was chosen: the validation report's tracked RMSE with and
-  without refinement (None for the validation report itself, or before it exists)."""
-  path = os.path.join(results_dir, f"{VALIDATION_NAME}.json")
-  if name == VALIDATION_NAME or not os.path.exists(path):
+  """How config.eval.refine was chosen: the validation report's (`name` + "_val") tracked
+  RMSE with and without refinement (None for a validation report itself, or before its
+  validation report exists)."""
+  report = name + VALIDATION_SUFFIX
+  path = os.path.join(results_dir, f"{report}.json")
+  if name.endswith(VALIDATION_SUFFIX) or not os.path.exists(path):
     return None
   with open(path) as f:
     val = json.load(f)
   d = val["density"]
   pick = lambda key: next(v["rmse_all"] for k, v in d.items() if k == key)  # noqa: E731
   refine_first = val["decompose"]["refine"]
-  return {"report": f"{VALIDATION_NAME}.md", "seed": val["seed"], "density_rmse_tracked": {
+  return {"report": f"{report}.md", "seed": val["seed"], "density_rmse_tracked": {
       "refine": pick("tracked" if refine_first else "tracked, +Refine"),
       "sample": pick("tracked, +Sample only" if refine_first else "tracked")}}
+
+
 PAPER = {"rmse_all": 18.7, "rmse_2_blocks": 10.1, "random": 40.8, "pearson_model_truth": 0.90}
 TARGETS = {"rmse_all": 10.0, "rmse_2_blocks": 5.0, "pearson": 0.95}
 LOG2_LEVELS = np.arange(-4, 5)  # the paper's answer scale {2^k, k = -4..4}
