@@ -397,6 +397,7 @@ def test_the_lookalike_report_reads_the_motion_against_the_look(tmp_path):
   config = video_config.get_config("lookalike_tiny")
   pipe = SimpleNamespace(config=config, test_file=str(tmp_path / "test.npz"),
                          eval_files={"sample": str(tmp_path / "full.npz"),
+                                     "refine": str(tmp_path / "full.npz"),
                                      "appearance": str(tmp_path / "look.npz")})
   (tmp_path / "res").mkdir()
   (tmp_path / "res" / "video_lookalike.md").write_text("# report\n")
