@@ -17,14 +17,14 @@ demo: $(VENV)/.installed
 	$(PY) -m ppdjax.demo --config=ppdjax/configs/tiny.py --out=$(OUT)
 
 # two pytest workers, each taking whole test modules (a module's fixtures are made once;
-# the tiny dataset and run once per test run, shared through a file lock): on 2 cores
-# 10-12 minutes from a fresh clone with empty caches (README; compilation is
-# single-threaded)
+# the tiny dataset and run once per test run, shared through a file lock) in the order
+# tests/conftest.py gives them (the module that makes the tiny run first, the modules that
+# read it last): README gives the time from a fresh clone with empty caches
 test: $(VENV)/.installed
-	$(PY) -m pytest -q -n 2 --dist loadscope
+	$(PY) -m pytest -q -n 2 --dist loadscope --no-loadscope-reorder
 
 test-all: $(VENV)/.installed
-	$(PY) -m pytest -q -n 2 --dist loadscope -m ""
+	$(PY) -m pytest -q -n 2 --dist loadscope --no-loadscope-reorder -m ""
 
 data: $(VENV)/.installed
 	$(PY) -m ppdjax.generate --config=ppdjax/configs/tiny.py --out=out/blocks_tiny

@@ -59,6 +59,28 @@ def cli_module(name: str):
   return importlib.import_module(name)
 
 
+SHARED_RUN = ("tiny_dataset", "tiny_run")  # made once per test run (below)
+MAKES_SHARED_RUN = "test_evaluation.py"  # its first test needs the run: it makes it
+
+
+def pytest_collection_modifyitems(config, items):
+  """The modules' order, which `make test`'s two workers (taking whole modules, in this
+  order) follow: first the module that makes the tiny dataset and run (about three
+  minutes), then the modules that never read them, then those that do, so that neither
+  worker idles on the run's lock. Within each group, modules of more tests first (as
+  pytest-xdist orders them by default)."""
+  del config
+  module = lambda item: item.nodeid.split("::")[0]  # noqa: E731
+  counts, reads = {}, {}
+  for item in items:
+    m = module(item)
+    counts[m] = counts.get(m, 0) + 1
+    reads[m] = reads.get(m, False) or any(f in item.fixturenames for f in SHARED_RUN)
+  group = lambda m: 0 if m.endswith(MAKES_SHARED_RUN) else (2 if reads[m] else 1)  # noqa: E731
+  order = {m: i for i, m in enumerate(sorted(counts, key=lambda m: (group(m), -counts[m], m)))}
+  items.sort(key=lambda item: order[module(item)])  # stable: tests keep their order
+
+
 @pytest.fixture(scope="session")
 def rng():
   return np.random.default_rng(1234)

@@ -49,7 +49,7 @@ def test_samples_have_the_design_keys_and_shapes(dataset_dir):
   s["primitives"].validate()
   assert isinstance(s["tower_id"], int)
   manifest = json.load(open(os.path.join(dataset_dir, "manifest.json")))
-  assert manifest["engine"]["backend"] == "mjx" and manifest["samples"] == 64
+  assert manifest["engine"]["backend"] == "mujoco" and manifest["samples"] == 64
   for name in ("card.md", "contact_sheet.png", "density_histogram.png"):
     assert os.path.getsize(os.path.join(dataset_dir, name)) > 100
 

@@ -33,11 +33,7 @@ def c_traj(prims):
 
 
 @pytest.fixture(scope="module")
-def mjx_traj(prims, tiny_dataset):
-  # after the tiny dataset: its generation compiles this very program (same shapes), so
-  # this worker reuses it, in memory or from the persistent cache, instead of compiling it
-  # beside the other worker (a minute of CPU)
-  del tiny_dataset
+def mjx_traj(prims):
   return np.asarray(ppdjax.simulate(prims, backend="mjx"))
 
 

@@ -6,4 +6,9 @@ from ppdjax.configs import schema
 
 
 def get_config() -> ml_collections.ConfigDict:
-  return schema.default_config()
+  config = schema.default_config()
+  # the data's trajectories by MuJoCo's C engine, the CPU's fast engine (docs/physics.md):
+  # MJX's rollout takes a CPU about a minute to trace and compile before its first step.
+  # Inference on a CPU selects with C anyway and refines through MJX, as for any data.
+  config.data.backend = "mujoco"
+  return config
