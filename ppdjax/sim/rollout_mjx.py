@@ -166,45 +166,59 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
     run = box_plane_kernel.rollout if settings.resolved_kernel() == "pallas" else box_plane.rollout
     return hold_escapes(box_plane.rollout_object(prims, pushes, steps=steps,
                                                  settings=settings, run_rollout=run))
+  wrenches = push_wrenches(prims, pushes, mass_properties(prims))
+  return hold_escapes(jax.vmap(lambda w: _mjx_rollout(prims, w, pushes.duration, steps,
+                                                      settings))(wrenches))
+
+
+def _mjx_rollout(prims: Primitives, wrench: jax.Array, duration: int, steps: int,
+                 settings: MjxSettings) -> jax.Array:
+  """(steps, 7) MJX trajectory of one object (K slots) under one push's wrench (6,), held
+  for `duration` steps; the push steps (and `push_steps_extra` after) with the push's
+  solver settings."""
   k = prims.density.shape[-1]
   mx = template(settings, k)
   fields = scene.object_fields(prims)
   m_fast, m_push = with_object(mx, fields), with_object(template(settings, k, push=True), fields)
-  wrenches = push_wrenches(prims, pushes, mass_properties(prims))
   qpos0 = jnp.concatenate([scene.rest_position(prims), jnp.array([1.0, 0.0, 0.0, 0.0])])
   d0 = mjx.make_data(mx).replace(qpos=qpos0.astype(jnp.float32))
-  duration = pushes.duration
   n_push = min(steps, duration + settings.push_steps_extra)
+  xfrc = jnp.zeros((mx.nbody, 6), jnp.float32).at[scene.OBJECT_BODY].set(wrench)
 
-  def one_push(wrench):
-    xfrc = jnp.zeros((mx.nbody, 6), jnp.float32).at[scene.OBJECT_BODY].set(wrench)
+  def stepper(m, step_fn):
+    def step(d, t):
+      d = d.replace(xfrc_applied=jnp.where(t < duration, xfrc, 0.0))
+      d = step_fn(m, d)
+      return d, d.qpos[:7]
+    return step
 
-    def stepper(m, step_fn):
-      def step(d, t):
-        d = d.replace(xfrc_applied=jnp.where(t < duration, xfrc, 0.0))
-        d = step_fn(m, d)
-        return d, d.qpos[:7]
-      return step
-
-    push_step = fast_step = mjx.step
-    if settings.fixed_iterations:
-      fast_step = functools.partial(mjx_step.step, iterations=settings.iterations,
+  push_step = fast_step = mjx.step
+  if settings.fixed_iterations:
+    fast_step = functools.partial(mjx_step.step, iterations=settings.iterations,
+                                  unrolled_cholesky=settings.unrolled_cholesky)
+    if settings.push_iterations <= MAX_UNROLLED_ITERATIONS:
+      push_step = functools.partial(mjx_step.step, iterations=settings.push_iterations,
                                     unrolled_cholesky=settings.unrolled_cholesky)
-      if settings.push_iterations <= MAX_UNROLLED_ITERATIONS:
-        push_step = functools.partial(mjx_step.step, iterations=settings.push_iterations,
-                                      unrolled_cholesky=settings.unrolled_cholesky)
-    d, traj_push = jax.lax.scan(stepper(m_push, push_step), d0, jnp.arange(n_push))
-    _, traj = jax.lax.scan(stepper(m_fast, fast_step), d, jnp.arange(n_push, steps),
-                           unroll=settings.unroll)
-    return jnp.concatenate([traj_push, traj], 0)
-
-  return hold_escapes(jax.vmap(one_push)(wrenches))
+  d, traj_push = jax.lax.scan(stepper(m_push, push_step), d0, jnp.arange(n_push))
+  _, traj = jax.lax.scan(stepper(m_fast, fast_step), d, jnp.arange(n_push, steps),
+                         unroll=settings.unroll)
+  return jnp.concatenate([traj_push, traj], 0)
 
 
 @functools.lru_cache(maxsize=16)
-def _batched_fn(steps: int, settings: MjxSettings):
+def _batched_fn(steps: int, settings: Settings):
   def run(prims, pushes):
-    return jax.vmap(lambda p: rollout_object(p, pushes, steps=steps, settings=settings))(prims)
+    if not isinstance(settings, MjxSettings):
+      return jax.vmap(lambda p: rollout_object(p, pushes, steps=steps, settings=settings))(prims)
+    # MJX: one vmap over every (object, push) pair, not one over pushes inside one over
+    # objects: each vmap level batches the scans' bodies (MJX's whole step) once more,
+    # which took half of the rollout's trace time (docs/physics.md)
+    wrenches = jax.vmap(lambda p: push_wrenches(p, pushes, mass_properties(p)))(prims)
+    b, p = wrenches.shape[:2]
+    pairs = jax.tree.map(lambda x: jnp.repeat(x, p, axis=0), prims)
+    traj = jax.vmap(lambda q, w: _mjx_rollout(q, w, pushes.duration, steps, settings))(
+        pairs, wrenches.reshape(b * p, 6))
+    return hold_escapes(traj.reshape((b, p) + traj.shape[1:]))
   return jax.jit(run)
 
 
