@@ -347,7 +347,8 @@ def test_refinement_fits_inertia_scales_within_their_range(monkeypatch):
     del settings
     t = jnp.arange(steps)[:, None] * (jnp.arange(prims.valid.shape[0]) + 1.0)
     live = jnp.where(prims.valid, 1.0, 0.0)
-    x = 1e-3 * (jnp.sin(0.05 * t) * jnp.log(jnp.where(prims.valid, prims.density, 1e3) / 1e3)).sum(-1)
+    log_density = jnp.log(jnp.where(prims.valid, prims.density, 1e3) / 1e3)
+    x = 1e-3 * (jnp.sin(0.05 * t) * log_density).sum(-1)
     scale = 1.0 if prims.inertia_scale is None else prims.inertia_scale
     y = 1e-2 * (jnp.cos(0.07 * t) * (scale - 1.0) * live).sum(-1)
     pose = jnp.concatenate([jnp.stack([x, y, 0 * x], -1), jnp.tile(jnp.array(
