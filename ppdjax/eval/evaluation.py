@@ -121,7 +121,8 @@ def evaluate(trained, data_dir: str, settings: EvalConfig | None = None, *,
     when `max_seconds` ran out first.
   """
   t_start = time.perf_counter()
-  model, config = checkpoints.load(trained) if isinstance(trained, str) else trained
+  # the settings and the dataset checked before the model loads: a bad one is named at once
+  config = checkpoints.read_config(trained) if isinstance(trained, str) else trained[1]
   e = eval_settings(config if settings is None else None, **{
       **(dataclasses.asdict(settings) if settings is not None else {}), **overrides})
   decompose = DecomposeConfig.from_eval(dataclasses.asdict(e))
@@ -132,6 +133,7 @@ def evaluate(trained, data_dir: str, settings: EvalConfig | None = None, *,
                              f"distances the evaluation computes; 0: all steps), got "
                              f"{e.selection_horizon}")
   test = storage.open_dataset(data_dir, split)
+  model, config = checkpoints.load(trained) if isinstance(trained, str) else trained
   objects = evaluation_objects(len(test), max_objects, subset)
   n = len(objects)
   batch_size = max(1, min(e.batch_size, n))
