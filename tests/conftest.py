@@ -65,8 +65,8 @@ MAKES_SHARED_RUN = "test_evaluation.py"  # its first test needs the run: it make
 
 def pytest_collection_modifyitems(config, items):
   """The modules' order, which `make test`'s two workers (taking whole modules, in this
-  order) follow: first the module that makes the tiny dataset and run (about three
-  minutes), then the modules that never read them, then those that do, so that neither
+  order) follow: first the module that makes the tiny dataset and run (the longest
+  fixture), then the modules that never read them, then those that do, so that neither
   worker idles on the run's lock. Within each group, modules of more tests first (as
   pytest-xdist orders them by default)."""
   del config

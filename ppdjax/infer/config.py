@@ -96,8 +96,8 @@ class RefineConfig:
     prior_weight: > 0 makes it a MAP step under the density scores (0: least squares).
     jacobian: "forward" (forward mode), "differences" or "central" (`refine.JACOBIANS`).
     inertia: also fit each box's inertia scale (a hollow or filled block: the mass
-      distribution within the box; `refine.INERTIA_SCALE_RANGE`); the answer's boxes
-      then carry `inertia_scale`.
+      distribution within the box; `refine.INERTIA_SCALE_RANGE`); with `enabled`, the
+      answer's boxes then carry `inertia_scale`.
   """
   enabled: bool = False
   steps: int = 12

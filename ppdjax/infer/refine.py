@@ -124,7 +124,8 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     inertia: also fit each valid box's inertia scale (`Primitives.inertia_scale`, a
       hollow or filled block's mass distribution; 2K unknowns, the scales' logarithms
       within INERTIA_SCALE_RANGE and under no prior), starting from the given scales (1
-      where None); the returned boxes then carry them.
+      where None); the returned boxes then carry them (1 on padded slots). The Jacobian
+      then takes 2K tangents, or 2K + 1 (4K + 1 central) rollouts.
     settings: the engine's settings (MjxSettings or BoxPlaneSettings).
 
   Returns:
@@ -142,6 +143,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   box_bounds = [(MIN_DENSITY, MAX_DENSITY)] + ([INERTIA_SCALE_RANGE] if inertia else [])
   lo, hi = (jnp.repeat(jnp.log(jnp.asarray(b, jnp.float32)), k) for b in zip(*box_bounds))
   valid = jnp.tile(prims.valid, len(box_bounds))
+  on_prior = valid & (jnp.arange(valid.shape[0]) < k)  # the prior is on the densities alone
 
   def with_unknowns(u):
     dens = jnp.exp(u[:k])
@@ -156,13 +158,13 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
 
   mean, std = (jnp.zeros(k), jnp.ones(k)) if prior is None else prior
   weight_per_entry = 0.0 if prior is None else prior_weight
-  if inertia:  # the prior is on the densities alone
+  if inertia:
     mean, std = jnp.concatenate([mean, jnp.zeros(k)]), jnp.concatenate([std, jnp.ones(k)])
   entries_per_step = observed.shape[0] * 6  # P pushes x 6 residual components
 
   def prior_terms(u, horizon):  # (weight w, z): cost 0.5·w·Σ z², gradient w·z/std
     w = weight_per_entry * entries_per_step * jnp.minimum(horizon, t)
-    return w, jnp.where(valid & (jnp.arange(len(u)) < k), (u - mean) / std, 0.0)
+    return w, jnp.where(on_prior, (u - mean) / std, 0.0)
 
   def cost(r, horizon, u):
     w, z = prior_terms(u, horizon)
@@ -174,8 +176,8 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
     jac = jnp.where(keep[..., None] & valid, jac, 0.0).reshape(-1, valid.shape[0])
     r = jnp.where(keep, r, 0.0).reshape(-1)
     w, z = prior_terms(u, horizon)
-    h = jac.T @ jac + jnp.diag(jnp.where(valid, w / std ** 2, 0.0))
-    g = jac.T @ r + jnp.where(valid, w * z / std, 0.0)
+    h = jac.T @ jac + jnp.diag(jnp.where(on_prior, w / std ** 2, 0.0))
+    g = jac.T @ r + jnp.where(on_prior, w * z / std, 0.0)
     diag = jnp.where(valid, jnp.diagonal(h), 1.0)
     a = h + jnp.diag(lam * diag + 1e-9 + (~valid))
     return jnp.where(valid, jnp.clip(u - jnp.linalg.solve(a, g), lo, hi), u)

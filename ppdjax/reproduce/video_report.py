@@ -195,7 +195,9 @@ def plot_heavier(h: dict, path: str) -> None:
 
 def write_report(pipe, results_dir: str, command: str, name: str = "video_towers") -> dict:
   """Writes RESULTS/{name}.md and .json, the figure, and the summary into video.json (key
-  "real_towers", or "real_towers_validation" for any other name)."""
+  "real_towers" for video_towers, "lookalike_towers" for video_lookalike, their
+  validation reports' (NAME_val) "real_towers_validation" / "lookalike_towers_validation",
+  any other name its own)."""
   test = dict(np.load(pipe.test_file))
   blocks = test["valid"].sum(-1)
   two = np.flatnonzero(blocks == 2)
@@ -234,7 +236,8 @@ def write_report(pipe, results_dir: str, command: str, name: str = "video_towers
                        f"density RMSE (slots), all towers, {way} trajectory":
                        f"density/{way}/rmse_all" for way in WAYS})
   key = {"video_towers": "real_towers", "video_lookalike": "lookalike_towers"}.get(
-      name, "lookalike_towers_validation" if "lookalike" in name else "real_towers_validation")
+      name, ("lookalike_towers_validation" if "lookalike" in name else "real_towers_validation")
+      if name.endswith(VALIDATION_SUFFIX) else name)
   figure = "video_heavier.png" if name == "video_towers" else f"{name}_heavier.png"
   video_json = os.path.join(results_dir, "video.json")  # the issue's results file
   merged = json.load(open(video_json)) if os.path.exists(video_json) else {}
