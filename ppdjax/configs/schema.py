@@ -1,9 +1,8 @@
 """The one config schema: a frozen dataclass per section, defaults in one place.
 
 Presets (`tiny`, `paper`, `tools`, `video`) are `get_config()` ConfigDicts for the command
-lines' `--config.<section>.<key>=<value>` overrides; `read(config)` turns one into a
-`RunConfig` of typed sections, naming an unknown or ill-typed key; `complete(config)` fills
-the keys a saved run predates with these defaults, the `tiny` preset's (a laptop CPU's).
+lines' `--config.<section>.<key>=<value>` overrides; `read(config)` types one (`RunConfig`),
+naming a bad key; `complete(config)` fills the keys a saved run predates with these defaults.
 """
 
 from __future__ import annotations

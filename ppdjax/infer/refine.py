@@ -139,7 +139,7 @@ def refine_densities(prims: Primitives, observed: jax.Array, pushes: Pushes | No
   t = observed.shape[-2]
   k = prims.valid.shape[0]
   # the unknowns u: K log densities, then (inertia) K log inertia scales
-  start_scale = jnp.ones(k) if prims.inertia_scale is None else prims.inertia_scale
+  start_scale = with_inertia_scale(prims).inertia_scale
   box_bounds = [(MIN_DENSITY, MAX_DENSITY)] + ([INERTIA_SCALE_RANGE] if inertia else [])
   lo, hi = (jnp.repeat(jnp.log(jnp.asarray(b, jnp.float32)), k) for b in zip(*box_bounds))
   valid = jnp.tile(prims.valid, len(box_bounds))
@@ -276,7 +276,7 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
       start is kept and had none).
   """
   pushes = default_pushes() if pushes is None else pushes
-  if inertia:
+  if inertia:  # the start's boxes carry scales as the refined ones will
     prims = with_inertia_scale(prims)
   refined, info = refine_densities(prims, observed, pushes, steps=steps, prior=prior,
                                    prior_weight=prior_weight, jacobian=jacobian,

@@ -166,9 +166,20 @@ def rollout_object(prims: Primitives, pushes: Pushes, *, steps: int,
     run = box_plane_kernel.rollout if settings.resolved_kernel() == "pallas" else box_plane.rollout
     return hold_escapes(box_plane.rollout_object(prims, pushes, steps=steps,
                                                  settings=settings, run_rollout=run))
-  wrenches = push_wrenches(prims, pushes, mass_properties(prims))
-  return hold_escapes(jax.vmap(lambda w: _mjx_rollout(prims, w, pushes.duration, steps,
-                                                      settings))(wrenches))
+  return _mjx_rollouts(jax.tree.map(lambda x: x[None], prims), pushes, steps, settings)[0]
+
+
+def _mjx_rollouts(prims: Primitives, pushes: Pushes, steps: int,
+                  settings: MjxSettings) -> jax.Array:
+  """(B, P, steps, 7) MJX trajectories of B objects, held (`hold_escapes`): one vmap over
+  every (object, push) pair, not one over pushes inside one over objects, since each vmap
+  level batches the scans' bodies (MJX's whole step) once more (docs/physics.md)."""
+  wrenches = jax.vmap(lambda p: push_wrenches(p, pushes, mass_properties(p)))(prims)
+  b, p = wrenches.shape[:2]
+  pairs = jax.tree.map(lambda x: jnp.repeat(x, p, axis=0), prims)
+  traj = jax.vmap(lambda q, w: _mjx_rollout(q, w, pushes.duration, steps, settings))(
+      pairs, wrenches.reshape(b * p, 6))
+  return hold_escapes(traj.reshape((b, p) + traj.shape[1:]))
 
 
 def _mjx_rollout(prims: Primitives, wrench: jax.Array, duration: int, steps: int,
@@ -208,17 +219,9 @@ def _mjx_rollout(prims: Primitives, wrench: jax.Array, duration: int, steps: int
 @functools.lru_cache(maxsize=16)
 def _batched_fn(steps: int, settings: Settings):
   def run(prims, pushes):
-    if not isinstance(settings, MjxSettings):
-      return jax.vmap(lambda p: rollout_object(p, pushes, steps=steps, settings=settings))(prims)
-    # MJX: one vmap over every (object, push) pair, not one over pushes inside one over
-    # objects: each vmap level batches the scans' bodies (MJX's whole step) once more,
-    # which took half of the rollout's trace time (docs/physics.md)
-    wrenches = jax.vmap(lambda p: push_wrenches(p, pushes, mass_properties(p)))(prims)
-    b, p = wrenches.shape[:2]
-    pairs = jax.tree.map(lambda x: jnp.repeat(x, p, axis=0), prims)
-    traj = jax.vmap(lambda q, w: _mjx_rollout(q, w, pushes.duration, steps, settings))(
-        pairs, wrenches.reshape(b * p, 6))
-    return hold_escapes(traj.reshape((b, p) + traj.shape[1:]))
+    if isinstance(settings, MjxSettings):
+      return _mjx_rollouts(prims, pushes, steps, settings)
+    return jax.vmap(lambda p: rollout_object(p, pushes, steps=steps, settings=settings))(prims)
   return jax.jit(run)
 
 
