@@ -153,6 +153,8 @@ class EvalConfig:
   mass_match: bool = False  # candidates scaled to the closest's total mass, simulated again
   screen_steps: int = 0  # > 0: every candidate over N steps, the screen_keep closest whole
   screen_keep: int = 64
+  rounds: int = 1  # > 1: +Search, the draw iterated near the closest (infer.search)
+  sample_inertia: bool = False  # +Search: candidates carry inertia scales (hollow blocks)
   refine: bool = False  # LM refinement of the densities through the simulator
   refine_steps: int = 12
   refine_prior: float = 0.0  # > 0: refinement is a MAP step under the density scores

@@ -41,6 +41,10 @@ def get_config(size: str = "paper"):
     # validation towers (seed 2000003; experiments/results/video_lookalike_val.md), beside
     # refining the inertia scales too (no better there: experiments/video_identifiability)
     config.eval.refine = True
+    # +Search: eight rounds of 512, the candidates' boxes carrying inertia scales (the
+    # shells), chosen on the same validation towers (experiments/video_search)
+    config.eval.rounds = 8
+    config.eval.sample_inertia = True
     if size == "paper":  # the shipped video model reads the same strike: every parameter
       config.train.init_from = "assets/video_model"
       config.train.geometry_steps = 0

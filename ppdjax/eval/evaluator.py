@@ -59,6 +59,10 @@ class Evaluator:
     check_horizon("select.horizon", select.horizon)
     if select.screen_steps:
       check_horizon("select.screen_steps", select.screen_steps)
+    if select.searches:
+      raise ConfigError("select.rounds > 1 and select.inertia (+Search) draw candidates round "
+                       "by round: the evaluation's tables replay +Sample's one draw (the "
+                       "video study measures +Search: ppdjax.reproduce video)")
     if select.mass_match:
       raise ConfigError("select.mass_match simulates a second set of candidates: the "
                        "evaluation does not replay it (a study: experiments/mass_match_study)")

@@ -17,6 +17,7 @@ from ppdjax.configs.schema import ConfigError
 from ppdjax.infer import faces
 from ppdjax.infer.refine import check_jacobian
 from ppdjax.infer.sampling import check_screen, check_selection_horizon
+from ppdjax.infer.search import check_rounds
 from ppdjax.sim.rollout_mjx import check_simulator
 
 
@@ -69,6 +70,11 @@ class SelectConfig:
     screen_steps: > 0 simulates every candidate over this many steps and only the
       `screen_keep` closest over the whole trajectory (0: every candidate whole).
     screen_keep: survivors of the screen.
+    rounds: > 1 iterates the draw (+Search, `infer.search`): each later round draws
+      `samples` more near the closest candidates so far (without mass_match, a screen or
+      fit.face_spread).
+    inertia: the candidates' boxes also carry inertia scales, searched beside the
+      densities (`search.INERTIA_LEVELS`: hollow or filled blocks; +Search).
   """
   samples: int = 512
   prior_weight: float = 0.0
@@ -77,6 +83,13 @@ class SelectConfig:
   screen_steps: int = 0
   screen_keep: int = 64
   network_prior_weight: float | None = None
+  rounds: int = 1
+  inertia: bool = False
+
+  @property
+  def searches(self) -> bool:
+    """Whether `infer.search` draws the candidates (else +Sample's one draw)."""
+    return self.rounds > 1 or self.inertia
 
   def tau(self, fitted: bool) -> float:
     """+Sample's τ on fitted boxes or on the network's own."""
@@ -177,6 +190,7 @@ class DecomposeConfig:
       faces.check_spread(f.face_spread, f.enabled)
       check_selection_horizon(s.horizon)
       check_screen(s.screen_steps, s.screen_keep, s.samples, 0)
+      check_rounds(s.rounds)
       check_jacobian(r.jacobian)
       check_simulator(self.simulator)
     except ValueError as e:
@@ -185,6 +199,10 @@ class DecomposeConfig:
       value = getattr(s, name)
       if not (name == "network_prior_weight" and value is None or _finite_at_least_zero(value)):
         raise ConfigError(f"select.{name} must be finite and >= 0, got {value!r}")
+    if s.searches and (s.mass_match or s.screen_steps or f.face_spread):
+      raise ConfigError("select.rounds > 1 and select.inertia (+Search) draw candidates of "
+                        "their own: they run without select.mass_match, select.screen_steps "
+                        "and fit.face_spread")
     if isinstance(r.steps, bool) or not isinstance(r.steps, int) or r.steps < 1:
       raise ConfigError(f"refine.steps must be a whole number >= 1, got {r.steps!r}")
     if not _finite_at_least_zero(r.prior_weight):
@@ -255,6 +273,7 @@ class DecomposeConfig:
         select=SelectConfig(samples=e.samples, prior_weight=e.prior_weight,
                             horizon=e.selection_horizon, mass_match=e.mass_match,
                             screen_steps=e.screen_steps, screen_keep=e.screen_keep,
+                            rounds=e.rounds, inertia=e.sample_inertia,
                             network_prior_weight=(None if e.network_prior_weight < 0
                                                   else e.network_prior_weight)),
         refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
@@ -275,6 +294,7 @@ class DecomposeConfig:
                                      else s.network_prior_weight),
             "selection_horizon": s.horizon, "mass_match": s.mass_match,
             "screen_steps": s.screen_steps, "screen_keep": s.screen_keep,
+            "rounds": s.rounds, "sample_inertia": s.inertia,
             "refine": r.enabled, "refine_steps": r.steps, "refine_prior": r.prior_weight,
             "refine_jacobian": r.jacobian, "refine_inertia": r.inertia, "estimator": e.path,
             "estimator_weight": e.weight, "posterior_scale": q.scale,

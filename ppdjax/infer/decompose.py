@@ -16,7 +16,7 @@ from ppdjax.infer.config import DecomposeConfig, FitConfig
 from ppdjax.infer.fit import fit_boxes
 from ppdjax.infer.refine import density_prior, refine_if_closer, with_inertia_scale
 from ppdjax.infer import posterior as posterior_module
-from ppdjax.infer import sampling
+from ppdjax.infer import sampling, search
 from ppdjax.nn.estimator import combine_logits
 from ppdjax.nn.model import physics_key
 from ppdjax.primitives import Primitives
@@ -42,7 +42,8 @@ class Decomposition:
       used: the network's, or with an estimator its log-probabilities and the network's
       combined (`ppdjax.nn.estimator.combine_logits`).
     score: (B,) trajectory distance (metres) of the returned densities.
-    scores: (B, S) every sampled candidate's distance (candidate 0: the arg-max; inf for
+    scores: (B, S) every sampled candidate's distance (S: samples × rounds with +Search,
+      `select.rounds`) (candidate 0: the arg-max; inf for
       one screened out, `SelectConfig.screen_steps`). With a selection horizon
       (`SelectConfig.horizon`) and no refinement, the distance over that horizon: the
       candidates are simulated that far only (the winner over every step).
@@ -247,13 +248,20 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
     if est_graphdef is not None:
       logits = combine_logits(logits, nnx.merge(est_graphdef, est_state)(prims, traj),
                               config.estimator.weight)
-    sel = jax.vmap(lambda p, l, o, kk, m: sampling.select_densities(
-        p, l, o, pushes.replace(magnitudes=m), num_samples=select.samples, key=kk,
-        prior_weight=select.tau(fit.enabled), mass_match=select.mass_match,
-        screen_steps=select.screen_steps, screen_keep=select.screen_keep,
-        face_spread=fit.face_spread, selection_horizon=select.horizon,
-        whole_scores=refine.enabled, settings=settings))(
-            prims, logits, traj, object_keys(key, traj.shape[0]), mags)
+    if select.searches:
+      draw = lambda p, l, o, kk, m: search.search_densities(  # noqa: E731
+          p, l, o, pushes.replace(magnitudes=m), num_samples=select.samples,
+          rounds=select.rounds, key=kk, inertia=select.inertia,
+          prior_weight=select.tau(fit.enabled), selection_horizon=select.horizon,
+          settings=settings)
+    else:
+      draw = lambda p, l, o, kk, m: sampling.select_densities(  # noqa: E731
+          p, l, o, pushes.replace(magnitudes=m), num_samples=select.samples, key=kk,
+          prior_weight=select.tau(fit.enabled), mass_match=select.mass_match,
+          screen_steps=select.screen_steps, screen_keep=select.screen_keep,
+          face_spread=fit.face_spread, selection_horizon=select.horizon,
+          whole_scores=refine.enabled, settings=settings)
+    sel = jax.vmap(draw)(prims, logits, traj, object_keys(key, traj.shape[0]), mags)
     distinct = sel.distinct | (fit.face_spread > 0)
     post = jax.vmap(lambda s, d, l, v, u: posterior_module.density_posterior(
         s, d, sampling.log_prior(l, s, v), v, scale=belief.scale, level=belief.level,
@@ -272,7 +280,7 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
           prior=density_prior(lg) if refine.prior_weight > 0 else None,
           prior_weight=refine.prior_weight, jacobian=refine.jacobian, inertia=refine.inertia,
           settings=refine_settings))(start, logits, traj, sel.scores.min(-1), mags)
-      if refine.inertia:  # the +Sample answer's boxes uniform where refinement is not kept
+      if refine.inertia and not select.inertia:  # +Sample's answer: uniform boxes
         prims = with_inertia_scale(prims)
       # kept where it is closer than every candidate; else the +Sample answer stays
       prims = jax.tree.map(

@@ -85,18 +85,26 @@ def candidate_slots(logits_Kx100: jax.Array, valid_K: jax.Array, num_samples: in
   if include_mode:
     draws = draws.at[0].set(jnp.argmax(logits_Kx100, -1).astype(jnp.int32))
   draws = jnp.where(valid_K, draws, 0)
-  # Lexicographic sort by slots (3 per int32 code), then draw index: the first of each run
-  # of equal assignments is the earliest drawn.
-  codes = [sum(draws[:, j] * 100 ** (j - c) for j in range(c, min(c + 3, k)))
-           for c in range(0, k, 3)]
+  duplicate = repeats(draws, NUM_DENSITY_SLOTS)
+  index = jnp.arange(m)
+  take = jnp.argsort(jnp.where(duplicate, m + index, index))[:num_samples]
+  return draws[take], ~duplicate[take]
+
+
+def repeats(values_MxK: jax.Array, base: int) -> jax.Array:
+  """(M,) True for each row of integers in [0, base) that repeats an earlier row."""
+  m, k = values_MxK.shape
+  per_code = max(1, int(np.log(2 ** 31 - 1) // np.log(base)))  # digits in one int32 code
+  # Lexicographic sort by the rows' codes, then row index: the first of each run of equal
+  # rows is the earliest.
+  codes = [sum(values_MxK[:, j] * base ** (j - c) for j in range(c, min(c + per_code, k)))
+           for c in range(0, k, per_code)]
   index = jnp.arange(m)
   order = jnp.lexsort([index] + codes[::-1])
   sorted_codes = jnp.stack([c[order] for c in codes], -1)
   repeat = jnp.concatenate([jnp.zeros(1, bool),
                             jnp.all(sorted_codes[1:] == sorted_codes[:-1], -1)])
-  duplicate = jnp.zeros(m, bool).at[order].set(repeat)
-  take = jnp.argsort(jnp.where(duplicate, m + index, index))[:num_samples]
-  return draws[take], ~duplicate[take]
+  return jnp.zeros(m, bool).at[order].set(repeat)
 
 
 def candidate_boxes(prims: Primitives, slots_SxK: jax.Array, key: jax.Array,

@@ -184,13 +184,12 @@ class Pipeline:
 
   def evaluate(self) -> None:
     from ppdjax.reproduce import video_report as report  # pylint: disable=import-outside-toplevel
-    for variant, path in self.eval_files.items():  # both, to show what refinement does
-      if not os.path.exists(path) and variant == "appearance":
-        report.decompose_test(self.appearance_config(), self.appearance_dir, self.test_file,
-                              path, refine=False, network_only=True)
-      elif not os.path.exists(path):
-        report.decompose_test(self.config, self.workdir, self.test_file, path,
-                              refine=variant == "refine")
+    files = {v: p for v, p in self.eval_files.items() if not os.path.exists(p)}
+    if "appearance" in files:
+      report.decompose_test(self.appearance_config(), self.appearance_dir, self.test_file,
+                            {"sample": files.pop("appearance")}, network_only=True)
+    if files:  # both, to show what refinement does (one refining pass where it can)
+      report.decompose_test(self.config, self.workdir, self.test_file, files)
 
   def report(self) -> None:
     from ppdjax.reproduce import video_report as report  # pylint: disable=import-outside-toplevel

@@ -16,6 +16,7 @@ from ppdjax.conventions import density_to_slot, slot_to_density
 from ppdjax.metrics import relative_rotation
 from ppdjax.dataset import camera, generation, materials
 from ppdjax.infer.config import DecomposeConfig
+from ppdjax.infer import sampling
 from ppdjax.infer.decompose import make_decompose_fn
 from ppdjax.training import checkpoints
 
@@ -46,47 +47,75 @@ TARGETS = {"rmse_all": 10.0, "rmse_2_blocks": 5.0, "pearson": 0.95}
 LOG2_LEVELS = np.arange(-4, 5)  # the paper's answer scale {2^k, k = -4..4}
 
 
-def decompose_test(config, workdir: str, test_file: str, out_file: str,
-                   refine: bool | None = None, network_only: bool = False) -> None:
-  """Decomposes every test tower from its tracked and its true trajectory (refinement as
-  config.eval.refine unless `refine` says); `network_only`: the network's own densities
-  (its arg-max) on the fitted boxes, no sampling (a model that reads no trajectory)."""
+def decompose_test(config, workdir: str, test_file: str, out_files: dict[str, str],
+                   network_only: bool = False) -> None:
+  """Decomposes every test tower from its tracked and its true trajectory into each file
+  of `out_files` ("refine": refined; "sample": the selection's winner alone);
+  `network_only`: the network's own densities (its arg-max) on the fitted boxes, no
+  sampling (a model that reads no trajectory), into out_files["sample"].
+
+  With both files asked for, one refining pass writes both where it can: the winner before
+  refinement is the candidate of least selection objective, on the same boxes (no drawn
+  faces), over every step (no selection horizon) and at its slots (no mass matching)."""
   trained = checkpoints.load(workdir)
-  _, cfg = trained
   e, size = config.eval, int(config.data.image_size)
-  refine = bool(e.refine) if refine is None else refine
   # the preset's settings with the depth fit (the test towers carry depth images) and no
   # screen (as measured: the screen is unmeasured on tracking)
   settings = DecomposeConfig.from_eval(e).replace(**{
-      "fit.enabled": True, "fit.depth": True, "fit.image": False, "refine.enabled": refine,
+      "fit.enabled": True, "fit.depth": True, "fit.image": False,
       "select.screen_steps": 0, **({"select.samples": 1} if network_only else {})})
+  one_pass = (settings.select.horizon == 0 and settings.fit.face_spread == 0
+              and not settings.select.mass_match)
+  passes = ([("refine", "sample")] if one_pass and "refine" in out_files else
+            [(v,) for v in out_files])
+  for variants in passes:
+    refine = variants[0] == "refine"
+    _decompose_pass(trained, settings.replace(**{"refine.enabled": refine}), size,
+                    int(e.batch_size), test_file,
+                    {v: out_files[v] for v in variants if v in out_files}, network_only)
+
+
+def _decompose_pass(trained, settings: DecomposeConfig, size: int, batch: int,
+                    test_file: str, out_files: dict[str, str], network_only: bool) -> None:
   fn = make_decompose_fn(trained, settings, camera=camera.camera_dict(size, size),
-                         pushes=generation.pushes_of(cfg.data))
+                         pushes=generation.pushes_of(trained[1].data))
   d = dict(np.load(test_file))
   n, k = d["valid"].shape
-  out = {}
+  tau = settings.select.tau(settings.fit.enabled)
+  out = {v: {} for v in out_files}
   for way in WAYS:
     traj = d[f"{way}_trajectory"]
     ok = np.flatnonzero(np.isfinite(traj).all((1, 2)))
-    fields = {f: np.full((n, k) + d[f].shape[2:], np.nan, np.float32)
-              for f in primitives.FIELDS if f != "valid"}
-    valid, score = np.zeros((n, k), bool), np.full(n, np.nan, np.float32)
-    size = int(e.batch_size)
-    for start in tqdm(range(0, len(ok), size), desc=f"decompose ({way})"):
-      chunk = ok[start:start + size]
-      padded = np.concatenate([chunk, np.full(size - len(chunk), chunk[-1])])  # one compile
+    fields = {v: {f: np.full((n, k) + d[f].shape[2:], np.nan, np.float32)
+                  for f in primitives.FIELDS if f != "valid"} for v in out_files}
+    valid = np.zeros((n, k), bool)
+    score = {v: np.full(n, np.nan, np.float32) for v in out_files}
+    for start in tqdm(range(0, len(ok), batch), desc=f"decompose ({way})"):
+      chunk = ok[start:start + batch]
+      padded = np.concatenate([chunk, np.full(batch - len(chunk), chunk[-1])])  # one compile
       obs = {"voxels": d["voxels"][padded], "image": d["image"][padded],
              "depth": d["depth"][padded], "trajectories": traj[padded][:, None]}
       res = jax.tree.map(lambda a: np.asarray(a)[:len(chunk)],
                          fn(obs, jax.random.key(int(chunk[0]))))
-      for f in fields:
-        fields[f][chunk] = getattr(res.primitives, f)
+      valid[chunk] = res.primitives.valid
+      for v in out_files:
+        for f in fields[v]:
+          fields[v][f][chunk] = getattr(res.primitives, f)
+        score[v][chunk] = res.score
       if network_only:  # the network's arg-max, not the one sample's draw
-        fields["density"][chunk] = slot_to_density(np.argmax(res.density_logits, -1))
-      valid[chunk], score[chunk] = res.primitives.valid, res.score
-    out.update({f"{way}_{f}": v for f, v in fields.items()})
-    out.update({f"{way}_valid": valid, f"{way}_score": score})
-  np.savez_compressed(out_file, **out)
+        fields["sample"]["density"][chunk] = slot_to_density(np.argmax(res.density_logits, -1))
+      elif "sample" in out_files and settings.refine.enabled:  # the winner before refinement
+        cost = res.scores - tau * np.asarray(jax.vmap(sampling.log_prior)(
+            res.density_logits, res.candidates, res.primitives.valid))
+        best = np.argmin(cost, -1)
+        slots = np.take_along_axis(res.candidates, best[:, None, None], 1)[:, 0]
+        fields["sample"]["density"][chunk] = slot_to_density(slots)
+        score["sample"][chunk] = np.take_along_axis(res.scores, best[:, None], 1)[:, 0]
+    for v in out_files:
+      out[v].update({f"{way}_{f}": x for f, x in fields[v].items()})
+      out[v].update({f"{way}_valid": valid, f"{way}_score": score[v]})
+  for v, path in out_files.items():
+    np.savez_compressed(path, **out[v])
 
 
 def matched(test: dict, ev: dict, way: str):
@@ -225,6 +254,8 @@ def write_report(pipe, results_dir: str, command: str, name: str = "video_towers
             "tracking": tracking_errors(test), "density": rows, "heavier": heavy,
             "random_guess_rmse": random_guess_rmse(test), "paper": PAPER, "targets": TARGETS,
             "decompose": {"samples": int(pipe.config.eval.samples),
+                          "rounds": int(pipe.config.eval.get("rounds", 1)),
+                          "sample_inertia": bool(pipe.config.eval.get("sample_inertia", False)),
                           "refine": bool(pipe.config.eval.refine), "fit": True, "depth": True},
             "validation": validation_summary(results_dir, name),
             "steps": pipeline_steps.read_log(pipe.root)}
@@ -261,6 +292,16 @@ def _ci(row, key):
   return f"{row[key]:.1f} [{lo:.1f}, {hi:.1f}]"
 
 
+def _selection_words(d: dict) -> str:
+  """How the report's decompositions chose densities (+Sample, or +Search's rounds)."""
+  if d.get("rounds", 1) <= 1 and not d.get("sample_inertia"):
+    return f"{d['samples']} density samples"
+  return (f"+Search ({d.get('rounds', 1)} rounds of {d['samples']} candidates, each later "
+          "round near the closest so far" + (", their boxes carrying inertia scales"
+                                             if d.get("sample_inertia") else "")
+          + "; its winner before refinement is the '+Sample only' rows)")
+
+
 def report_md(r: dict, figure: str = "video_heavier.png") -> str:
   d, h, t = r["density"], r["heavier"], r["tracking"]
   rg = r["random_guess_rmse"]
@@ -278,7 +319,7 @@ def report_md(r: dict, figure: str = "video_heavier.png") -> str:
       f"{r['video']['noise']:g} grey levels, lighting drift ±{100 * r['video']['lighting']:.0f} %) "
       "through the sticker tracker; beside it, the same model fed the true trajectory "
       f"prices the tracker. Decomposition: boxes fitted to the voxels and depth, "
-      f"{r['decompose']['samples']} density samples, the closest by trajectory"
+      + _selection_words(r["decompose"]) + ", the closest by trajectory"
       + (" refined by Levenberg-Marquardt" if r["decompose"]["refine"] else
          " (+Sample; Levenberg-Marquardt refinement after it is the +Refine rows)")
       + ("" if not r["validation"] else

@@ -1,0 +1,160 @@
+"""+Search (ours): +Sample iterated, each round drawing near the closest candidates so far.
+
++Sample draws every candidate from the density scores. Where the scores say little (blocks
+that look alike) and a tower has four boxes, 512 joint draws rarely land near the densities
+that explain the motion, and refinement, a local method, does not reach them from there
+(experiments/video_identifiability). The cross-entropy method closes that gap: round 0
+draws `samples` candidates from the scores as +Sample does; each later round draws as many
+from a proposal built on the elite, the `ELITE` share of the candidates closest so far: per
+box, the elite's slots spread over neighbouring slots (densities are ordinal) by a kernel
+that narrows round by round, mixed with the scores so that no slot is ever ruled out.
+
+With `inertia`, each candidate's boxes also carry an inertia scale (`Primitives.inertia_scale`:
+a hollow or filled block's inertia over a uniform one's), one of INERTIA_LEVELS, searched
+the same way: the shells that solid boxes cannot stand for (`dataset.hollow`).
+
+The rounds run in one `jax.lax.scan` (one compiled round); every round's candidates are
+returned, `samples × rounds` in all, so that the posterior weighs them all.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ppdjax import metrics
+from ppdjax.conventions import NUM_DENSITY_SLOTS, density_to_slot_jax, slot_to_density_jax
+from ppdjax.infer import sampling
+from ppdjax.infer.refine import INERTIA_SCALE_RANGE
+from ppdjax.primitives import Primitives
+from ppdjax.sim.pushes import Pushes
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
+
+ELITE = 1 / 16  # the share of the candidates so far the next proposal is built on
+SCORES_MIX = 0.1  # the chance that a later round redraws a box from the density scores
+# The steps' widths in log density of rounds 1, 2, ...: wide enough at first to move a
+# box to a neighbouring material, a few per cent at the end; the last holds for later rounds.
+WIDTHS = (0.4, 0.2, 0.1, 0.05)
+# The inertia scales a candidate's box may take (geometric, 1 among them: a uniform box).
+INERTIA_LEVELS = tuple(float(x) for x in np.geomspace(*INERTIA_SCALE_RANGE, 9))
+UNIFORM_SHARE = 0.5  # round 0's chance that a box is uniform (scale 1), else any level
+LEVEL_WIDTH = 1.0  # the inertia levels' step in later rounds
+MOVE_SHARE = 0.5  # the chance that a box's slot (its level) moves in a later round's step
+
+
+def check_rounds(rounds: int) -> None:
+  """Raises ValueError unless `rounds` is a whole number >= 1 (1: +Sample alone)."""
+  if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 1:
+    raise ValueError(f"select.rounds must be a whole number >= 1 (1: +Sample alone), got "
+                     f"{rounds!r}")
+
+
+def perturb(parents_ExK: jax.Array, width: jax.Array, count: int, key: jax.Array, *,
+            size: int, log_density: bool) -> jax.Array:
+  """(count, K) levels in [0, size): each row a random parent's, every entry moved by a
+  Gaussian step `width` wide: in log density for slots (a step of 10 % is a slot near
+  1,000 kg/m³ and ten near 10,000, as the motion tells masses apart by their ratios),
+  else in levels. Moving whole candidates keeps what their boxes trade between them (two
+  boxes on a ridge of equal mass), which per-box marginals would lose."""
+  pick, step = jax.random.split(key)
+  parents = parents_ExK[jax.random.randint(pick, (count,), 0, parents_ExK.shape[0])]
+  step, which = jax.random.split(step)
+  noise = width * jax.random.normal(step, parents.shape)
+  noise = jnp.where(jax.random.uniform(which, parents.shape) < MOVE_SHARE, noise, 0.0)
+  if log_density:
+    moved = density_to_slot_jax(slot_to_density_jax(parents) * jnp.exp(noise))
+  else:
+    moved = jnp.round(parents + noise)
+  return jnp.clip(moved, 0, size - 1).astype(jnp.int32)
+
+
+def initial_inertia(k: int) -> jax.Array:
+  """(K, levels) round 0's inertia proposal: uniform boxes half the time, else any level."""
+  n = len(INERTIA_LEVELS)
+  p = np.full(n, (1 - UNIFORM_SHARE) / n)
+  p[int(np.argmin(np.abs(np.log(INERTIA_LEVELS))))] += UNIFORM_SHARE
+  return jnp.log(jnp.broadcast_to(jnp.asarray(p, jnp.float32), (k, n)))
+
+
+def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax.Array,
+                     pushes: Pushes, *, num_samples: int, rounds: int, key: jax.Array,
+                     inertia: bool = False, prior_weight: float = 0.0,
+                     selection_horizon: int = 0,
+                     settings: Settings = DEFAULT_SETTINGS) -> sampling.Selection:
+  """+Search: `rounds` rounds of `num_samples` candidates (module docstring), the winner the
+  least `sampling.selection_objective` (over the selection horizon) among all of them.
+
+  Args:
+    prims: the geometry of one object (K boxes; densities ignored).
+    density_logits: (K, 100) the density scores (round 0's proposal and the prior).
+    observed: (P, T, 7) the observed trajectories.
+    pushes: the P pushes.
+    num_samples, rounds: candidates per round, and rounds (1: +Sample's draw alone).
+    key: PRNG key.
+    inertia: candidates carry inertia scales (INERTIA_LEVELS), searched beside the slots.
+    prior_weight, selection_horizon: as `sampling.select_densities`.
+    settings: the engine's settings.
+
+  Returns:
+    sampling.Selection over all `num_samples × rounds` candidates, in round order (`boxes`
+    carry inertia scales with `inertia`).
+  """
+  check_rounds(rounds)
+  sampling.check_selection_horizon(selection_horizon)
+  logits = density_logits[:, :NUM_DENSITY_SLOTS]
+  k, n_levels = logits.shape[0], len(INERTIA_LEVELS)
+  level_values = jnp.asarray(INERTIA_LEVELS, jnp.float32)
+  elite = max(1, int(round(ELITE * num_samples)))
+  pool = min(elite, num_samples)
+
+  def candidates(slots, levels):
+    boxes = sampling.with_slots(prims, slots)
+    if inertia:
+      boxes = boxes.replace(inertia_scale=jnp.where(prims.valid, level_values[levels], 1.0))
+    return boxes
+
+  def one_round(carry, xs):
+    best_slots, best_levels, best_cost = carry
+    round_key, width, first = xs
+    keys = jax.random.split(round_key, 5)
+    drawn, _ = sampling.candidate_slots(logits, prims.valid, num_samples, keys[0])
+    first_levels = jax.random.categorical(keys[1], initial_inertia(k), shape=(num_samples, k))
+    # later rounds: the elite's candidates moved, a box at a time redrawn from the scores
+    redraw = jax.random.uniform(keys[2], (num_samples, k)) < SCORES_MIX
+    moved = jnp.where(redraw, drawn, perturb(best_slots, width, num_samples, keys[3],
+                                             size=NUM_DENSITY_SLOTS, log_density=True))
+    moved_levels = perturb(best_levels, LEVEL_WIDTH, num_samples, keys[4], size=n_levels,
+                           log_density=False)
+    slots = jnp.where(prims.valid, jnp.where(first, drawn, moved), 0)
+    levels = jnp.where(prims.valid, jnp.where(first, first_levels, moved_levels), 0)
+    dist, err = sampling.score_candidates(candidates(slots, levels), observed, pushes,
+                                          settings, horizons=(0, selection_horizon))
+    cost = sampling.selection_objective(
+        dist[:, 1], sampling.log_prior(logits, slots, prims.valid), prior_weight)
+    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)  # a rollout that blew up: never elite
+    # the elite: the closest of this round's candidates and the elite so far
+    all_cost = jnp.concatenate([best_cost, cost])
+    keep = jax.lax.top_k(-all_cost, pool)[1]
+    carry = (jnp.concatenate([best_slots, slots])[keep],
+             jnp.concatenate([best_levels, levels])[keep], all_cost[keep])
+    return carry, (slots, levels, dist[:, 0], err, cost)
+
+  widths = jnp.asarray([WIDTHS[min(max(r - 1, 0), len(WIDTHS) - 1)] for r in range(rounds)],
+                       jnp.float32)
+  start = (jnp.zeros((pool, k), jnp.int32), jnp.zeros((pool, k), jnp.int32),
+           jnp.full((pool,), jnp.inf))
+  _, (slots, levels, dist, err, cost) = jax.lax.scan(
+      one_round, start, (jax.random.split(key, rounds), widths, jnp.arange(rounds) == 0))
+  flat = lambda x: x.reshape((rounds * num_samples,) + x.shape[2:])  # noqa: E731
+  slots, levels, dist, err, cost = map(flat, (slots, levels, dist, err, cost))
+  distinct = ~sampling.repeats(slots * n_levels + levels if inertia else slots,
+                               NUM_DENSITY_SLOTS * (n_levels if inertia else 1))
+  best = jnp.argmin(cost)
+  boxes = candidates(slots, levels)
+  winner = jax.tree.map(lambda x: x[best], boxes)
+  sim = simulate(winner, pushes, steps=observed.shape[-2], settings=settings)
+  return sampling.Selection(
+      density=winner.density, score=metrics.trajectory_distance(sim, observed),
+      scores=dist, slots=slots, distinct=distinct, mae=err,
+      trajectories=sim, best=best, boxes=boxes)
