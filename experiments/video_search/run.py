@@ -4,11 +4,19 @@ and candidates that carry inertia scales, reach the densities that +Sample misse
   python experiments/video_search/run.py --model=WORKDIR --test_towers=ROOT/test_towers.npz \
       --variant=search:rounds=4 --variant=shells:rounds=4,sample_inertia=True --out=DIR
 
+  python experiments/video_search/run.py --collect --val_towers=V/test_towers.npz \
+      --val_baseline=V --runs=DIR --test_towers=T/test_towers.npz --test_runs=TDIR \
+      --results=experiments/results/video_search.json
+
 Each variant is the look-alike preset's decomposition (`video_report.decompose_test`'s
 settings: the depth fit, no screen) with the given `eval` keys changed, run on the tracked
 trajectories of every tower. Writes DIR/VARIANT.npz (the answers; `search_density`: the
 selection's winner before refinement) and DIR/summary.json (RMSE in slots of the box nearest
-each true block, by block count, before and after refinement; seconds).
+each true block, by block count, before and after refinement; seconds). `--collect` reads
+the variants' answers (RUNS/NAME.npz) beside the validation pipeline's own (+Sample and
++Refine: V/decompositions_{sample,refine}.npz) and, for the test towers, the pipeline's
+decompositions made with each variant (TDIR/NAME_{sample,refine}.npz), and writes the
+rows with 95 % bootstrap intervals over towers.
 """
 
 from __future__ import annotations
@@ -38,6 +46,12 @@ flags.DEFINE_string("test_towers", None, "A video pipeline's test_towers.npz.")
 flags.DEFINE_multi_string("variant", [], "NAME:key=value,... (eval keys; value JSON).")
 flags.DEFINE_string("out", None, "The folder for the answers and summary.json.")
 flags.DEFINE_integer("limit", 0, "> 0: the first N towers only (a smoke test).")
+flags.DEFINE_bool("collect", False, "Collect the runs' rows into --results.")
+flags.DEFINE_string("val_towers", None, "--collect: the validation towers.")
+flags.DEFINE_string("val_baseline", None, "--collect: the validation pipeline's root.")
+flags.DEFINE_string("runs", None, "--collect: the variants' answers on validation.")
+flags.DEFINE_string("test_runs", None, "--collect: the test pipeline's answers per variant.")
+flags.DEFINE_string("results", None, "--collect: the results file.")
 FLAGS = flags.FLAGS
 
 
@@ -97,8 +111,57 @@ def run_variant(trained, test: dict, towers: np.ndarray, settings: DecomposeConf
   return out, time.time() - start
 
 
+def rows(test: dict, ev: dict, ways: tuple[str, ...] = ("tracked",)) -> dict:
+  """The report's density rows (`video_report.summary`) of answers `ev` per trajectory."""
+  blocks = test["valid"].sum(-1)
+  out = {}
+  for way in ways:
+    ok = np.flatnonzero(ev[f"{way}_valid"].any(-1))
+    row, _ = video_report.summary(test, ev, way, ok, blocks)
+    out[way] = row
+  return out
+
+
+def collect() -> dict:
+  val = dict(np.load(FLAGS.val_towers))
+  result = {"validation": {"towers": int(len(val["valid"])), "rows": {}},
+            "test": {"towers": None, "rows": {}}}
+  for name in ("sample", "refine"):  # the pipeline's own: +Sample and +Refine
+    ev = dict(np.load(os.path.join(FLAGS.val_baseline, f"decompositions_{name}.npz")))
+    result["validation"]["rows"][f"pipeline_{name}"] = rows(val, ev)["tracked"]
+  for path in sorted(os.listdir(FLAGS.runs)):
+    name, ext = os.path.splitext(path)
+    if ext != ".npz":
+      continue
+    ev = dict(np.load(os.path.join(FLAGS.runs, path)))
+    result["validation"]["rows"][name] = rows(val, ev)["tracked"]
+    result["validation"]["rows"][name + "_before_refinement"] = rows(
+        val, dict(ev, tracked_density=ev["search_density"]))["tracked"]
+  test = dict(np.load(FLAGS.test_towers))
+  result["test"]["towers"] = int(len(test["valid"]))
+  for path in sorted(os.listdir(FLAGS.test_runs)):
+    name, ext = os.path.splitext(path)
+    if ext == ".npz":
+      result["test"]["rows"][name] = rows(test, dict(np.load(os.path.join(FLAGS.test_runs, path))),
+                                          ("tracked", "true"))
+  return result
+
+
 def main(argv):
   del argv
+  if FLAGS.collect:
+    result = collect()
+    previous = json.load(open(FLAGS.results)) if os.path.exists(FLAGS.results) else {}
+    previous.update(result, command="python " + " ".join(sys.argv),
+                    chosen="shells8", machine="one NVIDIA H200 (the decompositions)")
+    with open(FLAGS.results, "w") as f:
+      json.dump(previous, f, indent=1)
+    for split in ("validation", "test"):
+      for name, row in result[split]["rows"].items():
+        row = row.get("tracked", row)
+        print(split, name, *(f"{row.get(k, float('nan')):.1f}" for k in (
+            "rmse_all", "rmse_2_blocks", "rmse_3_blocks", "rmse_4_blocks")))
+    return
   trained = checkpoints.load(FLAGS.model)
   cfg = trained[1]
   test = dict(np.load(FLAGS.test_towers))
@@ -126,5 +189,5 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  flags.mark_flags_as_required(["model", "test_towers", "out"])
+  flags.mark_flags_as_required(["test_towers"])
   app.run(main)

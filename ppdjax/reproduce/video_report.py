@@ -22,6 +22,7 @@ from ppdjax.training import checkpoints
 
 WAYS = ("tracked", "true")  # which trajectory the model reads
 VALIDATION_SUFFIX = "_val"  # report NAME's headline was chosen on report NAME_val's towers
+SEARCH_STUDY = "video_search"  # where the look-alike preset's +Search settings were chosen
 
 
 def validation_summary(results_dir: str, name: str):
@@ -37,9 +38,18 @@ def validation_summary(results_dir: str, name: str):
   d = val["density"]
   pick = lambda key: next(v["rmse_all"] for k, v in d.items() if k == key)  # noqa: E731
   refine_first = val["decompose"]["refine"]
-  return {"report": f"{report}.md", "seed": val["seed"], "density_rmse_tracked": {
+  out = {"report": f"{report}.md", "seed": val["seed"], "density_rmse_tracked": {
       "refine": pick("tracked" if refine_first else "tracked, +Refine"),
       "sample": pick("tracked, +Sample only" if refine_first else "tracked")}}
+  search = os.path.join(results_dir, SEARCH_STUDY + ".json")
+  if name == "video_lookalike" and os.path.exists(search):  # +Search chosen on its towers
+    with open(search) as f:
+      study = json.load(f)
+    rows = study["validation"]["rows"]
+    out["search"] = {"study": f"experiments/{SEARCH_STUDY}/README.md", "chosen": study["chosen"],
+                     "density_rmse_tracked": {k: v["rmse_all"] for k, v in rows.items()
+                                              if not k.endswith("_before_refinement")}}
+  return out
 
 
 PAPER = {"rmse_all": 18.7, "rmse_2_blocks": 10.1, "random": 40.8, "pearson_model_truth": 0.90}
@@ -302,6 +312,15 @@ def _selection_words(d: dict) -> str:
           + "; its winner before refinement is the '+Sample only' rows)")
 
 
+def _search_words(search: dict | None) -> str:
+  if not search:
+    return ""
+  rmse = search["density_rmse_tracked"]
+  return (f", and +Search's on the same towers ({search['study']}: refined RMSE "
+          f"{rmse[search['chosen']]:.1f} for the chosen {search['chosen']} against the "
+          f"pipeline's {rmse['pipeline_refine']:.1f})")
+
+
 def report_md(r: dict, figure: str = "video_heavier.png") -> str:
   d, h, t = r["density"], r["heavier"], r["tracking"]
   rg = r["random_guess_rmse"]
@@ -327,7 +346,7 @@ def report_md(r: dict, figure: str = "video_heavier.png") -> str:
          f"{r['validation']['seed']} (tracked RMSE +Sample "
          f"{r['validation']['density_rmse_tracked']['sample']:.1f}, +Refine "
          f"{r['validation']['density_rmse_tracked']['refine']:.1f}: "
-         f"{r['validation']['report']})")
+         f"{r['validation']['report']})" + _search_words(r["validation"].get("search")))
       + ". Density RMSE in "
       "slots (100 kg/m³) of the box nearest each true block (two blocks may share one "
       "box, then both take its density and the mass ratio of a 2-block tower is 1), 95 % "
