@@ -65,8 +65,9 @@ def test_search_finds_what_one_draw_of_as_many_candidates_misses(tower):
   assert np.all(np.abs(np.log(scale[v] / np.asarray(truth.inertia_scale)[v])) < 1.01 * step)
   # the winner is the least of the returned scores, its trajectory the winner's
   assert float(rounds.score) == pytest.approx(float(rounds.scores.min()), rel=1e-5)
+  winner = jax.tree.map(lambda x: x[rounds.best], rounds.boxes)
   np.testing.assert_allclose(rounds.trajectories, stand_in_simulate(
-      jax.tree.map(lambda x: x[rounds.best], rounds.boxes), PUSHES, steps=48, settings=None), atol=1e-6)
+      winner, PUSHES, steps=48, settings=None), atol=1e-6)
   # without inertia the boxes stay as given (no scales); across rounds a repeat is flagged,
   # the first of its kind is not
   solid = run(4, 64, False)
@@ -91,6 +92,8 @@ def test_search_settings_are_checked():
   for bad in (0, 1.5, True):
     with pytest.raises(ConfigError, match="select.rounds"):
       DecomposeConfig().replace(**{"select.rounds": bad})
+  with pytest.raises(ConfigError, match="select.inertia must be"):
+    DecomposeConfig().replace(**{"select.inertia": "yes"})
   with pytest.raises(ConfigError, match="without select.mass_match"):
     DecomposeConfig().replace(**{"select.rounds": 2, "select.mass_match": True})
   with pytest.raises(ConfigError, match="without select.mass_match"):

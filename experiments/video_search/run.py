@@ -8,7 +8,7 @@ and candidates that carry inertia scales, reach the densities that +Sample misse
       --val_baseline=V --runs=DIR --test_towers=T/test_towers.npz --test_runs=TDIR \
       --results=experiments/results/video_search.json
 
-Each variant is the look-alike preset's decomposition (`video_report.decompose_test`'s
+Each variant is the look-alike preset's decomposition (`video_decompose.decompose_test`'s
 settings: the depth fit, no screen) with the given `eval` keys changed, run on the tracked
 trajectories of every tower. Writes DIR/VARIANT.npz (the answers; `search_density`: the
 selection's winner before refinement) and DIR/summary.json (RMSE in slots of the box nearest
@@ -36,6 +36,7 @@ from tqdm.auto import tqdm  # noqa: E402
 
 from ppdjax.conventions import slot_to_density  # noqa: E402
 from ppdjax.dataset import camera, generation  # noqa: E402
+from ppdjax.infer import sampling  # noqa: E402
 from ppdjax.infer.config import DecomposeConfig  # noqa: E402
 from ppdjax.infer.decompose import make_decompose_fn  # noqa: E402
 from ppdjax.reproduce import video_report  # noqa: E402
@@ -105,7 +106,9 @@ def run_variant(trained, test: dict, towers: np.ndarray, settings: DecomposeConf
     out["tracked_valid"][chunk], out["tracked_score"][chunk] = p.valid, res.score
     if p.inertia_scale is not None:
       out["inertia_scale"][chunk] = p.inertia_scale
-    winner = np.argmin(res.scores, -1)
+    tau = settings.select.tau(True)  # the selection objective, as decompose_test reads it
+    winner = np.argmin(res.scores - tau * np.asarray(jax.vmap(sampling.log_prior)(
+        res.density_logits, res.candidates, p.valid)), -1)
     out["search_density"][chunk] = slot_to_density(
         np.take_along_axis(res.candidates, winner[:, None, None], 1)[:, 0])
   return out, time.time() - start

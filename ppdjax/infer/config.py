@@ -199,6 +199,8 @@ class DecomposeConfig:
       value = getattr(s, name)
       if not (name == "network_prior_weight" and value is None or _finite_at_least_zero(value)):
         raise ConfigError(f"select.{name} must be finite and >= 0, got {value!r}")
+    if not isinstance(s.inertia, bool):
+      raise ConfigError(f"select.inertia must be True or False, got {s.inertia!r}")
     if s.searches and (s.mass_match or s.screen_steps or f.face_spread):
       raise ConfigError("select.rounds > 1 and select.inertia (+Search) draw candidates of "
                         "their own: they run without select.mass_match, select.screen_steps "

@@ -42,10 +42,10 @@ class Decomposition:
       used: the network's, or with an estimator its log-probabilities and the network's
       combined (`ppdjax.nn.estimator.combine_logits`).
     score: (B,) trajectory distance (metres) of the returned densities.
-    scores: (B, S) every sampled candidate's distance (S: samples × rounds with +Search,
-      `select.rounds`) (candidate 0: the arg-max; inf for
-      one screened out, `SelectConfig.screen_steps`). With a selection horizon
-      (`SelectConfig.horizon`) and no refinement, the distance over that horizon: the
+    scores: (B, S) every sampled candidate's distance (candidate 0: the arg-max; inf for
+      one screened out, `SelectConfig.screen_steps`; S: samples × rounds with +Search,
+      `select.rounds`). With a selection horizon (`SelectConfig.horizon`), no refinement
+      and no +Search, the distance over that horizon: the
       candidates are simulated that far only (the winner over every step).
     trajectories: (B, P, T, 7) the returned object simulated under the pushes.
     candidates: (B, S, K) int32, the candidates' density slots, in `scores`' order.

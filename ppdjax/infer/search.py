@@ -3,15 +3,18 @@
 +Sample draws every candidate from the density scores. Where the scores say little (blocks
 that look alike) and a tower has four boxes, 512 joint draws rarely land near the densities
 that explain the motion, and refinement, a local method, does not reach them from there
-(experiments/video_identifiability). The cross-entropy method closes that gap: round 0
-draws `samples` candidates from the scores as +Sample does; each later round draws as many
-from a proposal built on the elite, the `ELITE` share of the candidates closest so far: per
-box, the elite's slots spread over neighbouring slots (densities are ordinal) by a kernel
-that narrows round by round, mixed with the scores so that no slot is ever ruled out.
+(experiments/video_identifiability). A search in the spirit of the cross-entropy method
+closes part of that gap: round 0 draws `samples` candidates from the scores as +Sample does
+(with a key of its own); each later round draws as many by moving the elite, the
+`ELITE` × `samples` candidates closest so far: a random elite candidate, each box's slot
+moved with probability MOVE_SHARE by a Gaussian step in log density that narrows round by
+round (WIDTHS), a box redrawn from the scores with probability SCORES_MIX so that no slot
+is ever ruled out.
 
-With `inertia`, each candidate's boxes also carry an inertia scale (`Primitives.inertia_scale`:
-a hollow or filled block's inertia over a uniform one's), one of INERTIA_LEVELS, searched
-the same way: the shells that solid boxes cannot stand for (`dataset.hollow`).
+With `inertia`, each candidate's boxes also carry an inertia scale
+(`Primitives.inertia_scale`: a hollow or filled block's inertia over a uniform one's), one
+of INERTIA_LEVELS, moved by a Gaussian step LEVEL_WIDTH levels wide: the shells that solid
+boxes cannot stand for (`dataset.hollow`).
 
 The rounds run in one `jax.lax.scan` (one compiled round); every round's candidates are
 returned, `samples × rounds` in all, so that the posterior weighs them all.
@@ -31,7 +34,7 @@ from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes
 from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
 
-ELITE = 1 / 16  # the share of the candidates so far the next proposal is built on
+ELITE = 1 / 16  # the elite's size over a round's: the closest this many candidates so far
 SCORES_MIX = 0.1  # the chance that a later round redraws a box from the density scores
 # The steps' widths in log density of rounds 1, 2, ...: wide enough at first to move a
 # box to a neighbouring material, a few per cent at the end; the last holds for later rounds.
@@ -156,5 +159,5 @@ def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   sim = simulate(winner, pushes, steps=observed.shape[-2], settings=settings)
   return sampling.Selection(
       density=winner.density, score=metrics.trajectory_distance(sim, observed),
-      scores=dist, slots=slots, distinct=distinct, mae=err,
+      scores=jnp.where(jnp.isfinite(dist), dist, jnp.inf), slots=slots, distinct=distinct, mae=err,
       trajectories=sim, best=best, boxes=boxes)

@@ -183,7 +183,7 @@ class Pipeline:
                   material_names=list(materials.ALL_MATERIAL_NAMES))
 
   def evaluate(self) -> None:
-    from ppdjax.reproduce import video_report as report  # pylint: disable=import-outside-toplevel
+    from ppdjax.reproduce import video_decompose as report  # pylint: disable=import-outside-toplevel
     files = {v: p for v, p in self.eval_files.items() if not os.path.exists(p)}
     if "appearance" in files:
       report.decompose_test(self.appearance_config(), self.appearance_dir, self.test_file,
