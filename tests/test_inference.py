@@ -12,7 +12,7 @@ from ppdjax import metrics
 from ppdjax.configs import tiny
 from ppdjax.conventions import OBS_KEYS
 from ppdjax.dataset import storage, towers
-from ppdjax.infer import refine, sampling
+from ppdjax.infer import refine, sampling, search
 from ppdjax.infer.config import DecomposeConfig, FitConfig, RefineConfig, SelectConfig
 from ppdjax.report import tables
 from ppdjax.primitives import quat_mul
@@ -495,6 +495,30 @@ def test_decompose_one_and_a_batch_with_refinement(decompose, tiny_dataset):
                                 np.asarray(one.density_logits).argmax(-1)[valid])
   np.testing.assert_allclose(np.asarray(one.posterior.probs).sum(-1), valid, atol=1e-5)
   assert np.all(np.asarray(one.posterior.lower) <= np.asarray(one.posterior.upper))
+
+
+@pytest.mark.slow  # compiling decompose with +Search and refinement: about 3 minutes
+def test_decompose_with_search_returns_every_round_and_boxes_with_inertia(tiny_run,
+                                                                          tiny_dataset):
+  """+Search in decompose (two rounds, inertia scales): every round's candidates reach the
+  answer's scores, candidates and posterior; the answer's boxes carry a scale of
+  search.INERTIA_LEVELS (refinement keeps the winner's, `refine.inertia` off) and it is
+  never further than the closest candidate."""
+  cheap = MjxSettings(iterations=1, ls_iterations=1, push_iterations=2, push_ls_iterations=1)
+  config = DecomposeConfig(fit=FitConfig(enabled=False),
+                           select=SelectConfig(samples=SAMPLES, rounds=2, inertia=True),
+                           refine=RefineConfig(enabled=True, steps=1))
+  fn = ppdjax.make_decompose_fn(tiny_run[0], config, engine=cheap)
+  sample = storage.open_dataset(tiny_dataset, "test")[0]
+  one = fn({k: sample[k] for k in OBS_KEYS}, jax.random.key(0))
+  valid = np.asarray(one.primitives.valid)
+  assert one.scores.shape == (2 * SAMPLES,) and one.candidates.shape == (2 * SAMPLES, 5)
+  assert np.all(np.isfinite(np.asarray(one.scores)))
+  assert float(one.score) <= float(one.scores.min()) + 1e-7
+  scale = np.asarray(one.primitives.inertia_scale)
+  levels = np.asarray(search.INERTIA_LEVELS)
+  assert np.all(np.abs(scale[valid][:, None] - levels).min(-1) < 1e-5), scale
+  np.testing.assert_allclose(np.asarray(one.posterior.probs).sum(-1), valid, atol=1e-5)
 
 
 @pytest.mark.slow  # the decompose fixture's compile, then 4 hypotheses x 64 pushes
