@@ -41,7 +41,7 @@ SCORES_MIX = 0.1  # the chance that a later round redraws a box from the density
 WIDTHS = (0.4, 0.2, 0.1, 0.05)
 # The inertia scales a candidate's box may take (geometric, 1 among them: a uniform box).
 INERTIA_LEVELS = tuple(float(x) for x in np.geomspace(*INERTIA_SCALE_RANGE, 9))
-UNIFORM_SHARE = 0.5  # round 0's chance that a box is uniform (scale 1), else any level
+UNIFORM_SHARE = 0.5  # round 0's share of a uniform box (scale 1); the rest on every level
 LEVEL_WIDTH = 1.0  # the inertia levels' step in later rounds
 MOVE_SHARE = 0.5  # the chance that a box's slot (its level) moves in a later round's step
 
@@ -73,7 +73,8 @@ def perturb(parents_ExK: jax.Array, width: jax.Array, count: int, key: jax.Array
 
 
 def initial_inertia(k: int) -> jax.Array:
-  """(K, levels) round 0's inertia proposal: uniform boxes half the time, else any level."""
+  """(K, levels) round 0's inertia proposal: UNIFORM_SHARE on a uniform box (scale 1), the
+  rest spread over every level (1 among them)."""
   n = len(INERTIA_LEVELS)
   p = np.full(n, (1 - UNIFORM_SHARE) / n)
   p[int(np.argmin(np.abs(np.log(INERTIA_LEVELS))))] += UNIFORM_SHARE
@@ -159,5 +160,5 @@ def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   sim = simulate(winner, pushes, steps=observed.shape[-2], settings=settings)
   return sampling.Selection(
       density=winner.density, score=metrics.trajectory_distance(sim, observed),
-      scores=jnp.where(jnp.isfinite(dist), dist, jnp.inf), slots=slots, distinct=distinct, mae=err,
-      trajectories=sim, best=best, boxes=boxes)
+      scores=jnp.where(jnp.isfinite(dist), dist, jnp.inf), slots=slots, distinct=distinct,
+      mae=err, trajectories=sim, best=best, boxes=boxes)
