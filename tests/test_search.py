@@ -36,7 +36,6 @@ def _tower(monkeypatch):
   """Four boxes at slots far from where the scores point, two of them hollow; the
   stand-in simulator in place of the engine."""
   monkeypatch.setattr(sampling, "simulate", stand_in_simulate)
-  monkeypatch.setattr(search, "simulate", stand_in_simulate)
   truth = jax.tree.map(lambda x: jnp.asarray(x[0]), towers.sample_towers(1, 1, num_blocks=4))
   slots = jnp.where(truth.valid, jnp.array([12, 70, 33, 88, 0]), 0)
   levels = jnp.asarray(search.INERTIA_LEVELS)

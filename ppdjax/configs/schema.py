@@ -174,10 +174,8 @@ class EvalConfig:
   joint: bool = False  # also +Joint: faces and densities fitted together (infer.joint)
   true_shapes: bool = False  # also the oracle rows on the true boxes
   table4_objects: int = 0  # Table 4's sampling baselines on about N objects (0: every one)
-  # the studies' sweeps over the candidates (τ, posterior temperatures, screens, oracle
-  # picks; horizon_sweep: every horizon): free in rollouts, not in host time
-  studies: bool = False
-  horizon_sweep: bool = False
+  studies: bool = False  # sweeps over the candidates (τ, temperatures, screens, oracle picks)
+  horizon_sweep: bool = False  # ... and every horizon: free in rollouts, not in host time
   refine_horizon: int = 0  # runs saved before 2026-11-28 (+Refine's start; only 0 accepted)
 
 

@@ -26,13 +26,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ppdjax import metrics
 from ppdjax.conventions import NUM_DENSITY_SLOTS, density_to_slot_jax, slot_to_density_jax
 from ppdjax.infer import sampling
 from ppdjax.infer.refine import INERTIA_SCALE_RANGE
 from ppdjax.primitives import Primitives
 from ppdjax.sim.pushes import Pushes
-from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings, simulate
+from ppdjax.sim.rollout_mjx import DEFAULT_SETTINGS, Settings
 
 ELITE = 1 / 16  # the elite's size over a round's: the closest this many candidates so far
 SCORES_MIX = 0.1  # the chance that a later round redraws a box from the density scores
@@ -132,8 +131,9 @@ def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax
                            log_density=False)
     slots = jnp.where(prims.valid, jnp.where(first, drawn, moved), 0)
     levels = jnp.where(prims.valid, jnp.where(first, first_levels, moved_levels), 0)
-    dist, err = sampling.score_candidates(candidates(slots, levels), observed, pushes,
-                                          settings, horizons=(0, selection_horizon))
+    dist, err, sims = sampling.score_candidates(
+        candidates(slots, levels), observed, pushes, settings, keep_trajectories=True,
+        horizons=(0, selection_horizon))
     cost = sampling.selection_objective(
         dist[:, 1], sampling.log_prior(logits, slots, prims.valid), prior_weight)
     cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)  # a rollout that blew up: never elite
@@ -142,23 +142,22 @@ def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax
     keep = jax.lax.top_k(-all_cost, pool)[1]
     carry = (jnp.concatenate([best_slots, slots])[keep],
              jnp.concatenate([best_levels, levels])[keep], all_cost[keep])
-    return carry, (slots, levels, dist[:, 0], err, cost)
+    # the round's closest trajectory only: the winner's, whichever round it comes from
+    return carry, (slots, levels, dist[:, 0], err, cost, sims[jnp.argmin(cost)])
 
   widths = jnp.asarray([WIDTHS[min(max(r - 1, 0), len(WIDTHS) - 1)] for r in range(rounds)],
                        jnp.float32)
   start = (jnp.zeros((pool, k), jnp.int32), jnp.zeros((pool, k), jnp.int32),
            jnp.full((pool,), jnp.inf))
-  _, (slots, levels, dist, err, cost) = jax.lax.scan(
+  _, (slots, levels, dist, err, cost, round_sims) = jax.lax.scan(
       one_round, start, (jax.random.split(key, rounds), widths, jnp.arange(rounds) == 0))
   flat = lambda x: x.reshape((rounds * num_samples,) + x.shape[2:])  # noqa: E731
   slots, levels, dist, err, cost = map(flat, (slots, levels, dist, err, cost))
   distinct = ~sampling.repeats(slots * n_levels + levels if inertia else slots,
                                NUM_DENSITY_SLOTS * (n_levels if inertia else 1))
-  best = jnp.argmin(cost)
+  best = jnp.argmin(cost)  # the first least: the least of its round
   boxes = candidates(slots, levels)
-  winner = jax.tree.map(lambda x: x[best], boxes)
-  sim = simulate(winner, pushes, steps=observed.shape[-2], settings=settings)
   return sampling.Selection(
-      density=winner.density, score=metrics.trajectory_distance(sim, observed),
+      density=boxes.density[best], score=dist[best],
       scores=jnp.where(jnp.isfinite(dist), dist, jnp.inf), slots=slots, distinct=distinct,
-      mae=err, trajectories=sim, best=best, boxes=boxes)
+      mae=err, trajectories=round_sims[best // num_samples], best=best, boxes=boxes)

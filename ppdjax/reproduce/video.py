@@ -183,13 +183,14 @@ class Pipeline:
                   material_names=list(materials.ALL_MATERIAL_NAMES))
 
   def evaluate(self) -> None:
-    from ppdjax.reproduce import video_decompose as report  # pylint: disable=import-outside-toplevel
+    from ppdjax.reproduce import video_decompose  # pylint: disable=import-outside-toplevel
     files = {v: p for v, p in self.eval_files.items() if not os.path.exists(p)}
     if "appearance" in files:
-      report.decompose_test(self.appearance_config(), self.appearance_dir, self.test_file,
-                            {"sample": files.pop("appearance")}, network_only=True)
+      video_decompose.decompose_test(self.appearance_config(), self.appearance_dir,
+                                     self.test_file, {"sample": files.pop("appearance")},
+                                     network_only=True)
     if files:  # both, to show what refinement does (one refining pass where it can)
-      report.decompose_test(self.config, self.workdir, self.test_file, files)
+      video_decompose.decompose_test(self.config, self.workdir, self.test_file, files)
 
   def report(self) -> None:
     from ppdjax.reproduce import video_report as report  # pylint: disable=import-outside-toplevel

@@ -20,8 +20,8 @@ WAYS = ("tracked", "true")  # which trajectory the model reads
 
 
 def decompose_test(config, workdir: str, test_file: str, out_files: dict[str, str],
-                   network_only: bool = False) -> None:
-  """Decomposes every test tower from its tracked and its true trajectory into each file
+                   network_only: bool = False, ways: tuple[str, ...] = WAYS) -> None:
+  """Decomposes every test tower from each trajectory of `ways` into each file
   of `out_files` ("refine": refined; "sample": the selection's winner alone);
   `network_only`: the network's own densities (its arg-max) on the fitted boxes, no
   sampling (a model that reads no trajectory), into out_files["sample"].
@@ -46,18 +46,20 @@ def decompose_test(config, workdir: str, test_file: str, out_files: dict[str, st
     refine = variants[0] == "refine"
     _decompose_pass(trained, settings.replace(**{"refine.enabled": refine}), size,
                     int(e.batch_size), test_file,
-                    {v: out_files[v] for v in variants if v in out_files}, network_only)
+                    {v: out_files[v] for v in variants if v in out_files}, network_only,
+                    ways)
 
 
 def _decompose_pass(trained, settings: DecomposeConfig, size: int, batch: int,
-                    test_file: str, out_files: dict[str, str], network_only: bool) -> None:
+                    test_file: str, out_files: dict[str, str], network_only: bool,
+                    ways: tuple[str, ...]) -> None:
   fn = make_decompose_fn(trained, settings, camera=camera.camera_dict(size, size),
                          pushes=generation.pushes_of(trained[1].data))
   d = dict(np.load(test_file))
   n, k = d["valid"].shape
   tau = settings.select.tau(settings.fit.enabled)
   out = {v: {} for v in out_files}
-  for way in WAYS:
+  for way in ways:
     traj = d[f"{way}_trajectory"]
     ok = np.flatnonzero(np.isfinite(traj).all((1, 2)))
     fields = {v: {f: np.full((n, k) + d[f].shape[2:], np.nan, np.float32)
