@@ -742,10 +742,64 @@ def test_active_pushes_loop_picks_the_push_that_tells_hypotheses_apart():
     assert (lower <= slots[3]).all() and (slots[3] <= upper).all()
 
 
+def test_expected_slot_error_picks_the_push_that_pins_the_free_box():
+  """Two boxes; the push made pins box 0 only. Of two candidates, the one that tells box 1
+  leaves the smaller expected error, and the error is the Laplace posterior's in closed
+  form: ρ² / 100² · σ² / F (F ≫ σ² / prior²), the prior's variance for a box no push
+  tells; a padded box counts nothing."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from active_pushes import design  # pylint: disable=import-outside-toplevel
+  f = 1e4
+  info = jnp.asarray([[[f, 0.0], [0.0, 0.0]],   # made: box 0
+                      [[f, 0.0], [0.0, 0.0]],   # again box 0
+                      [[0.0, 0.0], [0.0, f]]])  # box 1
+  density, noise = jnp.asarray([1000.0, 3000.0]), 1e-4
+  made = jnp.asarray([True, False, False])
+  error = np.asarray(design.expected_slot_error(info, made, density, jnp.ones(2, bool),
+                                                noise, prior_std=1.0))
+  np.testing.assert_allclose(error[1], 100.0 * noise / (2 * f) + 900.0 * 1.0, rtol=1e-3)
+  np.testing.assert_allclose(error[2], 100.0 * noise / f + 900.0 * noise / f, rtol=1e-3)
+  assert error[2] < error[1]
+  padded = design.expected_slot_error(info, made, density, jnp.asarray([True, False]), noise)
+  np.testing.assert_allclose(np.asarray(padded)[1:], 100.0 * noise / np.asarray([2 * f, f]),
+                             rtol=1e-3)
+
+
+def test_push_information_is_the_squared_jacobian_and_cumulates_over_steps():
+  """Through MuJoCo's C engine: a push too weak to move a tower tells nothing; a strong
+  one tells about both boxes (positive diagonal), its information never falls with more
+  steps, and it matches JᵀJ of the differences taken by hand."""
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  from ppdjax.dataset.towers import sample_towers  # pylint: disable=import-outside-toplevel
+  sys.path.insert(0, os.path.join(ROOT, "experiments"))
+  from active_pushes import design  # pylint: disable=import-outside-toplevel
+  from ppdjax import metrics  # pylint: disable=import-outside-toplevel
+  from ppdjax.infer import active  # pylint: disable=import-outside-toplevel
+  from ppdjax.sim.rollout_mjx import simulate  # pylint: disable=import-outside-toplevel
+  from ppdjax.sim.rollout_mujoco import MujocoSettings  # pylint: disable=import-outside-toplevel
+  tower = jax.tree.map(lambda x: x[0], sample_towers(3, 1, num_blocks=2))
+  pushes = active.candidate_pushes(azimuths=1, elevations=(0.0,), strengths=(1e-4, 2.0))
+  settings = MujocoSettings()
+  info, sim = jax.jit(lambda p: design.push_information(p, pushes, steps=32,
+                                                        settings=settings))(tower)
+  info = np.asarray(info)
+  assert info.shape == (2, 32, 5, 5) and np.abs(info[0, -1]).max() < 1e-3 * info[1, -1, 0, 0]
+  assert (np.diagonal(info[1, -1])[:2] > 0).all() and (np.diagonal(info[1, -1])[2:] == 0).all()
+  assert (np.diff(np.diagonal(info[1], axis1=-2, axis2=-1), axis=0) >= -1e-6).all()
+  step = 1e-3
+  moved = tower.replace(density=tower.density * jnp.exp(step * jnp.eye(5)[0]))
+  j0 = np.asarray(metrics.pose_residual(simulate(moved, pushes, steps=32, settings=settings),
+                                        sim)) / step
+  np.testing.assert_allclose(info[1, -1, 0, 0], np.sum(j0[1] ** 2), rtol=1e-2)  # rounding
+
+
 def test_active_pushes_report_scores_the_refined_loop_and_checks_its_temperature(tmp_path):
   """The report scores each policy's refined answers (the candidates' intervals kept) beside
-  the +Sample loop's at the prior weight validation chose, keeps "active" on the +Sample
-  loop, and refuses records refined at a temperature validation did not choose."""
+  the +Sample loop's at the prior weight validation chose, picks the choosing policy of
+  least refined RMSE on validation (here the design loop) for "active", and refuses
+  records refined at a temperature validation did not choose."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   from active_pushes import run as study  # pylint: disable=import-outside-toplevel
 
@@ -754,29 +808,38 @@ def test_active_pushes_report_scores_the_refined_loop_and_checks_its_temperature
   true = rng.integers(10, 60, (towers, k))
   rec = {"valid": np.ones((towers, k), bool), "true": true, "scales": scales,
          "prior_model": "m", "samples": 8, "hypotheses": 4, "power": 0.5, "setting": "depth",
-         "refine_scale": 1.0, "all_answer": true + 1}
-  for p in study.POLICIES:
+         "refine_scale": 1.0, "all_answer": true + 1, "design_horizons": np.asarray([64])}
+  refined = lambda *offsets: np.stack([np.repeat((true + o)[:, None], 4, 1)  # noqa: E731
+                                       for o in offsets], 1)  # (towers, W, M, K)
+  for p in study.POLICIES + ("design64",):
     answer = np.repeat((true + 2)[:, None, None], 2, 1).repeat(4, 2)  # (towers, S, M, K)
     width = np.asarray([1, 5])[None, :, None, None]  # validation picks scale 1.0: covers
     rec.update({f"{p}_answer": answer, f"{p}_lower": answer - width,
                 f"{p}_upper": answer + width,
                 f"{p}_pushes": np.tile(np.arange(4), (towers, 2, 1)),
                 # two prior weights: the first 7 slots off, the second exact once refined
-                f"{p}_refined_answer": np.stack([np.repeat((true + 7)[:, None], 4, 1),
-                                                 np.repeat(true[:, None], 4, 1)], 1),
+                f"{p}_refined_answer": refined(7, 0),
                 f"{p}_refined_closer": np.ones((towers, 2, 4), bool)})
+  rec["active_refined_answer"] = refined(7, 1)  # the gain's loop: one slot off
   rec["refine_weights"] = np.asarray([0.0, 1e-5])
   np.savez(tmp_path / "rec.npz", **rec)
   out = tmp_path / "posterior.json"
   study.report(str(tmp_path / "rec.npz"), str(tmp_path / "rec.npz"), str(out))
   result = json.loads(out.read_text())
-  refined = result["active_by_setting"]["depth"]["refined"]
+  by_setting = result["active_by_setting"]["depth"]
+  refined = by_setting["refined"]
   assert refined["prior_weight"] == 1e-5  # validation's lowest RMSE
-  assert refined["active4"]["top1"] == 100.0 and refined["fixed4"]["rmse"] == 0.0
-  assert refined["clipped"]["active4"]["top1"] == 100.0  # inside the interval already
-  assert refined["active4"]["coverage_90"] == 1.0  # the candidates' interval holds the truth
-  assert result["active"]["active4"]["top1"] == 0.0  # +Sample's answers: two slots off
-  assert result["active"]["active4"]["rmse"] == pytest.approx(2.0)
+  assert refined["chosen_policy"] == "design64"
+  assert refined["validation_rmse4_by_policy"] == {"active": 1.0, "design64": 0.0}
+  assert refined["active4"]["top1"] == 0.0 and refined["design644"]["top1"] == 100.0
+  assert refined["fixed4"]["rmse"] == 0.0
+  assert refined["clipped"]["design644"]["top1"] == 100.0  # inside the interval already
+  assert refined["design644"]["coverage_90"] == 1.0  # the candidates' interval holds it
+  assert result["active"]["policy"] == "design64" and result["active"]["loop"] == "refined"
+  assert result["active"]["active4"]["top1"] == 100.0
+  assert set(result["active"]["paired"]) >= {"active2_minus_fixed4", "active4_minus_fixed4"}
+  assert by_setting["active4"]["top1"] == 0.0  # +Sample's answers: two slots off
+  assert by_setting["active4"]["rmse"] == pytest.approx(2.0)
   np.savez(tmp_path / "rec.npz", **{**rec, "refine_scale": 0.3})
   with pytest.raises(ValueError, match="--refine_scale=1.0"):
     study.report(str(tmp_path / "rec.npz"), str(tmp_path / "rec.npz"), str(out))

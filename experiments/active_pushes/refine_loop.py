@@ -19,6 +19,20 @@ from ppdjax.infer.refine import refine_if_closer
 from ppdjax.sim.rollout_mjx import simulate
 
 
+def refine_on(prims, answer, made, observed, pushes, *, steps: int, jacobian: str, settings,
+              prior=None, prior_weight=0.0):
+  """One answer (K slots) refined on the pushes `made` ((k,) indices, k static): the
+  refinement (`Refinement`) and the slots kept (refined where it came closer)."""
+  sub = jax.tree.map(lambda a: jnp.asarray(a)[made], pushes)
+  obs = observed[made]
+  start = prims.replace(density=slot_to_density_jax(answer))
+  distance = metrics.trajectory_distance(
+      simulate(start, sub, steps=obs.shape[-2], settings=settings), obs)
+  r = refine_if_closer(start, obs, distance, sub, steps=steps, jacobian=jacobian,
+                       settings=settings, prior=prior, prior_weight=prior_weight)
+  return r, jnp.where(r.closer, density_to_slot_jax(r.primitives.density), answer)
+
+
 def refine_made(prims, answers, made, observed, pushes, *, steps: int, jacobian: str,
                 settings, prior=None, prior_weight=0.0):
   """One tower, one policy: each answer refined on the pushes made up to it.
@@ -40,14 +54,9 @@ def refine_made(prims, answers, made, observed, pushes, *, steps: int, jacobian:
   """
   slots, closer = [], []
   for k in range(1, answers.shape[0] + 1):  # static: k pushes make shapes (k, T, 7)
-    sub = jax.tree.map(lambda a, k=k: jnp.asarray(a)[made[:k]], pushes)
-    obs = observed[made[:k]]
-    start = prims.replace(density=slot_to_density_jax(answers[k - 1]))
-    distance = metrics.trajectory_distance(
-        simulate(start, sub, steps=obs.shape[-2], settings=settings), obs)
-    r = refine_if_closer(start, obs, distance, sub, steps=steps, jacobian=jacobian,
-                         settings=settings, prior=prior, prior_weight=prior_weight)
-    slots.append(jnp.where(r.closer, density_to_slot_jax(r.primitives.density),
-                           answers[k - 1]))
+    r, kept = refine_on(prims, answers[k - 1], made[:k], observed, pushes, steps=steps,
+                        jacobian=jacobian, settings=settings, prior=prior,
+                        prior_weight=prior_weight)
+    slots.append(kept)
     closer.append(r.closer)
   return jnp.stack(slots), jnp.stack(closer)

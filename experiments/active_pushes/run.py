@@ -21,17 +21,17 @@ next push the one of largest expected information gain (`infer.active.informatio
 the public `next_push`'s formula) over the posterior's top `--hypotheses`. After each push
 the tower is decomposed again: the closest candidate over the pushes made (the paper's
 +Sample) and the posterior over them (`infer.posterior.density_posterior`, the paper
-setting's power). The posterior's temperature (one scale over the closest distance, for
-every box count) was calibrated for a network that reads the four pushes; with this prior
-it is chosen again: the loop runs at each of `--scales`, and `report` takes the one whose
+setting's power). With refinement, `--design_horizons` add loops that choose each next push
+on the refined answer instead (`design.py`; every policy is refined, and `report` takes
+the choosing policy of least refined RMSE on validation for "active"). The posterior's
+temperature (one scale over the closest distance, for every box count) was calibrated for
+a network that reads the four pushes; with this prior it is chosen again: the loop runs at each of `--scales`, and `report` takes the one whose
 fixed four pushes' 90 % intervals cover closest to 90 % on the validation towers, then
 pairs the policies on the test towers.
 """
 
 from __future__ import annotations
 
-import json
-import os
 import time
 
 import jax
@@ -46,19 +46,18 @@ from ppdjax.conventions import NUM_DENSITY_SLOTS, OBS_KEYS, density_to_slot
 from ppdjax.infer import active, posterior, refine, sampling
 from ppdjax.infer.config import DecomposeConfig
 from ppdjax.primitives import bottom_to_top, bottom_to_top_order
-from ppdjax.report.provenance import read_provenance, write_provenance
 from ppdjax.sim.pushes import default_pushes
 from ppdjax.sim.rollout_mjx import jax_engine, simulate
 
 try:  # run as a script (its folder on the path) or imported by the tests (as a package)
+  import design
   import refine_loop
+  from report import DESIGN, MAX_PUSHES, POLICIES, REFINED, report
 except ImportError:
-  from active_pushes import refine_loop
+  from active_pushes import design, refine_loop
+  from active_pushes.report import DESIGN, MAX_PUSHES, POLICIES, REFINED, report
 
 FLAGS = flags.FLAGS
-POLICIES = ("fixed", "random", "active")
-REFINED = "_refined"  # a policy's answers refined after each push (refine_loop)
-MAX_PUSHES = 4
 # The prior's boxes: the paper's inputs (voxels and image), or the depth image
 # (`DecomposeConfig.best()` without its screening and refinement, which read the paper's four
 # pushes' motion; the loop must see only the pushes it made).
@@ -70,11 +69,13 @@ SETTINGS = {
 
 
 def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, scale, power,
-                hypotheses):
+                hypotheses, given=None):
   """One tower: for each policy and each count of pushes made (1..4), the closest
   candidate's slots and the posterior's 90 % interval; and the pushes each policy made.
 
-  sims (S, N, T, 7) candidates under the N pushes; distances (S, N) each to the truth's."""
+  sims (S, N, T, 7) candidates under the N pushes; distances (S, N) each to the truth's;
+  `given`: {policy: (4,) pushes} made by policies of their own (`design.design_loop`),
+  decomposed alike."""
   n = distances.shape[1]
   # the distance over the pushes made so far (done (N,) bool), as +Sample's over its pushes
   over = lambda done: jnp.sum(jnp.where(done, distances, 0.0), -1) / jnp.sum(done)  # noqa: E731
@@ -109,7 +110,8 @@ def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, sc
 
   out = {}
   for name, fn in (("fixed", lambda k, done: paper[k]), ("random", lambda k, done: random[k]),
-                   ("active", active_next)):
+                   ("active", active_next),
+                   *((p, lambda k, done, o=o: o[k]) for p, o in (given or {}).items())):
     (answer, lower, upper), made = run(fn)
     out[name] = {"answer": answer, "lower": lower, "upper": upper, "pushes": made}
   return out
@@ -117,7 +119,8 @@ def closed_loop(sims, distances, slots, distinct, logp, valid, key, *, paper, sc
 
 def record(prior_model: str, setting: str, data: str, split: str, objects: int, batch: int,
            samples: int, hypotheses: int, seed: int, scales: tuple[float, ...],
-           refine_scale: float | None, refine_weights: tuple[float, ...], out: str) -> None:
+           refine_scale: float | None, refine_weights: tuple[float, ...],
+           design_horizons: tuple[int, ...], out: str) -> None:
   ds = ppdjax.open_dataset(data, split)
   n = len(ds) if objects <= 0 else min(objects, len(ds))
   config = SETTINGS[setting]()
@@ -130,6 +133,9 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
   refinement, refine_settings = DecomposeConfig.best().refine, jax_engine(decompose.settings)
   if refine_scale is not None and refine_scale not in scales:
     raise ValueError(f"--refine_scale {refine_scale} is not among --scales {scales}")
+  if design_horizons and (refine_scale is None or tuple(refine_weights) != (0.0,)):
+    raise ValueError("--design_horizons choose pushes on the refined answer (least squares): "
+                     "they need --refine_scale and --refine_prior_weights=0")
   traj_steps = ds.take(np.arange(1))["trajectories"].shape[-2]  # the whole trajectories
 
   def one(prims, logits, true, key):
@@ -141,13 +147,22 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
                     settings=decompose.settings)  # (S, N, T, 7)
     distances = jax.vmap(jax.vmap(lambda a, b: metrics.trajectory_distance(
         a[None], b[None]), (0, 0)), (0, None))(sims, observed)  # (S, N)
+    whole = None if refine_scale is None else simulate(  # (N, T, 7)
+        true, pushes, steps=traj_steps, settings=refine_settings)
+    designs = {f"{DESIGN}{h}": design.design_loop(  # pushes chosen on refined answers
+        prims, slots, distinct, distances, whole, pushes, paper[0],
+        pushes_made=MAX_PUSHES, horizon=h, steps=refinement.steps,
+        jacobian=refinement.jacobian, settings=refine_settings) for h in design_horizons}
     loops = [closed_loop(sims, distances, slots, distinct, logp, prims.valid,
                          jax.random.fold_in(key, 1), paper=paper, scale=scale, power=power,
-                         hypotheses=hypotheses) for scale in scales]
-    refined = {}
+                         hypotheses=hypotheses,
+                         given={p: d["pushes"] for p, d in designs.items()})
+             for scale in scales]
+    refined = {f"{p}{REFINED}": {"answer": d["refined_answer"][None],  # one weight: 0
+                                 "closer": d["refined_closer"][None]}
+               for p, d in designs.items()}
     if refine_scale is not None:  # each policy's answers refined on its pushes made
       at = loops[scales.index(refine_scale)]
-      whole = simulate(true, pushes, steps=traj_steps, settings=refine_settings)  # (N, T, 7)
       prior = (refine.density_prior(logits[:, :NUM_DENSITY_SLOTS])
                if max(refine_weights) > 0 else None)  # the look's densities (MAP)
 
@@ -158,8 +173,8 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
                 jnp.stack([at[p]["answer"] for p in POLICIES]),
                 jnp.stack([at[p]["pushes"] for p in POLICIES]))
       answers, closer = jax.vmap(at_weight)(jnp.asarray(refine_weights, jnp.float32))
-      refined = {f"{p}_refined": {"answer": answers[:, i], "closer": closer[:, i]}
-                 for i, p in enumerate(POLICIES)}  # (W, M, K) and (W, M) per tower
+      refined.update({f"{p}_refined": {"answer": answers[:, i], "closer": closer[:, i]}
+                      for i, p in enumerate(POLICIES)})  # (W, M, K) and (W, M) per tower
     loops = jax.tree.map(lambda *x: jnp.stack(x), *loops)  # leading axis: the scales
     loops.update(refined)
     # the reference no policy of four pushes is expected to pass: the closest candidate
@@ -198,190 +213,9 @@ def record(prior_model: str, setting: str, data: str, split: str, objects: int, 
                       scales=np.asarray(scales), power=power,
                       refine_scale=np.nan if refine_scale is None else refine_scale,
                       refine_weights=np.asarray(refine_weights),
+                      design_horizons=np.asarray(design_horizons, np.int32),
                       **arrays)
   print(f"{n} towers in {time.time() - start:.0f} s -> {out}")
-
-
-def refine_weights_of(rec) -> np.ndarray:
-  """The prior weights a record was refined at ([0] before they were recorded)."""
-  return np.asarray(rec["refine_weights"] if "refine_weights" in rec else [0.0])
-
-
-def by_weight(rec, key: str) -> np.ndarray:
-  """A refined field with its prior-weight axis (towers, W, ...): records refined at one
-  weight (before the axis was recorded) have W = 1."""
-  a = rec[key]
-  return a[:, None] if "refine_weights" not in rec else a
-
-
-def scores(rec, policy: str, k: int, scale: int, weight: int = 0, clip: bool = False) -> dict:
-  """Per tower (towers whose box count is the truth's): exact boxes, squared slot errors,
-  interval widths and coverage after k pushes (1-based), the posterior at the scale of
-  index `scale` (its choices of push too). Policy "all": the closest over every candidate
-  push (no interval: its width is one slot). A refined policy: its answers at the prior
-  weight of index `weight`, with `clip` held inside the candidates' 90 % interval."""
-  valid, true = rec["valid"], rec["true"]
-  same = valid.sum(-1) == (true >= 0).sum(-1)
-  if policy == "all":
-    a = lo = hi = rec["all_answer"]
-  elif policy.endswith(REFINED):  # the refined answer; the candidates' interval
-    a = by_weight(rec, f"{policy}_answer")[:, weight, k - 1]
-    lo, hi = (rec[f"{policy[:-len(REFINED)]}_{f}"][:, scale, k - 1] for f in ("lower", "upper"))
-    a = np.clip(a, lo, hi) if clip else a
-  else:
-    a, lo, hi = (rec[f"{policy}_{f}"][:, scale, k - 1] for f in ("answer", "lower", "upper"))
-  m = valid & same[:, None]
-  return {"exact": np.where(m, a == true, 0).sum(-1), "sq": np.where(m, (a - true) ** 2.0, 0
-                                                                      ).sum(-1),
-          "width": np.where(m, hi - lo + 1, 0).sum(-1),
-          "inside": np.where(m, (lo <= true) & (true <= hi), 0).sum(-1),
-          "boxes": m.sum(-1), "same": same}
-
-
-def summary(s: dict, towers: np.ndarray) -> dict:
-  stat = {"top1": lambda i: 100.0 * s["exact"][i].sum() / s["boxes"][i].sum(),
-          "rmse": lambda i: float(np.sqrt(s["sq"][i].sum() / s["boxes"][i].sum())),
-          "width": lambda i: float(s["width"][i].sum() / s["boxes"][i].sum()),
-          "coverage_90": lambda i: float(s["inside"][i].sum() / s["boxes"][i].sum())}
-  out = {k: float(f(towers)) for k, f in stat.items()}
-  for k, f in stat.items():
-    out[f"{k}_ci95"] = list(metrics.bootstrap_interval(lambda i, f=f: f(towers[i]),
-                                                       len(towers)))
-  return out
-
-
-def paired(first: dict, second: dict, towers: np.ndarray) -> dict:
-  """second − first, top-1 and RMSE, 95 % intervals over towers drawing both."""
-  def diff(i, key):
-    t = towers[i]
-    b = first["boxes"][t].sum()
-    if key == "top1":
-      return 100.0 * (second["exact"][t].sum() - first["exact"][t].sum()) / b
-    return float(np.sqrt(second["sq"][t].sum() / b) - np.sqrt(first["sq"][t].sum() / b))
-  return {key: list(metrics.bootstrap_interval(lambda i, key=key: diff(i, key), len(towers)))
-          for key in ("top1", "rmse")}
-
-
-def policy_rows(curves: dict, towers: np.ndarray) -> dict:
-  """The results file's rows of one way to decompose: fixed four, random four, active two
-  and four, their paired differences, and every policy by pushes made."""
-  c = curves
-  return {"fixed4": summary(c["fixed"][3], towers), "random4": summary(c["random"][3], towers),
-          "active2": summary(c["active"][1], towers), "active4": summary(c["active"][3], towers),
-          "paired": {"active2_minus_fixed4": paired(c["fixed"][3], c["active"][1], towers),
-                     "active2_minus_fixed2": paired(c["fixed"][1], c["active"][1], towers),
-                     "active4_minus_fixed4": paired(c["fixed"][3], c["active"][3], towers),
-                     "active4_minus_random4": paired(c["random"][3], c["active"][3], towers)},
-          "by_pushes": {p: [summary(x, towers) for x in c[p]] for p in POLICIES}}
-
-
-def report(val_records: str, records: str, out: str) -> None:
-  """Writes the results file's "active_by_setting"[the records' setting] and "active" (the
-  depth setting's where it is measured, else the paper inputs'), and the plot."""
-  val, rec = np.load(val_records), np.load(records)
-  setting = str(rec["setting"]) if "setting" in rec else "paper_inputs"
-  # the temperature whose fixed four pushes' 90 % intervals cover closest to 90 % (validation)
-  val_cover = []
-  for i in range(len(val["scales"])):
-    c = scores(val, "fixed", MAX_PUSHES, i)
-    val_cover.append(float(c["inside"][c["same"]].sum() / c["boxes"][c["same"]].sum()))
-  chosen = int(np.argmin(np.abs(np.asarray(val_cover) - 0.9)))
-  curves = {p: [scores(rec, p, k, chosen) for k in range(1, MAX_PUSHES + 1)]
-            for p in POLICIES}
-  towers = np.flatnonzero(curves["fixed"][0]["same"])
-  active_result = policy_rows(curves, towers)
-  refined = None
-  if f"fixed{REFINED}_answer" in rec:
-    for name, r in (("test", rec), ("validation", val)):
-      if f"fixed{REFINED}_answer" not in r:
-        raise ValueError(f"the {name} records are not refined: record both with refinement")
-      if not np.isclose(r["refine_scale"], val["scales"][chosen]):
-        raise ValueError(f"the {name} records refine the loop at temperature "
-                         f"{r['refine_scale']}; validation chose {val['scales'][chosen]}: "
-                         f"record again with --refine_scale={val['scales'][chosen]}")
-    # the prior weight whose refined fixed four read the lowest RMSE on validation
-    val_weights = refine_weights_of(val)
-    val_rmse = []
-    for w in range(len(val_weights)):
-      c = scores(val, "fixed" + REFINED, MAX_PUSHES, chosen, w)
-      val_rmse.append(float(np.sqrt(c["sq"][c["same"]].sum() / c["boxes"][c["same"]].sum())))
-    weights = refine_weights_of(rec)
-    at = np.flatnonzero(np.isclose(weights, val_weights[int(np.argmin(val_rmse))]))
-    if len(at) == 0:
-      raise ValueError(f"validation chose the prior weight "
-                       f"{val_weights[int(np.argmin(val_rmse))]}, which the test records "
-                       f"({weights.tolist()}) were not refined at")
-    w = int(at[0])
-    curves_at = lambda clip: {p: [scores(rec, p + REFINED, k, chosen, w, clip)  # noqa: E731
-                                  for k in range(1, MAX_PUSHES + 1)] for p in POLICIES}
-    refined = {**policy_rows(curves_at(False), towers),
-               "kept_share": {p: [float(by_weight(rec, f"{p}{REFINED}_closer")[towers, w,
-                                                                              k].mean())
-                                  for k in range(MAX_PUSHES)] for p in POLICIES},
-               "prior_weight": float(weights[w]),
-               "validation_fixed4_rmse_by_weight": dict(zip(map(str, val_weights.tolist()),
-                                                            val_rmse)),
-               # held inside the candidates' 90 % interval (a rule read off the first refined
-               # run's records, validation and test, and so measured on fresh towers since)
-               "clipped": policy_rows(curves_at(True), towers)}
-  active_result.update({
-      "all_pushes": ({k: v for k, v in summary(scores(rec, "all", 0, 0), towers).items()
-                      if k.startswith(("top1", "rmse"))} if "all_answer" in rec else None),
-      "setting": setting,
-      "towers": int(len(towers)), "boxes": int(curves["fixed"][0]["boxes"][towers].sum()),
-      "towers_skipped_box_count": int(len(rec["valid"]) - len(towers)),
-      "prior_model": str(rec["prior_model"]), "samples": int(rec["samples"]),
-      "hypotheses": int(rec["hypotheses"]), "prior_power": float(rec["power"]),
-      "scale": float(rec["scales"][chosen]),
-      "validation_fixed4_coverage_by_scale": dict(zip(map(str, val["scales"].tolist()),
-                                                      val_cover)),
-      "validation_towers": int(len(val["valid"])),
-      "pushes_chosen": {p: np.bincount(rec[f"{p}_pushes"][towers, chosen].ravel(),
-                                       minlength=64).tolist() for p in ("active", "random")},
-      "refined": refined,
-      "command": ("python experiments/active_pushes/run.py report "
-                  f"--val_records={val_records} --records={records}")})
-  result = {}
-  if os.path.exists(out):
-    with open(out) as f:
-      result = json.load(f)
-  result.setdefault("active_by_setting", {})[setting] = active_result
-  by_setting = result["active_by_setting"]
-  # the depth setting's +Sample loop (its refined loop is a study: "refined", README)
-  result["active"] = by_setting.get("depth", by_setting.get("paper_inputs"))
-  plot({**active_result["by_pushes"],
-        **{p + REFINED: rows for p, rows in (refined or {}).get("by_pushes", {}).items()}},
-       f"{os.path.splitext(out)[0]}_active_{setting}.png")
-  made_by = [result.get("command")] + [r["command"] for r in by_setting.values()]
-  write_provenance(out, command="; ".join(c for c in made_by if c))  # calibration's, each loop's
-  active_result["commit"] = read_provenance(out).get("commit")
-  with open(out, "w") as f:
-    json.dump(result, f, indent=1)
-  print(json.dumps({k: v for k, v in active_result.items() if k != "by_pushes"}, indent=1)[:3000])
-
-
-def plot(by_pushes: dict, path: str) -> None:
-  """Top-1, RMSE and interval width against the number of pushes made, per policy."""
-  import matplotlib  # pylint: disable=import-outside-toplevel
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
-  fig, axes = plt.subplots(1, 3, figsize=(11, 3.4))
-  x = np.arange(1, MAX_PUSHES + 1)
-  for ax, key, label in zip(axes, ("top1", "rmse", "width"),
-                            ("density top-1 (%)", "density RMSE (slots)",
-                             "90 % interval width (slots)")):
-    for i, (p, rows) in enumerate(by_pushes.items()):
-      if key == "width" and p.endswith(REFINED):  # the candidates' intervals: the same
-        continue
-      y = [r[key] for r in rows]
-      lo, hi = zip(*[r[f"{key}_ci95"] for r in rows])
-      ax.errorbar(x + 0.05 * (i - 1), y, yerr=[np.subtract(y, lo), np.subtract(hi, y)],
-                  marker="o", capsize=3, label=p, color=f"C{POLICIES.index(p.split('_')[0])}",
-                  linestyle="--" if p.endswith(REFINED) else "-")
-    ax.set(xlabel="pushes made", ylabel=label, xticks=x)
-  axes[0].legend(fontsize=8)
-  fig.tight_layout()
-  fig.savefig(path, dpi=110)
 
 
 def define_flags():
@@ -404,6 +238,10 @@ def define_flags():
                     "tried (0 alone: least squares, kept where closer; with any weight above "
                     "0 every step is kept where its cost fell, weight 0's too); one is chosen "
                     "on validation.")
+  flags.DEFINE_list("design_horizons", ["64", "256"], "record: a loop that chooses each next "
+                    "push on the refined answer (Laplace posterior, A-optimal in slots) for "
+                    "each of these horizons (steps of the candidate pushes' motion it weighs; "
+                    "empty: none); one policy is chosen on validation.")
   flags.DEFINE_string("val_records", "", "report: the validation towers' record file.")
   flags.DEFINE_string("records", "", "report: the test towers' record file.")
   flags.DEFINE_string("out", "", "record: the .npz; report: the results .json (its 'active').")
@@ -416,7 +254,8 @@ def main(argv):
            FLAGS.batch, FLAGS.samples, FLAGS.hypotheses, FLAGS.seed,
            tuple(map(float, FLAGS.scales)),
            FLAGS.refine_scale if FLAGS.refine_scale > 0 else None,
-           tuple(map(float, FLAGS.refine_prior_weights)), FLAGS.out)
+           tuple(map(float, FLAGS.refine_prior_weights)),
+           tuple(int(h) for h in FLAGS.design_horizons), FLAGS.out)
   else:
     report(FLAGS.val_records, FLAGS.records, FLAGS.out)
 
