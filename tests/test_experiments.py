@@ -731,10 +731,12 @@ def test_active_pushes_loop_picks_the_push_that_tells_hypotheses_apart():
   out = jax.jit(lambda k: study.closed_loop(
       jnp.asarray(sims), jnp.asarray(distances), jnp.asarray(slots), jnp.ones(s, bool),
       jnp.zeros(s), jnp.ones(2, bool), k, paper=jnp.asarray([0, 1, 2, 3]), scale=1.0,
-      power=1.0, hypotheses=4))(jax.random.key(0))
+      power=1.0, hypotheses=4, given={"mine": jnp.asarray([7, 5, 6, 4])}))(jax.random.key(0))
   active = np.asarray(out["active"]["pushes"])
   assert active[0] == 0 and active[1] == 5 and len(set(active.tolist())) == 4
   assert np.asarray(out["fixed"]["pushes"]).tolist() == [0, 1, 2, 3]
+  assert np.asarray(out["mine"]["pushes"]).tolist() == [7, 5, 6, 4]  # a policy's own order
+  assert (np.asarray(out["mine"]["answer"]) == slots[3]).all()
   assert len(set(np.asarray(out["random"]["pushes"]).tolist())) == 4
   for policy in study.POLICIES:
     assert (np.asarray(out[policy]["answer"]) == slots[3]).all()
@@ -768,8 +770,8 @@ def test_expected_slot_error_picks_the_push_that_pins_the_free_box():
 
 def test_push_information_is_the_squared_jacobian_and_cumulates_over_steps():
   """Through MuJoCo's C engine: a push too weak to move a tower tells nothing; a strong
-  one tells about both boxes (positive diagonal), its information never falls with more
-  steps, and it matches JᵀJ of the differences taken by hand."""
+  one tells about both boxes (positive diagonal), and its information over the first h
+  steps matches JᵀJ of the differences taken by hand over those steps."""
   import jax  # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
   from ppdjax.dataset.towers import sample_towers  # pylint: disable=import-outside-toplevel
@@ -787,59 +789,74 @@ def test_push_information_is_the_squared_jacobian_and_cumulates_over_steps():
   info = np.asarray(info)
   assert info.shape == (2, 32, 5, 5) and np.abs(info[0, -1]).max() < 1e-3 * info[1, -1, 0, 0]
   assert (np.diagonal(info[1, -1])[:2] > 0).all() and (np.diagonal(info[1, -1])[2:] == 0).all()
-  assert (np.diff(np.diagonal(info[1], axis1=-2, axis2=-1), axis=0) >= -1e-6).all()
   step = 1e-3
   moved = tower.replace(density=tower.density * jnp.exp(step * jnp.eye(5)[0]))
   j0 = np.asarray(metrics.pose_residual(simulate(moved, pushes, steps=32, settings=settings),
                                         sim)) / step
   np.testing.assert_allclose(info[1, -1, 0, 0], np.sum(j0[1] ** 2), rtol=1e-2)  # rounding
+  np.testing.assert_allclose(info[1, 15, 0, 0], np.sum(j0[1, :16] ** 2), rtol=1e-2)
 
 
 def test_active_pushes_report_scores_the_refined_loop_and_checks_its_temperature(tmp_path):
   """The report scores each policy's refined answers (the candidates' intervals kept) beside
-  the +Sample loop's at the prior weight validation chose, picks the choosing policy of
-  least refined RMSE on validation (here the design loop) for "active", and refuses
-  records refined at a temperature validation did not choose."""
+  the +Sample loop's at the prior weight validation chose (found by value: the records list
+  their weights in other orders), picks the choosing policy of least refined RMSE on the
+  validation records (the design loop there; the gain's loop would win on test) for
+  "active", and refuses records refined at a temperature validation did not choose or
+  holding other policies."""
   sys.path.insert(0, os.path.join(ROOT, "experiments"))
   from active_pushes import run as study  # pylint: disable=import-outside-toplevel
 
   towers, k, scales = 12, 3, np.asarray([0.3, 1.0])
-  rng = np.random.default_rng(0)
-  true = rng.integers(10, 60, (towers, k))
-  rec = {"valid": np.ones((towers, k), bool), "true": true, "scales": scales,
-         "prior_model": "m", "samples": 8, "hypotheses": 4, "power": 0.5, "setting": "depth",
-         "refine_scale": 1.0, "all_answer": true + 1, "design_horizons": np.asarray([64])}
-  refined = lambda *offsets: np.stack([np.repeat((true + o)[:, None], 4, 1)  # noqa: E731
-                                       for o in offsets], 1)  # (towers, W, M, K)
-  for p in study.POLICIES + ("design64",):
-    answer = np.repeat((true + 2)[:, None, None], 2, 1).repeat(4, 2)  # (towers, S, M, K)
-    width = np.asarray([1, 5])[None, :, None, None]  # validation picks scale 1.0: covers
-    rec.update({f"{p}_answer": answer, f"{p}_lower": answer - width,
-                f"{p}_upper": answer + width,
-                f"{p}_pushes": np.tile(np.arange(4), (towers, 2, 1)),
-                # two prior weights: the first 7 slots off, the second exact once refined
-                f"{p}_refined_answer": refined(7, 0),
-                f"{p}_refined_closer": np.ones((towers, 2, 4), bool)})
-  rec["active_refined_answer"] = refined(7, 1)  # the gain's loop: one slot off
-  rec["refine_weights"] = np.asarray([0.0, 1e-5])
-  np.savez(tmp_path / "rec.npz", **rec)
+  true = np.random.default_rng(0).integers(10, 60, (towers, k))
+
+  def records(weights, offsets):  # offsets[policy]: the refined answer's error per weight
+    rec = {"valid": np.ones((towers, k), bool), "true": true, "scales": scales,
+           "prior_model": "m", "samples": 8, "hypotheses": 4, "power": 0.5,
+           "setting": "depth", "refine_scale": 1.0, "all_answer": true + 1,
+           "design_horizons": np.asarray([64]), "refine_weights": np.asarray(weights)}
+    for p in study.POLICIES + ("design64",):
+      answer = np.repeat((true + 2)[:, None, None], 2, 1).repeat(4, 2)  # (towers, S, M, K)
+      width = np.asarray([1, 5])[None, :, None, None]  # validation picks scale 1.0: covers
+      rec.update({f"{p}_answer": answer, f"{p}_lower": answer - width,
+                  f"{p}_upper": answer + width,
+                  f"{p}_pushes": np.tile(np.arange(4), (towers, 2, 1)),
+                  f"{p}_refined_answer": np.stack([np.repeat((true + o)[:, None], 4, 1)
+                                                   for o in offsets[p]], 1),  # (T, W, M, K)
+                  f"{p}_refined_closer": np.ones((towers, len(weights), 4), bool)})
+    return rec
+
+  # validation: weight 1e-5 refines the fixed four exactly; the design loop beats the gain's
+  val = records([0.0, 1e-5], {"fixed": (7, 0), "random": (7, 0), "active": (7, 1),
+                              "design64": (7, 0)})
+  # test, its weights in the other order: the gain's loop exact, the design loop 3 off
+  test = records([1e-5, 0.0], {"fixed": (0, 7), "random": (0, 7), "active": (0, 7),
+                               "design64": (3, 7)})
+  np.savez(tmp_path / "val.npz", **val)
+  np.savez(tmp_path / "test.npz", **test)
   out = tmp_path / "posterior.json"
-  study.report(str(tmp_path / "rec.npz"), str(tmp_path / "rec.npz"), str(out))
+  study.report(str(tmp_path / "val.npz"), str(tmp_path / "test.npz"), str(out))
   result = json.loads(out.read_text())
   by_setting = result["active_by_setting"]["depth"]
   refined = by_setting["refined"]
   assert refined["prior_weight"] == 1e-5  # validation's lowest RMSE
-  assert refined["chosen_policy"] == "design64"
+  assert refined["chosen_policy"] == "design64"  # on validation, not on test
   assert refined["validation_rmse4_by_policy"] == {"active": 1.0, "design64": 0.0}
-  assert refined["active4"]["top1"] == 0.0 and refined["design644"]["top1"] == 100.0
+  assert refined["active4"]["top1"] == 100.0 and refined["design644"]["rmse"] == 3.0
   assert refined["fixed4"]["rmse"] == 0.0
-  assert refined["clipped"]["design644"]["top1"] == 100.0  # inside the interval already
-  assert refined["design644"]["coverage_90"] == 1.0  # the candidates' interval holds it
-  assert result["active"]["policy"] == "design64" and result["active"]["loop"] == "refined"
-  assert result["active"]["active4"]["top1"] == 100.0
-  assert set(result["active"]["paired"]) >= {"active2_minus_fixed4", "active4_minus_fixed4"}
+  assert refined["active4"]["coverage_90"] == 1.0  # the candidates' interval holds the truth
+  assert refined["clipped"]["design644"]["rmse"] == 3.0  # inside the interval (5) already
+  head = result["active"]
+  assert head["policy"] == "design64" and head["loop"] == "refined"
+  assert head["active4"]["rmse"] == 3.0 and head["setting"] == "depth"
+  assert set(head["paired"]) == {"active2_minus_fixed4", "active2_minus_fixed2",
+                                 "active4_minus_fixed4", "active4_minus_random4"}
   assert by_setting["active4"]["top1"] == 0.0  # +Sample's answers: two slots off
   assert by_setting["active4"]["rmse"] == pytest.approx(2.0)
-  np.savez(tmp_path / "rec.npz", **{**rec, "refine_scale": 0.3})
+  np.savez(tmp_path / "test.npz", **{**test, "refine_scale": 0.3})
   with pytest.raises(ValueError, match="--refine_scale=1.0"):
-    study.report(str(tmp_path / "rec.npz"), str(tmp_path / "rec.npz"), str(out))
+    study.report(str(tmp_path / "val.npz"), str(tmp_path / "test.npz"), str(out))
+  np.savez(tmp_path / "val.npz", **{**val, "design_horizons": np.asarray([64, 256])})
+  np.savez(tmp_path / "test.npz", **test)
+  with pytest.raises(ValueError, match="record both alike"):
+    study.report(str(tmp_path / "val.npz"), str(tmp_path / "test.npz"), str(out))

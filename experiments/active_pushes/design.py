@@ -6,8 +6,8 @@ choose on the refined answer instead: the Gauss-Newton information JᵀJ / σ² 
 candidate push about the boxes' log densities (J by forward differences through the
 simulator over the push's first NN steps, σ² the refined answer's residual per entry on
 the pushes made) and the push that leaves the least expected squared slot error (a slot is
-100 kg/m³, so a box's log-density variance costs ρ² / 100² slots²). Measured in the sixth
-run (README): they lose to the gain over the candidates, so they stay in this study.
+100 kg/m³, so a box's log-density variance costs ρ² / 100² slots²). How they compare
+with the gain over the candidates: the README's sixth run.
 """
 
 from __future__ import annotations
@@ -61,8 +61,13 @@ def expected_slot_error(info_NxKxK, made_N, density_K, valid_K, noise_var,
   both = valid_K[:, None] & valid_K[None, :]
   precision = (jnp.where(both, made_info[None] + info_NxKxK, 0.0) / noise_var
                + jnp.eye(k) / prior_std ** 2)
+  # symmetric positive definite: P⁻¹ = L⁻ᵀL⁻¹ by Cholesky, so each variance is a sum of
+  # squares (never negative), accurate where the information spans many orders of magnitude
   with jax.default_matmul_precision("highest"):
-    variance = jnp.diagonal(jnp.linalg.inv(precision), axis1=-2, axis2=-1)  # (N, K)
+    lower = jnp.linalg.cholesky(precision)
+    inverse = jax.scipy.linalg.solve_triangular(
+        lower, jnp.broadcast_to(jnp.eye(k), precision.shape), lower=True)
+    variance = jnp.sum(inverse ** 2, axis=-2)  # (N, K): column sums of L⁻¹ squared
   weight = jnp.where(valid_K, (density_K / SLOT_DENSITY) ** 2, 0.0)
   return jnp.sum(weight * variance, -1)
 
@@ -100,6 +105,9 @@ def design_loop(prims, slots, distinct, distances, observed, pushes, first, *, p
     noise_var = jnp.maximum(jnp.sum(jnp.where(done[:, None, None], residual ** 2, 0.0))
                             / entries, 1e-8)  # at least (0.1 mm)² per entry
     error = expected_slot_error(info[:, horizon - 1], done, at.density, at.valid, noise_var)
-    made.append(jnp.argmin(jnp.where(done, jnp.inf, error)))
+    # a push whose rollout is not finite (or a residual that is not) is never chosen; if
+    # none is finite, the first push not made yet
+    error = jnp.where(done | ~jnp.isfinite(error), jnp.inf, error)
+    made.append(jnp.where(jnp.isfinite(jnp.min(error)), jnp.argmin(error), jnp.argmin(done)))
   return {"answer": jnp.stack(answers), "refined_answer": jnp.stack(refined),
           "refined_closer": jnp.stack(closer), "pushes": jnp.stack(made)}

@@ -112,7 +112,7 @@ def as_active(rows: dict, policy: str) -> dict:
   out = {"fixed4": rows["fixed4"], "random4": rows["random4"],
          "active2": rows[f"{policy}2"], "active4": rows[f"{policy}4"],
          "paired": {k.replace(policy, "active", 1): v for k, v in rows["paired"].items()
-                    if k.startswith(policy + "2") or k.startswith(policy + "4")},
+                    if k.split("_minus_")[0] in (f"{policy}2", f"{policy}4")},
          "policy": policy}
   return out
 
@@ -201,18 +201,23 @@ def report(val_records: str, records: str, out: str) -> None:
       result = json.load(f)
   result.setdefault("active_by_setting", {})[setting] = active_result
   by_setting = result["active_by_setting"]
-  # the depth setting's refined loop (the depth preset refines) with the choosing policy
-  # validation chose; records without refinement: the +Sample loop's gain over candidates
-  head = by_setting.get("depth", by_setting.get("paper_inputs"))
-  result["active"] = ({**as_active(head["refined"], head["refined"]["chosen_policy"]),
-                       "loop": "refined"} if head.get("refined") else
-                      {**as_active(head, "active"), "loop": "sample"})
   plot({**active_result["by_pushes"],
         **{p + REFINED: rows for p, rows in (refined or {}).get("by_pushes", {}).items()}},
        f"{os.path.splitext(out)[0]}_active_{setting}.png")
   made_by = [result.get("command")] + [r["command"] for r in by_setting.values()]
   write_provenance(out, command="; ".join(c for c in made_by if c))  # calibration's, each loop's
   active_result["commit"] = read_provenance(out).get("commit")
+  # the depth setting's refined loop (the depth preset refines) with the choosing policy
+  # validation chose; records without refinement: the +Sample loop's gain over candidates
+  head = by_setting.get("depth", by_setting.get("paper_inputs"))
+  about = {k: head.get(k) for k in ("setting", "towers", "boxes", "scale", "commit")}
+  if head.get("refined"):
+    result["active"] = {**as_active(head["refined"],
+                                    head["refined"].get("chosen_policy", "active")),
+                        "loop": "refined", "prior_weight": head["refined"]["prior_weight"],
+                        **about}
+  else:
+    result["active"] = {**as_active(head, "active"), "loop": "sample", **about}
   with open(out, "w") as f:
     json.dump(result, f, indent=1)
   print(json.dumps({k: v for k, v in active_result.items() if k != "by_pushes"}, indent=1)[:3000])

@@ -25,9 +25,10 @@ setting's power). With refinement, `--design_horizons` add loops that choose eac
 on the refined answer instead (`design.py`; every policy is refined, and `report` takes
 the choosing policy of least refined RMSE on validation for "active"). The posterior's
 temperature (one scale over the closest distance, for every box count) was calibrated for
-a network that reads the four pushes; with this prior it is chosen again: the loop runs at each of `--scales`, and `report` takes the one whose
-fixed four pushes' 90 % intervals cover closest to 90 % on the validation towers, then
-pairs the policies on the test towers.
+a network that reads the four pushes; with this prior it is chosen again: the loop runs
+at each of `--scales`, and `report` takes the one whose fixed four pushes' 90 % intervals
+cover closest to 90 % on the validation towers, then pairs the policies on the test
+towers.
 """
 
 from __future__ import annotations
