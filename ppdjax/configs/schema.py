@@ -155,6 +155,7 @@ class EvalConfig:
   screen_keep: int = 64
   rounds: int = 1  # > 1: +Search, the draw iterated near the closest (infer.search)
   sample_inertia: bool = False  # +Search: candidates carry inertia scales (hollow blocks)
+  search_continuation: int = 0  # +Search: round r's elite over 2^r x this many steps
   refine: bool = False  # LM refinement of the densities through the simulator
   refine_steps: int = 12
   refine_prior: float = 0.0  # > 0: refinement is a MAP step under the density scores

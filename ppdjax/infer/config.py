@@ -17,7 +17,7 @@ from ppdjax.configs.schema import ConfigError
 from ppdjax.infer import faces
 from ppdjax.infer.refine import check_jacobian
 from ppdjax.infer.sampling import check_screen, check_selection_horizon
-from ppdjax.infer.search import check_rounds
+from ppdjax.infer.search import check_rounds, continuation_horizons
 from ppdjax.sim.rollout_mjx import check_simulator
 
 
@@ -75,6 +75,8 @@ class SelectConfig:
       fit.face_spread).
     inertia: the candidates' boxes also carry inertia scales, searched beside the
       densities (`search.INERTIA_LEVELS`: hollow or filled blocks; +Search).
+    continuation: > 0 (with rounds > 1): round r's elite is chosen over the first
+      continuation × 2^r steps, then over the horizon (`search.continuation_horizons`).
   """
   samples: int = 512
   prior_weight: float = 0.0
@@ -85,6 +87,7 @@ class SelectConfig:
   network_prior_weight: float | None = None
   rounds: int = 1
   inertia: bool = False
+  continuation: int = 0
 
   @property
   def searches(self) -> bool:
@@ -191,6 +194,7 @@ class DecomposeConfig:
       check_selection_horizon(s.horizon)
       check_screen(s.screen_steps, s.screen_keep, s.samples, 0)
       check_rounds(s.rounds)
+      continuation_horizons(s.continuation, s.rounds, s.horizon, 1)
       check_jacobian(r.jacobian)
       check_simulator(self.simulator)
     except ValueError as e:
@@ -199,6 +203,9 @@ class DecomposeConfig:
       value = getattr(s, name)
       if not (name == "network_prior_weight" and value is None or _finite_at_least_zero(value)):
         raise ConfigError(f"select.{name} must be finite and >= 0, got {value!r}")
+    if s.continuation and s.rounds < 2:
+      raise ConfigError("select.continuation schedules +Search's rounds: it needs "
+                        f"select.rounds > 1, got {s.rounds}")
     if not isinstance(s.inertia, bool):
       raise ConfigError(f"select.inertia must be True or False, got {s.inertia!r}")
     if s.searches and (s.mass_match or s.screen_steps or f.face_spread):
@@ -276,6 +283,7 @@ class DecomposeConfig:
                             horizon=e.selection_horizon, mass_match=e.mass_match,
                             screen_steps=e.screen_steps, screen_keep=e.screen_keep,
                             rounds=e.rounds, inertia=e.sample_inertia,
+                            continuation=e.search_continuation,
                             network_prior_weight=(None if e.network_prior_weight < 0
                                                   else e.network_prior_weight)),
         refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
@@ -297,6 +305,7 @@ class DecomposeConfig:
             "selection_horizon": s.horizon, "mass_match": s.mass_match,
             "screen_steps": s.screen_steps, "screen_keep": s.screen_keep,
             "rounds": s.rounds, "sample_inertia": s.inertia,
+            "search_continuation": s.continuation,
             "refine": r.enabled, "refine_steps": r.steps, "refine_prior": r.prior_weight,
             "refine_jacobian": r.jacobian, "refine_inertia": r.inertia, "estimator": e.path,
             "estimator_weight": e.weight, "posterior_scale": q.scale,

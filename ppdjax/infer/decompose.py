@@ -253,7 +253,7 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
           p, l, o, pushes.replace(magnitudes=m), num_samples=select.samples,
           rounds=select.rounds, key=kk, inertia=select.inertia,
           prior_weight=select.tau(fit.enabled), selection_horizon=select.horizon,
-          settings=settings)
+          continuation=select.continuation, settings=settings)
     else:
       draw = lambda p, l, o, kk, m: sampling.select_densities(  # noqa: E731
           p, l, o, pushes.replace(magnitudes=m), num_samples=select.samples, key=kk,

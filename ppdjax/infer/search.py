@@ -16,6 +16,12 @@ With `inertia`, each candidate's boxes also carry an inertia scale
 of INERTIA_LEVELS, moved by a Gaussian step LEVEL_WIDTH levels wide: the shells that solid
 boxes cannot stand for (`dataset.hollow`).
 
+With `continuation`, the elite of round r is chosen over the trajectories' first
+continuation × 2^r steps (`continuation_horizons`), then over the selection horizon: a
+strike's first steps are smooth in the densities, the fall that follows is not, so the
+early rounds follow the smooth part and the later ones the rest. The winner is always the
+least over the selection horizon.
+
 The rounds run in one `jax.lax.scan` (one compiled round); every round's candidates are
 returned, `samples × rounds` in all, so that the posterior weighs them all.
 """
@@ -52,6 +58,22 @@ def check_rounds(rounds: int) -> None:
                      f"{rounds!r}")
 
 
+def continuation_horizons(first: int, rounds: int, selection_horizon: int,
+                          steps: int) -> tuple[int, ...]:
+  """(rounds,) the steps each round's elite is compared over: `first` in round 0, doubling
+  each round until it reaches the selection horizon (0: all `steps`), which the rest
+  keep; `first` 0: the selection horizon throughout. Raises ValueError for a negative
+  `first`."""
+  if isinstance(first, bool) or not isinstance(first, (int, np.integer)) or first < 0:
+    raise ValueError(f"select.continuation must be a whole number >= 0 (0: none), got "
+                     f"{first!r}")
+  end = selection_horizon if 0 < selection_horizon < steps else steps
+  if first == 0:
+    return (selection_horizon,) * rounds
+  return tuple(first * 2 ** r if first * 2 ** r < end else selection_horizon
+               for r in range(rounds))
+
+
 def perturb(parents_ExK: jax.Array, width: jax.Array, count: int, key: jax.Array, *,
             size: int, log_density: bool) -> jax.Array:
   """(count, K) levels in [0, size): each row a random parent's, every entry moved by a
@@ -83,7 +105,7 @@ def initial_inertia(k: int) -> jax.Array:
 def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax.Array,
                      pushes: Pushes, *, num_samples: int, rounds: int, key: jax.Array,
                      inertia: bool = False, prior_weight: float = 0.0,
-                     selection_horizon: int = 0,
+                     selection_horizon: int = 0, continuation: int = 0,
                      settings: Settings = DEFAULT_SETTINGS) -> sampling.Selection:
   """+Search: `rounds` rounds of `num_samples` candidates (module docstring), the winner the
   least `sampling.selection_objective` (over the selection horizon) among all of them.
@@ -97,6 +119,8 @@ def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax
     key: PRNG key.
     inertia: candidates carry inertia scales (INERTIA_LEVELS), searched beside the slots.
     prior_weight, selection_horizon: as `sampling.select_densities`.
+    continuation: > 0: round r's elite is chosen over the first continuation × 2^r steps
+      (`continuation_horizons`); 0: over the selection horizon in every round.
     settings: the engine's settings.
 
   Returns:
@@ -110,6 +134,10 @@ def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax
   level_values = jnp.asarray(INERTIA_LEVELS, jnp.float32)
   elite = max(1, int(round(ELITE * num_samples)))
   pool = min(elite, num_samples)
+  # each round's elite horizon; the elite carries its cost at every one of them, so that a
+  # round compares its candidates and the elite over the same steps
+  round_horizons = continuation_horizons(continuation, rounds, selection_horizon,
+                                         observed.shape[-2])
 
   def candidates(slots, levels):
     boxes = sampling.with_slots(prims, slots)
@@ -118,8 +146,8 @@ def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax
     return boxes
 
   def one_round(carry, xs):
-    best_slots, best_levels, best_cost = carry
-    round_key, width, first = xs
+    best_slots, best_levels, best_costs = carry
+    round_key, width, first, index = xs
     keys = jax.random.split(round_key, 5)
     drawn, _ = sampling.candidate_slots(logits, prims.valid, num_samples, keys[0])
     first_levels = jax.random.categorical(keys[1], initial_inertia(k), shape=(num_samples, k))
@@ -133,24 +161,27 @@ def search_densities(prims: Primitives, density_logits: jax.Array, observed: jax
     levels = jnp.where(prims.valid, jnp.where(first, first_levels, moved_levels), 0)
     dist, err, sims = sampling.score_candidates(
         candidates(slots, levels), observed, pushes, settings, keep_trajectories=True,
-        horizons=(0, selection_horizon))
-    cost = sampling.selection_objective(
-        dist[:, 1], sampling.log_prior(logits, slots, prims.valid), prior_weight)
-    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)  # a rollout that blew up: never elite
-    # the elite: the closest of this round's candidates and the elite so far
-    all_cost = jnp.concatenate([best_cost, cost])
-    keep = jax.lax.top_k(-all_cost, pool)[1]
+        horizons=(0, selection_horizon) + round_horizons)
+    costs = sampling.selection_objective(  # (S, 1 + rounds): the winner's, each round's
+        dist[:, 1:], sampling.log_prior(logits, slots, prims.valid)[:, None], prior_weight)
+    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)  # a rollout that blew up: never
+    cost = costs[:, 0]
+    # the elite: the closest of this round's candidates and the elite so far, over the
+    # round's horizon
+    all_costs = jnp.concatenate([best_costs, costs[:, 1:]])
+    keep = jax.lax.top_k(-all_costs[:, index], pool)[1]
     carry = (jnp.concatenate([best_slots, slots])[keep],
-             jnp.concatenate([best_levels, levels])[keep], all_cost[keep])
+             jnp.concatenate([best_levels, levels])[keep], all_costs[keep])
     # the round's closest trajectory only: the winner's, whichever round it comes from
     return carry, (slots, levels, dist[:, 0], err, cost, sims[jnp.argmin(cost)])
 
   widths = jnp.asarray([WIDTHS[min(max(r - 1, 0), len(WIDTHS) - 1)] for r in range(rounds)],
                        jnp.float32)
   start = (jnp.zeros((pool, k), jnp.int32), jnp.zeros((pool, k), jnp.int32),
-           jnp.full((pool,), jnp.inf))
+           jnp.full((pool, rounds), jnp.inf))
   _, (slots, levels, dist, err, cost, round_sims) = jax.lax.scan(
-      one_round, start, (jax.random.split(key, rounds), widths, jnp.arange(rounds) == 0))
+      one_round, start, (jax.random.split(key, rounds), widths, jnp.arange(rounds) == 0,
+                         jnp.arange(rounds)))
   flat = lambda x: x.reshape((rounds * num_samples,) + x.shape[2:])  # noqa: E731
   slots, levels, dist, err, cost = map(flat, (slots, levels, dist, err, cost))
   distinct = ~sampling.repeats(slots * n_levels + levels if inertia else slots,

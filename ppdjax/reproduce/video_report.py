@@ -188,6 +188,8 @@ def write_report(pipe, results_dir: str, command: str, name: str = "video_towers
             "decompose": {"samples": int(pipe.config.eval.samples),
                           "rounds": int(pipe.config.eval.get("rounds", 1)),
                           "sample_inertia": bool(pipe.config.eval.get("sample_inertia", False)),
+                          "search_continuation": int(pipe.config.eval.get("search_continuation",
+                                                                          0)),
                           "refine": bool(pipe.config.eval.refine), "fit": True, "depth": True},
             "validation": validation_summary(results_dir, name),
             "steps": pipeline_steps.read_log(pipe.root)}
@@ -231,6 +233,8 @@ def _selection_words(d: dict) -> str:
   return (f"+Search ({d.get('rounds', 1)} rounds of {d['samples']} candidates, each later "
           "round near the closest so far" + (", their boxes carrying inertia scales"
                                              if d.get("sample_inertia") else "")
+          + (f", round r's closest over the first {d['search_continuation']} x 2^r steps"
+             if d.get("search_continuation") else "")
           + "; its winner before refinement is the '+Sample only' rows)")
 
 
