@@ -59,7 +59,7 @@ def test_consumers_use_the_one_definition():
   assert evaluator.bottom_to_top is primitives.bottom_to_top
   assert baselines.bottom_to_top_order is primitives.bottom_to_top_order
   assert baselines.rotation_vector is metrics.rotation_vector
-  assert decompose.refine_if_closer is refine.refine_if_closer
+  assert decompose.refine_from_candidates is refine.refine_from_candidates
   assert evaluator.refine_batch is refine.refine_batch  # which calls refine_if_closer
   assert groups.fit_stage is decompose.fit_stage and decompose.fit_boxes is fit.fit_boxes
   assert decompose.density_prior is refine.density_prior

@@ -388,6 +388,9 @@ def test_evaluate_errors_name_the_problem(tiny_run, tiny_dataset, tmp_path):
     Evaluator(*checkpoints.load(tiny_run[0]), DecomposeConfig(
         select=SelectConfig(samples=2), fit=FitConfig(face_spread=0.5),
         refine=RefineConfig(enabled=True)))
+  with pytest.raises(ConfigError, match="refine.starts > 1 refines several"):
+    Evaluator(*checkpoints.load(tiny_run[0]), DecomposeConfig(
+        select=SelectConfig(samples=4), refine=RefineConfig(enabled=True, starts=2)))
   done = subprocess.run([sys.executable, "-m", "ppdjax.evaluate", f"--workdir={tmp_path}",
                          f"--data={tiny_dataset}"], cwd=ROOT, capture_output=True, text=True,
                         env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)

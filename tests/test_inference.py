@@ -374,6 +374,60 @@ def test_refinement_fits_inertia_scales_within_their_range(monkeypatch):
   assert float(with_scales.cost) < 0.2 * float(densities_only.cost)
 
 
+def test_refining_from_several_candidates_keeps_the_closest_refined(monkeypatch):
+  """`refine_from_candidates`: one start is the closest distinct candidate refined as
+  `refine_if_closer` refines it; several return the least distance of their refinements,
+  each kept only against the closest candidate's distance; a repeat is never a start."""
+  def fake_simulate(prims, pushes, *, steps, settings):
+    del settings  # a motion that reads each box's log density smoothly
+    t = jnp.arange(steps)[:, None] * (jnp.arange(prims.valid.shape[0]) + 1.0)
+    u = jnp.log(jnp.where(prims.valid, prims.density, 1e3) / 1e3)
+    x = 1e-2 * (jnp.sin(0.3 * t) * u * jnp.where(prims.valid, 1.0, 0.0)).sum(-1)
+    pose = jnp.concatenate([jnp.stack([x, 0 * x, 0 * x], -1), jnp.tile(jnp.array(
+        [1.0, 0, 0, 0]), (steps, 1))], -1)
+    return jnp.broadcast_to(pose, (pushes.num, steps, 7))
+  monkeypatch.setattr(refine, "simulate", fake_simulate)
+  truth = jax.tree.map(lambda x: jnp.asarray(x[0]), towers.sample_towers(2, 1, num_blocks=3))
+  observed = fake_simulate(truth, PUSHES, steps=24, settings=None)
+  factors = jnp.asarray([1.3, 1.3, 0.6, 2.5])  # the second a repeat of the first
+  boxes = jax.tree.map(lambda x: jnp.broadcast_to(x, (4,) + x.shape), truth).replace(
+      density=truth.density * factors[:, None])
+  scores = jax.vmap(lambda b: metrics.trajectory_distance(
+      fake_simulate(b, PUSHES, steps=24, settings=None), observed))(boxes)
+  distinct = jnp.asarray([True, False, True, True])
+  options = {"steps": 3, "jacobian": "differences"}
+  run = lambda starts, u=distinct: jax.jit(lambda b, s, o: refine.refine_from_candidates(
+      b, s, u, o, PUSHES, starts=starts, **options))(boxes, scores, observed)
+  alone = [jax.jit(lambda p, o: refine.refine_if_closer(p, o, scores.min(), PUSHES,
+                                                        **options))(
+               jax.tree.map(lambda x, i=i: x[i], boxes), observed) for i in (0, 2, 3)]
+  one, three = run(1), run(3)
+  assert float(one.distance) == pytest.approx(float(alone[0].distance), rel=1e-5)
+  assert float(three.distance) == pytest.approx(min(float(r.distance) for r in alone),
+                                                rel=1e-5)
+  assert float(three.distance) <= float(one.distance) and bool(three.closer)
+  # the closest flagged a repeat: the next distinct one starts
+  moved = run(1, jnp.asarray([False, False, True, True]))
+  assert float(moved.distance) == pytest.approx(float(alone[1].distance), rel=1e-5)
+  with pytest.raises(ValueError, match="without a prior"):
+    refine.refine_from_candidates(boxes, scores, distinct, observed, PUSHES, starts=2,
+                                  prior=(jnp.zeros(5), jnp.ones(5)), prior_weight=1e-5)
+
+
+def test_refine_starts_are_checked_and_carried_by_the_eval_section():
+  from ppdjax.configs.schema import ConfigError  # pylint: disable=import-outside-toplevel
+  cfg = DecomposeConfig().replace(**{"refine.enabled": True, "refine.starts": 4})
+  assert DecomposeConfig.from_eval(cfg.to_eval()) == cfg
+  assert DecomposeConfig.from_eval(tiny.get_config().eval).refine.starts == 1
+  for bad in (0, 1.5, True):
+    with pytest.raises(ConfigError, match="refine.starts must be"):
+      DecomposeConfig().replace(**{"refine.starts": bad})
+  with pytest.raises(ConfigError, match="refine.prior_weight 0"):
+    DecomposeConfig().replace(**{"refine.starts": 4, "refine.prior_weight": 1e-5})
+  with pytest.raises(ConfigError, match="at most select.samples"):
+    DecomposeConfig().replace(**{"refine.starts": 9, "select.samples": 8})
+
+
 def test_refine_jacobian_names_the_choices():
   assert refine.check_jacobian("differences") == "differences"
   with pytest.raises(ValueError, match="jacobian must be one of"):

@@ -161,6 +161,7 @@ class EvalConfig:
   refine_prior: float = 0.0  # > 0: refinement is a MAP step under the density scores
   refine_jacobian: str = "forward"  # forward | differences | central (infer.refine)
   refine_inertia: bool = False  # ... also each box's inertia scale (hollow blocks)
+  refine_starts: int = 1  # ... from this many closest candidates, the closest refined kept
   estimator: str = ""  # a trained density estimator's folder: its scores join the network's
   estimator_weight: float = 1.0  # its log-probabilities' weight beside the network's
   simulator: str = "auto"  # the candidates' engine: auto (C on a CPU) | jax | mujoco

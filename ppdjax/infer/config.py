@@ -114,12 +114,16 @@ class RefineConfig:
     inertia: also fit each box's inertia scale (a hollow or filled block: the mass
       distribution within the box; `refine.INERTIA_SCALE_RANGE`); with `enabled`, the
       answer's boxes then carry `inertia_scale`.
+    starts: refine from this many of the closest distinct candidates and keep the closest
+      refined (`refine.refine_from_candidates`; least squares only; not in the blocks
+      evaluation, whose tables refine one start).
   """
   enabled: bool = False
   steps: int = 12
   prior_weight: float = 0.0
   jacobian: str = "forward"
   inertia: bool = False
+  starts: int = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,6 +218,12 @@ class DecomposeConfig:
                         "and fit.face_spread")
     if isinstance(r.steps, bool) or not isinstance(r.steps, int) or r.steps < 1:
       raise ConfigError(f"refine.steps must be a whole number >= 1, got {r.steps!r}")
+    if isinstance(r.starts, bool) or not isinstance(r.starts, int) or r.starts < 1:
+      raise ConfigError(f"refine.starts must be a whole number >= 1, got {r.starts!r}")
+    if r.starts > 1 and (r.prior_weight or r.starts > s.samples * s.rounds):
+      raise ConfigError("refine.starts > 1 refines that many candidates by least squares: "
+                        "it needs refine.prior_weight 0 and at most select.samples x "
+                        f"select.rounds candidates, got {r.starts}")
     if not _finite_at_least_zero(r.prior_weight):
       raise ConfigError(f"refine.prior_weight must be finite and >= 0, got {r.prior_weight!r}")
     if self.estimator.path and not f.enabled:
@@ -288,7 +298,7 @@ class DecomposeConfig:
                                                   else e.network_prior_weight)),
         refine=RefineConfig(enabled=e.refine, steps=e.refine_steps,
                             prior_weight=e.refine_prior, jacobian=e.refine_jacobian,
-                            inertia=e.refine_inertia),
+                            inertia=e.refine_inertia, starts=e.refine_starts),
         estimator=EstimatorConfig(path=e.estimator, weight=e.estimator_weight),
         posterior=PosteriorConfig(scale=tuple(e.posterior_scale), level=e.posterior_level,
                                   identified_width=e.identified_width,
@@ -307,7 +317,8 @@ class DecomposeConfig:
             "rounds": s.rounds, "sample_inertia": s.inertia,
             "search_continuation": s.continuation,
             "refine": r.enabled, "refine_steps": r.steps, "refine_prior": r.prior_weight,
-            "refine_jacobian": r.jacobian, "refine_inertia": r.inertia, "estimator": e.path,
+            "refine_jacobian": r.jacobian, "refine_inertia": r.inertia,
+            "refine_starts": r.starts, "estimator": e.path,
             "estimator_weight": e.weight, "posterior_scale": q.scale,
             "posterior_level": q.level, "identified_width": q.identified_width,
             "posterior_prior_power": q.prior_power,

@@ -14,7 +14,7 @@ from ppdjax.infer.depth_fit import check_depth
 from ppdjax.infer.image_fit import check_image
 from ppdjax.infer.config import DecomposeConfig, FitConfig
 from ppdjax.infer.fit import fit_boxes
-from ppdjax.infer.refine import density_prior, refine_if_closer, with_inertia_scale
+from ppdjax.infer.refine import density_prior, refine_from_candidates, with_inertia_scale
 from ppdjax.infer import posterior as posterior_module
 from ppdjax.infer import sampling, search
 from ppdjax.nn.estimator import combine_logits
@@ -273,13 +273,12 @@ def make_decompose_fn(model, config: DecomposeConfig | None = None, *,
         sel.boxes)
     prims = pick(sel.best).replace(density=sel.density)
     score, sim = sel.score, sel.trajectories  # no second rollout: latency is per rollout
-    if refine.enabled:  # from the candidate closest over all steps, whatever selected
-      start = pick(jnp.argmin(sel.scores, -1))
-      ref = jax.vmap(lambda p, lg, o, d, m: refine_if_closer(
-          p, o, d, pushes.replace(magnitudes=m), steps=refine.steps,
+    if refine.enabled:  # from the candidates closest over all steps, whatever selected
+      ref = jax.vmap(lambda b, s, u, lg, o, m: refine_from_candidates(
+          b, s, u, o, pushes.replace(magnitudes=m), starts=refine.starts, steps=refine.steps,
           prior=density_prior(lg) if refine.prior_weight > 0 else None,
           prior_weight=refine.prior_weight, jacobian=refine.jacobian, inertia=refine.inertia,
-          settings=refine_settings))(start, logits, traj, sel.scores.min(-1), mags)
+          settings=refine_settings))(sel.boxes, sel.scores, distinct, logits, traj, mags)
       if refine.inertia and not select.inertia:  # +Sample's answer: uniform boxes
         prims = with_inertia_scale(prims)
       # kept where it is closer than every candidate; else the +Sample answer stays

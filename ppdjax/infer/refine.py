@@ -291,6 +291,27 @@ def refine_if_closer(prims: Primitives, observed: jax.Array, distance: jax.Array
                     info["cost"])
 
 
+def refine_from_candidates(boxes: Primitives, scores: jax.Array, distinct: jax.Array,
+                           observed: jax.Array, pushes: Pushes, *, starts: int = 1,
+                           **options) -> Refinement:
+  """`refine_if_closer` from each of the `starts` distinct candidates closest by `scores`
+  (one object's S candidates, `boxes` (S, K)); the refinement of least distance is
+  returned, kept (`closer`) only where it is closer than every candidate. One start is
+  `decompose`'s refinement from the closest; several, in one batched call, let the fit
+  leave a basin the closest candidate sits in (measured on a CPU proxy of the look-alike
+  towers: experiments/search_continuation). `options`: `refine_if_closer`'s; with several
+  starts only least squares (no prior: a MAP step's costs would not compare)."""
+  if starts > 1 and options.get("prior") is not None:
+    raise ValueError("refine.starts > 1 compares the starts' distances: it runs without a "
+                     "prior (refine.prior_weight 0)")
+  order = jnp.argsort(jnp.where(distinct, scores, jnp.inf))[:starts]
+  closest = jnp.min(scores)
+  refs = jax.vmap(lambda i: refine_if_closer(jax.tree.map(lambda x: x[i], boxes), observed,
+                                             closest, pushes, **options))(order)
+  best = jnp.argmin(refs.distance)  # every start's distance, at most the closest's
+  return jax.tree.map(lambda x: x[best], refs)
+
+
 def with_inertia_scale(prims: Primitives) -> Primitives:
   """`prims` with inertia scales (1, a uniform box, where it has none)."""
   if prims.inertia_scale is not None:

@@ -190,6 +190,7 @@ def write_report(pipe, results_dir: str, command: str, name: str = "video_towers
                           "sample_inertia": bool(pipe.config.eval.get("sample_inertia", False)),
                           "search_continuation": int(pipe.config.eval.get("search_continuation",
                                                                           0)),
+                          "refine_starts": int(pipe.config.eval.get("refine_starts", 1)),
                           "refine": bool(pipe.config.eval.refine), "fit": True, "depth": True},
             "validation": validation_summary(results_dir, name),
             "steps": pipeline_steps.read_log(pipe.root)}
