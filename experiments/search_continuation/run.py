@@ -1,8 +1,11 @@
 """Does +Search find look-alike towers' densities better when its early rounds weigh only the
-strike's first steps (`select.continuation`)? A proxy that runs on a CPU.
+strike's first steps (`select.continuation`), or when refinement starts from several of its
+closest candidates (`refine.starts`)? A proxy that runs on a CPU.
 
-  python experiments/search_continuation/run.py --towers=8 --continuations=0,16 \
+  python experiments/search_continuation/run.py --towers=16 --continuations=0,16,32 \
       --out=experiments/results/search_continuation.json
+  python experiments/search_continuation/run.py --towers=16 --continuations=0 \
+      --starts=1,4,8 --out=experiments/results/search_starts.json
 
 The proxy keeps what the search itself faces and drops the rest: look-alike towers of the
 video preset's generator (2, 3 and 4 blocks, `--towers` of each, half the blocks hollow:
