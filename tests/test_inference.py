@@ -376,8 +376,8 @@ def test_refinement_fits_inertia_scales_within_their_range(monkeypatch):
 
 def test_refining_from_several_candidates_keeps_the_closest_refined(monkeypatch):
   """`refine_from_candidates`: one start is the closest distinct candidate refined as
-  `refine_if_closer` refines it; several return the least distance of their refinements,
-  each kept only against the closest candidate's distance; a repeat is never a start."""
+  `refine_if_closer` refines it; several return the least distance of their refinements;
+  a repeat is never a start; a score that is NaN (a rollout that blew up) never is one."""
   def fake_simulate(prims, pushes, *, steps, settings):
     del settings  # a motion that reads each box's log density smoothly
     t = jnp.arange(steps)[:, None] * (jnp.arange(prims.valid.shape[0]) + 1.0)
@@ -409,6 +409,10 @@ def test_refining_from_several_candidates_keeps_the_closest_refined(monkeypatch)
   # the closest flagged a repeat: the next distinct one starts
   moved = run(1, jnp.asarray([False, False, True, True]))
   assert float(moved.distance) == pytest.approx(float(alone[1].distance), rel=1e-5)
+  blew_up = jax.jit(lambda b, s, o: refine.refine_from_candidates(
+      b, s, distinct, o, PUSHES, starts=1, **options))(boxes, scores.at[0].set(jnp.nan),
+                                                          observed)
+  assert float(blew_up.distance) == pytest.approx(float(alone[1].distance), rel=1e-5)
   with pytest.raises(ValueError, match="without a prior"):
     refine.refine_from_candidates(boxes, scores, distinct, observed, PUSHES, starts=2,
                                   prior=(jnp.zeros(5), jnp.ones(5)), prior_weight=1e-5)
@@ -422,10 +426,13 @@ def test_refine_starts_are_checked_and_carried_by_the_eval_section():
   for bad in (0, 1.5, True):
     with pytest.raises(ConfigError, match="refine.starts must be"):
       DecomposeConfig().replace(**{"refine.starts": bad})
+  on = {"refine.enabled": True}
   with pytest.raises(ConfigError, match="refine.prior_weight 0"):
-    DecomposeConfig().replace(**{"refine.starts": 4, "refine.prior_weight": 1e-5})
+    DecomposeConfig().replace(**on, **{"refine.starts": 4, "refine.prior_weight": 1e-5})
   with pytest.raises(ConfigError, match="at most select.samples"):
-    DecomposeConfig().replace(**{"refine.starts": 9, "select.samples": 8})
+    DecomposeConfig().replace(**on, **{"refine.starts": 9, "select.samples": 8})
+  # unrefined settings carry the key without checking it (the appearance-only pass)
+  assert DecomposeConfig().replace(**{"refine.starts": 9, "select.samples": 1}).refine.starts == 9
 
 
 def test_refine_jacobian_names_the_choices():

@@ -110,6 +110,9 @@ def test_search_settings_are_checked():
 
 
 def test_continuation_doubles_each_rounds_horizon_up_to_the_selections():
+  with pytest.raises(ConfigError, match="shorter than select.horizon"):
+    DecomposeConfig().replace(**{"select.rounds": 4, "select.continuation": 32,
+                                 "select.horizon": 32})
   assert search.continuation_horizons(16, 6, 0, 256) == (16, 32, 64, 128, 0, 0)
   assert search.continuation_horizons(16, 5, 100, 256) == (16, 32, 64, 100, 100)
   assert search.continuation_horizons(0, 3, 32, 256) == (32, 32, 32)
@@ -123,7 +126,9 @@ def test_search_with_a_continuation_still_finds_the_densities(tower):
   run = lambda continuation: jax.jit(lambda p, l, o: search.search_densities(  # noqa: E731
       p, l, o, PUSHES, num_samples=256, rounds=5, key=jax.random.key(0),
       continuation=continuation))(truth.replace(inertia_scale=None), logits, observed)
-  plain, scheduled = run(0), run(8)
+  plain, scheduled, past_the_end = run(0), run(8), run(48)
+  # a schedule that starts at the whole trajectory is no schedule: the same search
+  np.testing.assert_array_equal(np.asarray(past_the_end.slots), np.asarray(plain.slots))
   v = np.asarray(truth.valid)
   found = np.asarray(scheduled.density)[v] / np.asarray(truth.density)[v]
   assert np.all(np.abs(np.log(found)) < 0.1), found

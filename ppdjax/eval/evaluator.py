@@ -63,9 +63,9 @@ class Evaluator:
       raise ConfigError("select.rounds > 1 and select.inertia (+Search) draw candidates round "
                        "by round: the evaluation's tables replay +Sample's one draw (the "
                        "video study measures +Search: ppdjax.reproduce video)")
-    if refine.starts > 1:
+    if refine.enabled and refine.starts > 1:
       raise ConfigError("refine.starts > 1 refines several candidates: the evaluation's "
-                       "+Refine rows refine the closest one (the video study measures "
+                       "+Refine rows refine the closest one (the video pipeline runs "
                        "several: ppdjax.reproduce video)")
     if select.mass_match:
       raise ConfigError("select.mass_match simulates a second set of candidates: the "

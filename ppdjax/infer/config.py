@@ -207,6 +207,9 @@ class DecomposeConfig:
       value = getattr(s, name)
       if not (name == "network_prior_weight" and value is None or _finite_at_least_zero(value)):
         raise ConfigError(f"select.{name} must be finite and >= 0, got {value!r}")
+    if s.continuation and 0 < s.horizon <= s.continuation:
+      raise ConfigError(f"select.continuation ({s.continuation} steps in round 0) must be "
+                        f"shorter than select.horizon ({s.horizon}), or it schedules nothing")
     if s.continuation and s.rounds < 2:
       raise ConfigError("select.continuation schedules +Search's rounds: it needs "
                         f"select.rounds > 1, got {s.rounds}")
@@ -220,12 +223,12 @@ class DecomposeConfig:
       raise ConfigError(f"refine.steps must be a whole number >= 1, got {r.steps!r}")
     if isinstance(r.starts, bool) or not isinstance(r.starts, int) or r.starts < 1:
       raise ConfigError(f"refine.starts must be a whole number >= 1, got {r.starts!r}")
-    if r.starts > 1 and (r.prior_weight or r.starts > s.samples * s.rounds):
+    if not _finite_at_least_zero(r.prior_weight):
+      raise ConfigError(f"refine.prior_weight must be finite and >= 0, got {r.prior_weight!r}")
+    if r.enabled and r.starts > 1 and (r.prior_weight or r.starts > s.samples * s.rounds):
       raise ConfigError("refine.starts > 1 refines that many candidates by least squares: "
                         "it needs refine.prior_weight 0 and at most select.samples x "
                         f"select.rounds candidates, got {r.starts}")
-    if not _finite_at_least_zero(r.prior_weight):
-      raise ConfigError(f"refine.prior_weight must be finite and >= 0, got {r.prior_weight!r}")
     if self.estimator.path and not f.enabled:
       raise ConfigError("the estimator reads fitted boxes: it needs fit.enabled")
     q = self.posterior

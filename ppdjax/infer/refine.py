@@ -304,6 +304,7 @@ def refine_from_candidates(boxes: Primitives, scores: jax.Array, distinct: jax.A
   if starts > 1 and options.get("prior") is not None:
     raise ValueError("refine.starts > 1 compares the starts' distances: it runs without a "
                      "prior (refine.prior_weight 0)")
+  scores = jnp.where(jnp.isnan(scores), jnp.inf, scores)  # a rollout that blew up: last
   order = jnp.argsort(jnp.where(distinct, scores, jnp.inf))[:starts]
   closest = jnp.min(scores)
   refs = jax.vmap(lambda i: refine_if_closer(jax.tree.map(lambda x: x[i], boxes), observed,

@@ -37,7 +37,7 @@ def decompose_test(config, workdir: str, test_file: str, out_files: dict[str, st
       "fit.enabled": True, "fit.depth": True, "fit.image": False,
       "select.screen_steps": 0,
       **({"select.samples": 1, "select.rounds": 1, "select.inertia": False,
-          "select.continuation": 0}
+          "select.continuation": 0, "refine.starts": 1}
          if network_only else {})})
   one_pass = (settings.select.horizon == 0 and settings.fit.face_spread == 0
               and not settings.select.mass_match)

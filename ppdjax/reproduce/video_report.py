@@ -236,6 +236,8 @@ def _selection_words(d: dict) -> str:
                                              if d.get("sample_inertia") else "")
           + (f", round r's closest over the first {d['search_continuation']} x 2^r steps"
              if d.get("search_continuation") else "")
+          + (f", refined from its {d['refine_starts']} closest distinct candidates"
+             if d.get("refine_starts", 1) > 1 else "")
           + "; its winner before refinement is the '+Sample only' rows)")
 
 
