@@ -14,11 +14,13 @@ strike (no video, no tracking) and density scores that say nothing (uniform: pai
 the fine-tuned model's scores are not used). Each tower is searched as the look-alike preset
 searches (`search.search_densities`: rounds of 512 candidates with inertia scales, on the
 engine `decompose` picks: MuJoCo C on a CPU), once per continuation, from the same key,
-then refined as `decompose` refines (`refine_if_closer` from the candidate closest over
-the whole trajectory, on the data's box-plane JAX engine). Reported:
-density RMSE in slots by block count, before and after refinement, the answers' trajectory
-distances, and the paired difference of each continuation against none (95 % intervals
-over towers).
+then refined by `decompose`'s rule (`refine_if_closer` from the candidate closest over the
+whole trajectory, on the data's box-plane JAX engine, with forward differences: forward
+mode over eight starts ran out of a 2-core machine's 24 GB), or from each of the `--starts`
+closest distinct candidates, the refined answer of least distance kept (the selection of
+`refine.refine_from_candidates`). Reported: density RMSE in slots by block count, before
+and after refinement, the answers' trajectory distances, and paired differences against no
+continuation and against one start (95 % intervals over towers).
 """
 
 from __future__ import annotations
