@@ -1,5 +1,6 @@
 """Inference: density sampling, refinement through the simulator, decompose and its errors."""
 
+import functools
 import os
 
 import jax
@@ -338,22 +339,27 @@ def test_refinement_multiplies_in_full_float32(monkeypatch):
     assert found and set(found) == {"(Precision.HIGHEST, Precision.HIGHEST)"}, set(found)
 
 
+
+def smooth_simulate(prims, pushes, *, steps, settings, amplitude=1e-3, rate=0.05):
+  """A stand-in engine, (P, T, 7): x reads each box's log density (`amplitude` metres per
+  unit, oscillating at `rate` per step), y its inertia scale, both smoothly (one basin)."""
+  del settings
+  t = jnp.arange(steps)[:, None] * (jnp.arange(prims.valid.shape[0]) + 1.0)
+  live = jnp.where(prims.valid, 1.0, 0.0)
+  log_density = jnp.log(jnp.where(prims.valid, prims.density, 1e3) / 1e3)
+  x = amplitude * (jnp.sin(rate * t) * log_density).sum(-1)
+  scale = 1.0 if prims.inertia_scale is None else prims.inertia_scale
+  y = 1e-2 * (jnp.cos(0.07 * t) * (scale - 1.0) * live).sum(-1)
+  pose = jnp.concatenate([jnp.stack([x, y, 0 * x], -1), jnp.tile(jnp.array(
+      [1.0, 0, 0, 0]), (steps, 1))], -1)
+  return jnp.broadcast_to(pose, (pushes.num, steps, 7))
+
 def test_refinement_fits_inertia_scales_within_their_range(monkeypatch):
   """With `inertia`, each valid box's inertia scale is an unknown beside its density: a
   stand-in simulator whose motion reads both (smoothly, as a hollow block's does) is
   matched where densities alone cannot match it, the scales stay within
   INERTIA_SCALE_RANGE, and boxes given without scales (the candidates') come back with them."""
-  def fake_simulate(prims, pushes, *, steps, settings):  # x reads the densities, y the scales
-    del settings
-    t = jnp.arange(steps)[:, None] * (jnp.arange(prims.valid.shape[0]) + 1.0)
-    live = jnp.where(prims.valid, 1.0, 0.0)
-    log_density = jnp.log(jnp.where(prims.valid, prims.density, 1e3) / 1e3)
-    x = 1e-3 * (jnp.sin(0.05 * t) * log_density).sum(-1)
-    scale = 1.0 if prims.inertia_scale is None else prims.inertia_scale
-    y = 1e-2 * (jnp.cos(0.07 * t) * (scale - 1.0) * live).sum(-1)
-    pose = jnp.concatenate([jnp.stack([x, y, 0 * x], -1), jnp.tile(jnp.array(
-        [1.0, 0, 0, 0]), (steps, 1))], -1)
-    return jnp.broadcast_to(pose, (pushes.num, steps, 7))
+  fake_simulate = smooth_simulate
   monkeypatch.setattr(refine, "simulate", fake_simulate)
   truth = jax.tree.map(lambda x: jnp.asarray(x[0]), towers.sample_towers(1, 1, num_blocks=3))
   lo, hi = refine.INERTIA_SCALE_RANGE
@@ -378,14 +384,7 @@ def test_refining_from_several_candidates_keeps_the_closest_refined(monkeypatch)
   """`refine_from_candidates`: one start is the closest distinct candidate refined as
   `refine_if_closer` refines it; several return the least distance of their refinements;
   a repeat is never a start; a score that is NaN (a rollout that blew up) never is one."""
-  def fake_simulate(prims, pushes, *, steps, settings):
-    del settings  # a motion that reads each box's log density smoothly
-    t = jnp.arange(steps)[:, None] * (jnp.arange(prims.valid.shape[0]) + 1.0)
-    u = jnp.log(jnp.where(prims.valid, prims.density, 1e3) / 1e3)
-    x = 1e-2 * (jnp.sin(0.3 * t) * u * jnp.where(prims.valid, 1.0, 0.0)).sum(-1)
-    pose = jnp.concatenate([jnp.stack([x, 0 * x, 0 * x], -1), jnp.tile(jnp.array(
-        [1.0, 0, 0, 0]), (steps, 1))], -1)
-    return jnp.broadcast_to(pose, (pushes.num, steps, 7))
+  fake_simulate = functools.partial(smooth_simulate, amplitude=1e-2, rate=0.3)
   monkeypatch.setattr(refine, "simulate", fake_simulate)
   truth = jax.tree.map(lambda x: jnp.asarray(x[0]), towers.sample_towers(2, 1, num_blocks=3))
   observed = fake_simulate(truth, PUSHES, steps=24, settings=None)

@@ -22,8 +22,7 @@ class DemoConfig:
   backend: str = "mjx"  # the engine whose trajectories are shown
   reference_backend: str = "mujoco"  # compared against; "" to skip
   example_samples: int = 512  # density samples for the shipped example (the model's)
-  # the image fit (the shipped model's default; 2 CPU cores: ~12 s to compile, 1.3 s to run)
-  example_image_fit: bool = False
+  example_image_fit: bool = False  # the image fit (2 cores: ~12 s to compile, 1.3 s to run)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -339,8 +338,7 @@ def default_config() -> ml_collections.ConfigDict:
   return to_config_dict(RunConfig())
 
 
-# Keys whose earlier behaviour is not today's default: a run saved without one keeps it.
-SAVED_BEFORE = {("train", "end_weight"): None}  # the end token weighted by w, as the paper
+SAVED_BEFORE = {("train", "end_weight"): None}  # earlier defaults, kept by runs saved without
 
 
 def complete_saved(saved: dict) -> ml_collections.ConfigDict:

@@ -17,7 +17,7 @@ from ppdjax.configs.schema import ConfigError
 from ppdjax.infer import faces
 from ppdjax.infer.refine import check_jacobian
 from ppdjax.infer.sampling import check_screen, check_selection_horizon
-from ppdjax.infer.search import check_rounds, continuation_horizons
+from ppdjax.infer.search import check_continuation, check_rounds
 from ppdjax.sim.rollout_mjx import check_simulator
 
 
@@ -198,7 +198,7 @@ class DecomposeConfig:
       check_selection_horizon(s.horizon)
       check_screen(s.screen_steps, s.screen_keep, s.samples, 0)
       check_rounds(s.rounds)
-      continuation_horizons(s.continuation, s.rounds, s.horizon, 1)
+      check_continuation(s.continuation, s.rounds, s.horizon)
       check_jacobian(r.jacobian)
       check_simulator(self.simulator)
     except ValueError as e:
@@ -207,12 +207,6 @@ class DecomposeConfig:
       value = getattr(s, name)
       if not (name == "network_prior_weight" and value is None or _finite_at_least_zero(value)):
         raise ConfigError(f"select.{name} must be finite and >= 0, got {value!r}")
-    if s.continuation and 0 < s.horizon <= s.continuation:
-      raise ConfigError(f"select.continuation ({s.continuation} steps in round 0) must be "
-                        f"shorter than select.horizon ({s.horizon}), or it schedules nothing")
-    if s.continuation and s.rounds < 2:
-      raise ConfigError("select.continuation schedules +Search's rounds: it needs "
-                        f"select.rounds > 1, got {s.rounds}")
     if not isinstance(s.inertia, bool):
       raise ConfigError(f"select.inertia must be True or False, got {s.inertia!r}")
     if s.searches and (s.mass_match or s.screen_steps or f.face_spread):

@@ -58,15 +58,26 @@ def check_rounds(rounds: int) -> None:
                      f"{rounds!r}")
 
 
+def check_continuation(first: int, rounds: int, selection_horizon: int) -> None:
+  """Raises ValueError unless `first` (select.continuation) is a whole number >= 0 and,
+  above 0, schedules something: rounds > 1 and shorter than a selection horizon."""
+  if isinstance(first, bool) or not isinstance(first, (int, np.integer)) or first < 0:
+    raise ValueError(f"select.continuation must be a whole number >= 0 (0: none), got "
+                     f"{first!r}")
+  if first and 0 < selection_horizon <= first:
+    raise ValueError(f"select.continuation ({first} steps in round 0) must be shorter than "
+                     f"select.horizon ({selection_horizon}), or it schedules nothing")
+  if first and rounds < 2:
+    raise ValueError("select.continuation schedules +Search's rounds: it needs "
+                     f"select.rounds > 1, got {rounds}")
+
+
 def continuation_horizons(first: int, rounds: int, selection_horizon: int,
                           steps: int) -> tuple[int, ...]:
   """(rounds,) the steps each round's elite is compared over: `first` in round 0, doubling
   each round until it reaches the selection horizon (0: all `steps`), which the rest
-  keep; `first` 0: the selection horizon throughout. Raises ValueError for a negative
-  `first`."""
-  if isinstance(first, bool) or not isinstance(first, (int, np.integer)) or first < 0:
-    raise ValueError(f"select.continuation must be a whole number >= 0 (0: none), got "
-                     f"{first!r}")
+  keep; `first` 0: the selection horizon throughout (`check_continuation`'s errors)."""
+  check_continuation(first, rounds, selection_horizon)
   end = selection_horizon if 0 < selection_horizon < steps else steps
   if first == 0:
     return (selection_horizon,) * rounds
