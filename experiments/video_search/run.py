@@ -31,6 +31,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspa
 
 import numpy as np  # noqa: E402
 
+from ppdjax.metrics import bootstrap_interval  # noqa: E402
 from ppdjax.reproduce import video_decompose, video_report  # noqa: E402
 from ppdjax.training import checkpoints  # noqa: E402
 
@@ -44,6 +45,10 @@ flags.DEFINE_string("val_baseline", None, "--collect: the validation pipeline's 
 flags.DEFINE_string("runs", None, "--collect: the variants' answers on validation.")
 flags.DEFINE_string("test_runs", None, "--collect: the test pipeline's answers per variant.")
 flags.DEFINE_string("results", None, "--collect: the results file.")
+flags.DEFINE_string("section", "", "--collect: the results file's key for these rows ('': the "
+                    "first question's, at the top level).")
+flags.DEFINE_string("baseline", None, "--collect: the variant every other one is paired with.")
+flags.DEFINE_string("machine", "one NVIDIA H200", "--collect: where the decompositions ran.")
 FLAGS = flags.FLAGS
 
 
@@ -72,29 +77,67 @@ def runs_rows(test: dict, folder: str, ways: tuple[str, ...]) -> dict:
           for f in sorted(os.listdir(folder)) if f.endswith(".npz")}
 
 
+def paired(test: dict, first: dict, second: dict, way: str) -> dict:
+  """second's RMSE (slots) minus first's over the towers both answered, with a 95 %
+  interval over towers drawing both."""
+  ok = np.flatnonzero(first[f"{way}_valid"].any(-1) & second[f"{way}_valid"].any(-1))
+  one, two = (video_report.matched(test, ev, way)[0] for ev in (first, second))
+  diff = lambda i: (video_report.rmse_slots(two, test, ok[i])  # noqa: E731
+                    - video_report.rmse_slots(one, test, ok[i]))
+  return {"towers": int(len(ok)), "rmse": diff(np.arange(len(ok))),
+          "rmse_ci95": list(bootstrap_interval(diff, len(ok)))}
+
+
+def paired_rows(test: dict, folder: str, ways: tuple[str, ...]) -> dict:
+  """Each refined variant in `folder` against --baseline's, per trajectory read."""
+  load = lambda name: dict(np.load(os.path.join(folder, f"{name}_refine.npz")))  # noqa: E731
+  base = load(FLAGS.baseline)
+  names = [f.removesuffix("_refine.npz") for f in sorted(os.listdir(folder))
+           if f.endswith("_refine.npz") and f != f"{FLAGS.baseline}_refine.npz"]
+  return {f"{name}_minus_{FLAGS.baseline}": {way: paired(test, base, load(name), way)
+                                              for way in ways} for name in names}
+
+
 def collect() -> dict:
+  """The rows on both splits, the variant of least refined RMSE on validation (tracked) as
+  "chosen", and with --baseline each variant paired against it."""
   val = dict(np.load(FLAGS.val_towers))
-  found = {f"pipeline_{v}": rows(val, dict(np.load(os.path.join(
-      FLAGS.val_baseline, f"decompositions_{v}.npz"))), ("tracked",)) for v in ("sample", "refine")}
+  found = {}
+  if FLAGS.val_baseline:
+    found = {f"pipeline_{v}": rows(val, dict(np.load(os.path.join(
+        FLAGS.val_baseline, f"decompositions_{v}.npz"))), ("tracked",))
+             for v in ("sample", "refine")}
   found.update(runs_rows(val, FLAGS.runs, ("tracked",)))
   # a variant's refined answers under its name, its winner before refinement beside
   named = {k.removesuffix("_refine").replace("_sample", "_before_refinement")
            if not k.startswith("pipeline_") else k: v["tracked"] for k, v in found.items()}
   test = dict(np.load(FLAGS.test_towers))
-  return {"validation": {"towers": int(len(val["valid"])), "rows": named},
-          "test": {"towers": int(len(test["valid"])),
-                   "rows": runs_rows(test, FLAGS.test_runs, ("tracked", "true"))}}
+  variants = {k: v for k, v in named.items()
+              if not k.startswith("pipeline_") and not k.endswith("_before_refinement")}
+  out = {"validation": {"towers": int(len(val["valid"])), "rows": named},
+         "test": {"towers": int(len(test["valid"])),
+                  "rows": runs_rows(test, FLAGS.test_runs, ("tracked", "true"))},
+         "chosen": min(variants, key=lambda k: variants[k]["rmse_all"])}
+  if FLAGS.baseline:
+    out["validation"]["paired"] = paired_rows(val, FLAGS.runs, ("tracked",))
+    out["test"]["paired"] = paired_rows(test, FLAGS.test_runs, ("tracked", "true"))
+  return out
 
 
 def main(argv):
   del argv
   if FLAGS.collect:
     result = collect()
+    result.update(command="python " + " ".join(sys.argv), machine=FLAGS.machine,
+                  **({"baseline": FLAGS.baseline} if FLAGS.baseline else {}))
     previous = json.load(open(FLAGS.results)) if os.path.exists(FLAGS.results) else {}
-    previous.update(result, command="python " + " ".join(sys.argv),
-                    chosen="shells8", machine="one NVIDIA H200 (the decompositions)")
+    if FLAGS.section:
+      previous[FLAGS.section] = result
+    else:
+      previous.update(result)
     with open(FLAGS.results, "w") as f:
       json.dump(previous, f, indent=1)
+    print("chosen on validation:", result["chosen"])
     for split in ("validation", "test"):
       for name, row in result[split]["rows"].items():
         row = row.get("tracked", row)

@@ -16,6 +16,7 @@ from ppdjax.reproduce.video_decompose import WAYS
 
 VALIDATION_SUFFIX = "_val"  # report NAME's headline was chosen on report NAME_val's towers
 SEARCH_STUDY = "video_search"  # where the look-alike preset's +Search settings were chosen
+LATER_QUESTION = "starts"  # the section of SEARCH_STUDY's results that chose last
 
 
 def validation_summary(results_dir: str, name: str):
@@ -38,8 +39,11 @@ def validation_summary(results_dir: str, name: str):
   if name == "video_lookalike" and os.path.exists(search):  # +Search chosen on its towers
     with open(search) as f:
       study = json.load(f)
+    # its later question (refining from several starts, on a model of its own) if asked
+    study = study.get(LATER_QUESTION, study)
     rows = study["validation"]["rows"]
     out["search"] = {"study": f"experiments/{SEARCH_STUDY}/README.md", "chosen": study["chosen"],
+                     "against": study.get("baseline", "pipeline_refine"),
                      "density_rmse_tracked": {k: v["rmse_all"] for k, v in rows.items()
                                               if not k.endswith("_before_refinement")}}
   return out
@@ -244,10 +248,11 @@ def _selection_words(d: dict) -> str:
 def _search_words(search: dict | None) -> str:
   if not search:
     return ""
-  rmse = search["density_rmse_tracked"]
+  rmse, against = search["density_rmse_tracked"], search.get("against", "pipeline_refine")
   return (f", and +Search's on the same towers ({search['study']}: refined RMSE "
-          f"{rmse[search['chosen']]:.1f} for the chosen {search['chosen']} against the "
-          f"pipeline's {rmse['pipeline_refine']:.1f})")
+          f"{rmse[search['chosen']]:.1f} for the chosen {search['chosen']} against "
+          + (f"the pipeline's {rmse['pipeline_refine']:.1f})" if against == "pipeline_refine"
+             else f"{rmse[against]:.1f} for {against})"))
 
 
 def report_md(r: dict, figure: str = "video_heavier.png") -> str:
