@@ -414,3 +414,30 @@ def test_the_lookalike_report_reads_the_motion_against_the_look(tmp_path):
   assert sorted(saved["twins"]) in ([0, 1], [2, 3], [0, 3], [1, 2], [0, 2], [1, 3])
   assert (tmp_path / "res" / "video_lookalike_twins.png").exists()
   assert "the motion against the look" in (tmp_path / "res" / "video_lookalike.md").read_text()
+
+
+def test_the_lookalike_report_names_the_search_studys_latest_choice(tmp_path):
+  """validation_summary reads video_search's later question (refine.starts, its own
+  baseline) where the study holds one, and its first question (rounds, against the
+  validation pipeline's +Refine) where it does not; the report's words follow."""
+  import json  # pylint: disable=import-outside-toplevel
+  from ppdjax.reproduce import video_report  # pylint: disable=import-outside-toplevel
+  val = {"seed": 7, "decompose": {"refine": True},
+         "density": {"tracked": {"rmse_all": 12.0}, "tracked, +Sample only": {"rmse_all": 15.0}}}
+  (tmp_path / "video_lookalike_val.json").write_text(json.dumps(val))
+  rows = lambda **r: {"rows": {k: {"rmse_all": v} for k, v in r.items()}}  # noqa: E731
+  study = {"validation": rows(pipeline_refine=12.0, shells8=8.7, shells8_before_refinement=9.9),
+           "chosen": "shells8"}
+  (tmp_path / "video_search.json").write_text(json.dumps(study))
+  first = video_report.validation_summary(str(tmp_path), "video_lookalike")["search"]
+  assert first["chosen"] == "shells8" and first["against"] == "pipeline_refine"
+  assert "8.7 for the chosen shells8 against the pipeline's 12.0" in video_report._search_words(
+      first)
+  study["starts"] = {"validation": rows(shells8=9.0, starts8=6.5), "chosen": "starts8",
+                     "baseline": "shells8"}
+  (tmp_path / "video_search.json").write_text(json.dumps(study))
+  later = video_report.validation_summary(str(tmp_path), "video_lookalike")["search"]
+  assert later["chosen"] == "starts8" and later["density_rmse_tracked"] == {
+      "shells8": 9.0, "starts8": 6.5}
+  assert "6.5 for the chosen starts8 against 9.0 for shells8" in video_report._search_words(later)
+  assert video_report.validation_summary(str(tmp_path), "video_lookalike_val") is None
