@@ -15,7 +15,9 @@ before refinement), and DIR/summary.json (the seconds each took). `--collect` re
 variants' answers on validation beside the validation pipeline's own (+Sample and +Refine:
 V/decompositions_{sample,refine}.npz) and, for the test towers, the pipeline's answers
 made with each setting (TDIR/NAME_{sample,refine}.npz), and writes the rows with 95 %
-bootstrap intervals over towers.
+bootstrap intervals over towers, the variant of least refined RMSE on validation as
+"chosen", and with --baseline each variant's RMSE paired against it. --section puts a
+later question's rows under their own key (the report reads the study's latest choice).
 """
 
 from __future__ import annotations
