@@ -136,10 +136,11 @@ def test_shipped_paper_protocol_tools_model_finds_the_boxes_of_fresh_tools():
                                           (TOOLS_PAPER_MODEL, "tools_paper"),
                                           (LOOKALIKE_MODEL, "video:lookalike")])
 def test_shipped_model_evaluates_with_the_presets_rules(model, preset):
-  """A shipped model's saved evaluation settings are its preset's (the defaults of
-  `python -m ppdjax.evaluate --workdir=assets/...`, and the selection horizon the example
-  and `python -m ppdjax.decompose` pass; what experiments/results/blocks.md and tools.md
-  measured): no stale default."""
+  """A shipped model's saved evaluation settings are its preset's (what
+  experiments/results/blocks.md, tools.md and video_lookalike.md measured: for the blocks
+  and tools models the defaults of `python -m ppdjax.evaluate --workdir=assets/...` and
+  the selection horizon the example and `python -m ppdjax.decompose` pass; for the
+  look-alike model what `make_decompose_fn` runs): no stale default."""
   preset, _, size = preset.partition(":")
   presets = importlib.import_module(f"ppdjax.configs.{preset}")
   _, config = ppdjax.load(model)

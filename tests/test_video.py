@@ -441,3 +441,14 @@ def test_the_lookalike_report_names_the_search_studys_latest_choice(tmp_path):
       "shells8": 9.0, "starts8": 6.5}
   assert "6.5 for the chosen starts8 against 9.0 for shells8" in video_report._search_words(later)
   assert video_report.validation_summary(str(tmp_path), "video_lookalike_val") is None
+
+
+def test_the_report_says_how_many_starts_were_refined():
+  """One start: the closest candidate refined; several: each refined, the closest kept;
+  no refinement: the closest alone, whatever refine_starts says."""
+  from ppdjax.reproduce import video_report  # pylint: disable=import-outside-toplevel
+  words = video_report._refine_words  # pylint: disable=protected-access
+  assert words({"refine": True, "refine_starts": 1}) == (
+      "the closest by trajectory refined by Levenberg-Marquardt")
+  assert words({"refine": True, "refine_starts": 8}).startswith("the 8 closest distinct")
+  assert words({"refine": False, "refine_starts": 8}) == "the closest by trajectory"

@@ -6,10 +6,12 @@ their distance to the tracked trajectory beside the refined answer's.
       --answers=ROOT/decompositions_refine.npz --out=experiments/results/video_search.json \
       --section=oracle_test
 
-A true density within reach of the fitted boxes, closer to the tracked motion than the
-answer the search and refinement returned, says the search stops short; a truth further
-away than the answer says the fitted boxes (or the engine) cannot carry the true densities,
-and least squares moves the densities to make up for them.
+A truth closer to the tracked motion than the answer the search and refinement returned
+says the search stopped short on that tower. A truth far from the tracked motion on the
+fitted boxes but close on the true ones says the fitted boxes cannot carry the true
+densities, and least squares moves the densities to make up for them. The answer's
+distance is the score `decompose` saved (the same engine; its boxes' inertia scales are
+not saved, so it is not simulated again).
 """
 
 from __future__ import annotations
@@ -27,9 +29,10 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ppdjax import metrics  # noqa: E402
+from ppdjax.conventions import density_to_slot  # noqa: E402
 from ppdjax.configs import video  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
-from ppdjax.primitives import Primitives  # noqa: E402
+from ppdjax.primitives import FIELDS, Primitives  # noqa: E402
 from ppdjax.sim.rollout_mjx import jax_engine, simulate  # noqa: E402
 
 flags.DEFINE_string("towers", None, "A video pipeline's test_towers.npz (truth, tracked).")
@@ -41,12 +44,26 @@ WAY = "tracked"
 GOOD_FACES_MM = 0.5  # faces within this: refinement on true boxes' neighbours is near exact
 
 
+def nearest_boxes(test: dict, ev: dict) -> np.ndarray:
+  """(B, K) the answer's box nearest each true block's centre."""
+  pos = np.nan_to_num(ev[f"{WAY}_pos"])
+  dist = np.linalg.norm(test["pos"][:, :, None] - pos[:, None], axis=-1)  # (B, K, K')
+  return np.argmin(np.where(ev[f"{WAY}_valid"][:, None], dist, np.inf), -1)
+
+
+def matching_checks(test: dict, ev: dict) -> dict:
+  """What the oracle's matching assumes, counted: one box per block, boxes axis-aligned."""
+  nearest = nearest_boxes(test, ev)
+  shared = sum(len(set(n[v])) < v.sum() for n, v in zip(nearest, test["valid"]))
+  quat = ev[f"{WAY}_quat"][ev[f"{WAY}_valid"]]
+  turned = int((np.abs(np.abs(quat[:, 0]) - 1.0) > 1e-4).sum())
+  return {"towers_with_a_shared_box": int(shared), "fitted_boxes_turned": turned}
+
+
 def face_errors_mm(test: dict, ev: dict) -> np.ndarray:
   """(B, K) each true block's largest face error against the answer's box nearest it
   (axis-aligned: the towers' blocks are), mm; 0 for no block."""
-  pos = np.nan_to_num(ev[f"{WAY}_pos"])
-  dist = np.linalg.norm(test["pos"][:, :, None] - pos[:, None], axis=-1)  # (B, K, K')
-  nearest = np.argmin(np.where(ev[f"{WAY}_valid"][:, None], dist, np.inf), -1)
+  pos, nearest = np.nan_to_num(ev[f"{WAY}_pos"]), nearest_boxes(test, ev)
   take = lambda a: np.take_along_axis(a, nearest[..., None], 1)  # noqa: E731
   err = np.abs(test["pos"] - take(pos)) + np.abs(test["half_size"] - take(ev[f"{WAY}_half_size"]))
   return np.where(test["valid"], 1e3 * err.max(-1), 0.0)
@@ -71,8 +88,7 @@ def main(argv):
   pushes, settings = generation.pushes_of(data), jax_engine(data.backend)
   ok = np.flatnonzero(np.isfinite(test[f"{WAY}_trajectory"]).all((1, 2))
                       & ev[f"{WAY}_valid"].any(-1))
-  truth = Primitives(*(test[f] for f in ("half_size", "pos", "quat", "density", "valid")),
-                     inertia_scale=test["inertia_scale"])
+  truth = Primitives(*(test[f] for f in FIELDS), inertia_scale=test["inertia_scale"])
   observed = test[f"{WAY}_trajectory"][ok][:, None]
   steps = observed.shape[2]
   distance = {}
@@ -85,6 +101,14 @@ def main(argv):
   distance["answer"] = ev[f"{WAY}_score"][ok]
   blocks = test["valid"].sum(-1)[ok]
   faces = face_errors_mm(test, ev)[ok]
+  answer = np.take_along_axis(ev[f"{WAY}_density"], nearest_boxes(test, ev), 1)[ok]
+  valid = test["valid"][ok]
+  sq = np.where(valid, (density_to_slot(np.nan_to_num(answer, nan=100.0))
+                        - density_to_slot(test["density"][ok])) ** 2, 0.0).sum(-1)
+  rmse = lambda sel: float(np.sqrt(sq[sel].sum() / valid[sel].sum()))  # noqa: E731
+  # the tracker's pose error by step: the strike's first steps apart from the rest
+  error = 1e3 * np.linalg.norm(np.asarray(metrics.pose_residual(
+      test[f"{WAY}_trajectory"][ok], test["true_trajectory"][ok])), axis=-1)  # (B, T)
   good = faces.max(-1) < GOOD_FACES_MM
   mm = lambda d, sel: 1e3 * float(np.median(d[sel]))  # noqa: E731
   by_blocks = lambda f: {str(b): f(blocks == b) for b in (2, 3, 4)}  # noqa: E731
@@ -94,11 +118,17 @@ def main(argv):
                 lambda sel, d=d: mm(d, sel))} for name, d in distance.items()},
             "truth_closer_than_answer_share": by_blocks(lambda sel: float(
                 (distance["truth_on_fitted_boxes"] < distance["answer"])[sel].mean())),
+            "answer_rmse_slots": by_blocks(rmse),
+            "tracking_error_mm_median": {"step_0": float(np.median(error[:, 0])),
+                                         "step_1": float(np.median(error[:, 1])),
+                                         "steps_2_on": float(np.median(error[:, 2:]))},
+            **matching_checks({k: test[k][ok] for k in ("pos", "valid")},
+                              {k: v[ok] for k, v in ev.items() if k.startswith(WAY)}),
             "face_error_mm": by_blocks(lambda sel: {
                 q: float(np.percentile(faces[sel][test["valid"][ok][sel]], p))
                 for q, p in (("median", 50), ("p90", 90))}),
             f"faces_within_{GOOD_FACES_MM}_mm": {
-                f"{which}_{b}": {"towers": int(sel.sum()), **{
+                f"{which}_{b}": {"towers": int(sel.sum()), "answer_rmse_slots": rmse(sel), **{
                     name: mm(d, sel) for name, d in distance.items()}}
                 for b in (3, 4) for which, sel in (("all_within", good & (blocks == b)),
                                                    ("some_beyond", ~good & (blocks == b)))}}

@@ -50,7 +50,7 @@ flags.DEFINE_string("results", None, "--collect: the results file.")
 flags.DEFINE_string("section", "", "--collect: the results file's key for these rows ('': the "
                     "first question's, at the top level).")
 flags.DEFINE_string("baseline", None, "--collect: the variant every other one is paired with.")
-flags.DEFINE_string("machine", "one NVIDIA H200", "--collect: where the decompositions ran.")
+flags.DEFINE_string("machine", None, "--collect: where the decompositions ran (required).")
 FLAGS = flags.FLAGS
 
 
@@ -119,7 +119,8 @@ def collect() -> dict:
   out = {"validation": {"towers": int(len(val["valid"])), "rows": named},
          "test": {"towers": int(len(test["valid"])),
                   "rows": runs_rows(test, FLAGS.test_runs, ("tracked", "true"))},
-         "chosen": min(variants, key=lambda k: variants[k]["rmse_all"])}
+         "chosen": min(variants, key=lambda k: np.nan_to_num(variants[k]["rmse_all"],
+                                                             nan=np.inf))}
   if FLAGS.baseline:
     out["validation"]["paired"] = paired_rows(val, FLAGS.runs, ("tracked",))
     out["test"]["paired"] = paired_rows(test, FLAGS.test_runs, ("tracked", "true"))
@@ -129,6 +130,8 @@ def collect() -> dict:
 def main(argv):
   del argv
   if FLAGS.collect:
+    if not FLAGS.machine:
+      raise app.UsageError("--collect needs --machine: where the decompositions ran")
     result = collect()
     result.update(command="python " + " ".join(sys.argv), machine=FLAGS.machine,
                   **({"baseline": FLAGS.baseline} if FLAGS.baseline else {}))

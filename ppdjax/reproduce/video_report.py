@@ -240,9 +240,15 @@ def _selection_words(d: dict) -> str:
                                              if d.get("sample_inertia") else "")
           + (f", round r's closest over the first {d['search_continuation']} x 2^r steps"
              if d.get("search_continuation") else "")
-          + (f", refined from its {d['refine_starts']} closest distinct candidates"
-             if d.get("refine_starts", 1) > 1 else "")
           + "; its winner before refinement is the '+Sample only' rows)")
+
+
+def _refine_words(d: dict) -> str:
+  starts = d.get("refine_starts", 1) if d["refine"] else 1
+  if starts > 1:
+    return (f"the {starts} closest distinct candidates by trajectory each refined by "
+            "Levenberg-Marquardt, the closest refined kept")
+  return "the closest by trajectory" + (" refined by Levenberg-Marquardt" if d["refine"] else "")
 
 
 def _search_words(search: dict | None) -> str:
@@ -272,8 +278,8 @@ def report_md(r: dict, figure: str = "video_heavier.png") -> str:
       f"{r['video']['noise']:g} grey levels, lighting drift ±{100 * r['video']['lighting']:.0f} %) "
       "through the sticker tracker; beside it, the same model fed the true trajectory "
       f"prices the tracker. Decomposition: boxes fitted to the voxels and depth, "
-      + _selection_words(r["decompose"]) + ", the closest by trajectory"
-      + (" refined by Levenberg-Marquardt" if r["decompose"]["refine"] else
+      + _selection_words(r["decompose"]) + ", " + _refine_words(r["decompose"])
+      + ("" if r["decompose"]["refine"] else
          " (+Sample; Levenberg-Marquardt refinement after it is the +Refine rows)")
       + ("" if not r["validation"] else
          f"; the headline's method was chosen on validation towers of seed "
