@@ -117,7 +117,7 @@ def main(argv):
             "median_distance_mm": {name: {"all": mm(d, slice(None)), **by_blocks(
                 lambda sel, d=d: mm(d, sel))} for name, d in distance.items()},
             "truth_closer_than_answer_share": by_blocks(lambda sel: float(
-                (distance["truth_on_fitted_boxes"] < distance["answer"])[sel].mean())),
+                (distance["answer"] > distance["truth_on_fitted_boxes"])[sel].mean())),
             "answer_rmse_slots": by_blocks(rmse),
             "tracking_error_mm_median": {"step_0": float(np.median(error[:, 0])),
                                          "step_1": float(np.median(error[:, 1])),
