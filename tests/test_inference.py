@@ -339,7 +339,6 @@ def test_refinement_multiplies_in_full_float32(monkeypatch):
     assert found and set(found) == {"(Precision.HIGHEST, Precision.HIGHEST)"}, set(found)
 
 
-
 def smooth_simulate(prims, pushes, *, steps, settings, amplitude=1e-3, rate=0.05):
   """A stand-in engine, (P, T, 7): x reads each box's log density (`amplitude` metres per
   unit, oscillating at `rate` per step), y its inertia scale, both smoothly (one basin)."""
@@ -354,17 +353,17 @@ def smooth_simulate(prims, pushes, *, steps, settings, amplitude=1e-3, rate=0.05
       [1.0, 0, 0, 0]), (steps, 1))], -1)
   return jnp.broadcast_to(pose, (pushes.num, steps, 7))
 
+
 def test_refinement_fits_inertia_scales_within_their_range(monkeypatch):
   """With `inertia`, each valid box's inertia scale is an unknown beside its density: a
   stand-in simulator whose motion reads both (smoothly, as a hollow block's does) is
   matched where densities alone cannot match it, the scales stay within
   INERTIA_SCALE_RANGE, and boxes given without scales (the candidates') come back with them."""
-  fake_simulate = smooth_simulate
-  monkeypatch.setattr(refine, "simulate", fake_simulate)
+  monkeypatch.setattr(refine, "simulate", smooth_simulate)
   truth = jax.tree.map(lambda x: jnp.asarray(x[0]), towers.sample_towers(1, 1, num_blocks=3))
   lo, hi = refine.INERTIA_SCALE_RANGE
   scale = jnp.where(truth.valid, jnp.array([1.4, 0.75, 2.3, 1.0, 1.0]), 1.0)  # 2.3: beyond
-  observed = fake_simulate(truth.replace(inertia_scale=scale), PUSHES, steps=32, settings=None)
+  observed = smooth_simulate(truth.replace(inertia_scale=scale), PUSHES, steps=32, settings=None)
   start = truth.replace(density=truth.density * 1.3)  # uniform boxes, 30 % heavy
   run = lambda inertia: jax.jit(lambda p, o: refine.refine_if_closer(
       p, o, jnp.float32(1.0), PUSHES, steps=8, inertia=inertia, jacobian="differences"))(

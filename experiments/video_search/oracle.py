@@ -29,10 +29,10 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ppdjax import metrics  # noqa: E402
-from ppdjax.conventions import density_to_slot  # noqa: E402
 from ppdjax.configs import video  # noqa: E402
 from ppdjax.dataset import generation  # noqa: E402
 from ppdjax.primitives import FIELDS, Primitives  # noqa: E402
+from ppdjax.reproduce.video_report import matched, nearest_boxes, rmse_slots  # noqa: E402
 from ppdjax.sim.rollout_mjx import jax_engine, simulate  # noqa: E402
 
 flags.DEFINE_string("towers", None, "A video pipeline's test_towers.npz (truth, tracked).")
@@ -44,16 +44,9 @@ WAY = "tracked"
 GOOD_FACES_MM = 0.5  # faces within this: refinement on true boxes' neighbours is near exact
 
 
-def nearest_boxes(test: dict, ev: dict) -> np.ndarray:
-  """(B, K) the answer's box nearest each true block's centre."""
-  pos = np.nan_to_num(ev[f"{WAY}_pos"])
-  dist = np.linalg.norm(test["pos"][:, :, None] - pos[:, None], axis=-1)  # (B, K, K')
-  return np.argmin(np.where(ev[f"{WAY}_valid"][:, None], dist, np.inf), -1)
-
-
 def matching_checks(test: dict, ev: dict) -> dict:
   """What the oracle's matching assumes, counted: one box per block, boxes axis-aligned."""
-  nearest = nearest_boxes(test, ev)
+  nearest = nearest_boxes(test, ev, WAY)
   shared = sum(len(set(n[v])) < v.sum() for n, v in zip(nearest, test["valid"]))
   quat = ev[f"{WAY}_quat"][ev[f"{WAY}_valid"]]
   turned = int((np.abs(np.abs(quat[:, 0]) - 1.0) > 1e-4).sum())
@@ -63,7 +56,7 @@ def matching_checks(test: dict, ev: dict) -> dict:
 def face_errors_mm(test: dict, ev: dict) -> np.ndarray:
   """(B, K) each true block's largest face error against the answer's box nearest it
   (axis-aligned: the towers' blocks are), mm; 0 for no block."""
-  pos, nearest = np.nan_to_num(ev[f"{WAY}_pos"]), nearest_boxes(test, ev)
+  pos, nearest = np.nan_to_num(ev[f"{WAY}_pos"]), nearest_boxes(test, ev, WAY)
   take = lambda a: np.take_along_axis(a, nearest[..., None], 1)  # noqa: E731
   err = np.abs(test["pos"] - take(pos)) + np.abs(test["half_size"] - take(ev[f"{WAY}_half_size"]))
   return np.where(test["valid"], 1e3 * err.max(-1), 0.0)
@@ -101,11 +94,8 @@ def main(argv):
   distance["answer"] = ev[f"{WAY}_score"][ok]
   blocks = test["valid"].sum(-1)[ok]
   faces = face_errors_mm(test, ev)[ok]
-  answer = np.take_along_axis(ev[f"{WAY}_density"], nearest_boxes(test, ev), 1)[ok]
-  valid = test["valid"][ok]
-  sq = np.where(valid, (density_to_slot(np.nan_to_num(answer, nan=100.0))
-                        - density_to_slot(test["density"][ok])) ** 2, 0.0).sum(-1)
-  rmse = lambda sel: float(np.sqrt(sq[sel].sum() / valid[sel].sum()))  # noqa: E731
+  answer = matched(test, ev, WAY)[0]
+  rmse = lambda sel: rmse_slots(answer, test, ok[sel])  # noqa: E731
   # the tracker's pose error by step: the strike's first steps apart from the rest
   error = 1e3 * np.linalg.norm(np.asarray(metrics.pose_residual(
       test[f"{WAY}_trajectory"][ok], test["true_trajectory"][ok])), axis=-1)  # (B, T)

@@ -54,12 +54,17 @@ TARGETS = {"rmse_all": 10.0, "rmse_2_blocks": 5.0, "pearson": 0.95}
 LOG2_LEVELS = np.arange(-4, 5)  # the paper's answer scale {2^k, k = -4..4}
 
 
-def matched(test: dict, ev: dict, way: str):
-  """(B, K) predicted density and mass of the box nearest each true block (NaN: none)."""
+def nearest_boxes(test: dict, ev: dict, way: str) -> np.ndarray:
+  """(B, K) the index of the predicted box nearest each true block's centre."""
   pos, valid = ev[f"{way}_pos"], ev[f"{way}_valid"]
   dist = np.linalg.norm(test["pos"][:, :, None] - pos[:, None], axis=-1)  # (B, K, K')
   dist = np.where(valid[:, None], dist, np.inf)
-  nearest = np.argmin(np.nan_to_num(dist, nan=np.inf), -1)
+  return np.argmin(np.nan_to_num(dist, nan=np.inf), -1)
+
+
+def matched(test: dict, ev: dict, way: str):
+  """(B, K) predicted density and mass of the box nearest each true block (NaN: none)."""
+  valid, nearest = ev[f"{way}_valid"], nearest_boxes(test, ev, way)
   take = lambda a: np.take_along_axis(a, nearest, 1)  # noqa: E731
   dens = take(ev[f"{way}_density"])
   volume = 8 * np.prod(ev[f"{way}_half_size"], -1)
